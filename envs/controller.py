@@ -1,0 +1,81 @@
+"""Operational-space control through differential inverse kinematics (mink).
+
+The policy commands end-effector poses; every control step this controller
+moves each mink ``FrameTask`` target, solves one QP (``mink.solve_ik``) under
+joint-position and joint-velocity limits with a ``PostureTask`` regulariser,
+and integrates the result into joint position targets for the actuators.
+
+Each step starts from the measured joint positions, so the controller holds
+no hidden state: the observation is the whole story (robots are
+gravity-compensated, as real arms are, so a zero action holds still).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import mink
+import mujoco
+import numpy as np
+
+
+class OperationalSpaceController:
+    """Differential-IK end-effector controller for one or more frames.
+
+    Args:
+        model: kinematic model containing the robot (no free objects).
+        sites: names of the end-effector sites, one FrameTask each.
+        home_qpos: joint name -> posture target.
+        max_joint_velocity: joint name -> velocity limit (rad/s).
+        dt: control period (s); the QP's integration step.
+        solver: a QP solver known to ``qpsolvers`` (``"daqp"`` or ``"quadprog"``).
+        position_cost: FrameTask position weight.
+        orientation_cost: FrameTask orientation weight.
+        posture_cost: PostureTask weight (small: it only resolves redundancy).
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        sites: Sequence[str],
+        home_qpos: Mapping[str, float],
+        max_joint_velocity: Mapping[str, float],
+        dt: float,
+        solver: str = "daqp",
+        position_cost: float = 1.0,
+        orientation_cost: float = 0.5,
+        posture_cost: float = 1e-2,
+    ) -> None:
+        self.model = model
+        self.dt = dt
+        self.solver = solver
+        self.configuration = mink.Configuration(model)
+        self.frame_tasks = [
+            mink.FrameTask(site, "site", position_cost=position_cost, orientation_cost=orientation_cost,
+                           lm_damping=1e-3)
+            for site in sites
+        ]
+        self.home = self.configuration.q.copy()
+        for joint, value in home_qpos.items():
+            self.home[model.joint(joint).qposadr[0]] = value
+        self.posture_task = mink.PostureTask(model, cost=posture_cost)
+        self.posture_task.set_target(self.home)
+        self.limits = [mink.ConfigurationLimit(model), mink.VelocityLimit(model, dict(max_joint_velocity))]
+        self._tasks = [*self.frame_tasks, self.posture_task]
+
+    def step(self, q: np.ndarray, targets: Sequence[mink.SE3]) -> np.ndarray:
+        """From joint positions ``q``, move toward ``targets`` for one control period.
+
+        Returns:
+            Commanded joint positions (the kinematic model's full ``qpos``).
+
+        Raises:
+            mink.NoSolutionFound: the QP is infeasible (the caller truncates the episode).
+        """
+        self.configuration.update(q)
+        for task, target in zip(self.frame_tasks, targets, strict=True):
+            task.set_target(target)
+        velocity = mink.solve_ik(self.configuration, self._tasks, self.dt, self.solver, damping=1e-3,
+                                 limits=self.limits)
+        self.configuration.integrate_inplace(velocity, self.dt)
+        return self.configuration.q

@@ -1,0 +1,305 @@
+"""``DustEnv``: a seeded, language-conditioned tabletop manipulation env.
+
+The policy commands end-effector poses (delta or absolute) and gripper
+closures; an operational-space controller (mink) turns them into joint
+targets for the robot's position actuators at the control rate while
+MuJoCo steps physics at the physics rate. Observations use the flat
+LeRobot-style names of the torchrl VLA schema (``observation.image.<cam>``,
+``observation.state``, ``language_instruction``); ``dust_rl.envs.torchrl``
+nests them into the canonical TensorDict keys.
+"""
+
+from __future__ import annotations
+
+import string
+from collections.abc import Sequence
+
+import gymnasium as gym
+import mink
+import numpy as np
+
+from .rendering import CameraRenderer, RENDER_QUALITIES  # sets MUJOCO_GL before mujoco loads
+import mujoco  # noqa: E402  (after rendering)
+
+from .controller import OperationalSpaceController
+from .experts import WaypointExpert
+from .robot import RobotConfig
+from .robots import ROBOT_BUILDERS
+from .scene import new_tabletop_spec
+from .tasks import make_task
+
+OBS_MODES = ("rgb", "state")
+CONTROL_MODES = ("delta", "absolute")
+REWARD_TYPES = ("sparse", "dense")
+INSTRUCTION_CHARSET = string.ascii_letters + string.digits + " ,.'-"
+MAX_INSTRUCTION_LENGTH = 256
+
+MAX_TRANSLATION = 0.02  # metres per control step at |action| = 1 (delta mode)
+MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
+# Absolute mode: position in this box (table frame) and axis-angle up to pi.
+WORKSPACE_LOW = np.array([0.15, -0.45, 0.0])
+WORKSPACE_HIGH = np.array([0.85, 0.45, 0.6])
+_POSITION_TARGET_LIMITS = (WORKSPACE_LOW - [0, 0, 0.05], WORKSPACE_HIGH)
+
+
+class DustEnv(gym.Env):
+    """Tabletop manipulation with end-effector control through mink.
+
+    Args:
+        task: task name; see :func:`dust_rl.envs.list_tasks`.
+        robot: robot suite (``"franka"``).
+        obs_mode: ``"rgb"`` (camera images + state) or ``"state"`` (no rendering, for RL).
+        control_mode: ``"delta"`` (default; per step at most 2 cm and 0.1 rad) or
+            ``"absolute"`` (pose in the workspace box, axis-angle / pi).
+        image_size: image height and width in pixels (an int or ``(height, width)``).
+        cameras: cameras to render; defaults to ``front`` plus the robot's own.
+        reward_type: ``"sparse"`` (1 on success) or ``"dense"`` (staged shaping, 1 on success).
+        render_mode: ``"rgb_array"`` or None.
+        render_quality: ``"fast"`` (no shadows/MSAA, low-poly robot) or ``"visual"``.
+        max_episode_steps: overrides the task's default time limit.
+        control_hz: control rate; physics runs at ``1 / physics_dt``.
+        physics_dt: MuJoCo timestep (s).
+        ik_solver: QP solver for mink (``"daqp"`` or ``"quadprog"``).
+
+    Actions outside [-1, 1] are clipped; non-finite or wrongly shaped actions
+    raise ``ValueError``. An infeasible IK problem or diverging physics ends the
+    episode with ``truncated=True`` and ``info["truncation_reason"]`` set.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+
+    def __init__(
+        self,
+        task: str = "pick_place",
+        robot: str = "franka",
+        obs_mode: str = "rgb",
+        control_mode: str = "delta",
+        image_size: int | Sequence[int] = 128,
+        cameras: Sequence[str] | None = None,
+        reward_type: str = "sparse",
+        render_mode: str | None = None,
+        render_quality: str = "fast",
+        max_episode_steps: int | None = None,
+        control_hz: float = 20.0,
+        physics_dt: float = 0.002,
+        ik_solver: str = "daqp",
+    ) -> None:
+        _check_choice("obs_mode", obs_mode, OBS_MODES)
+        _check_choice("control_mode", control_mode, CONTROL_MODES)
+        _check_choice("reward_type", reward_type, REWARD_TYPES)
+        _check_choice("render_mode", render_mode, (None, *self.metadata["render_modes"]))
+        _check_choice("render_quality", render_quality, RENDER_QUALITIES)
+        _check_choice("robot", robot, tuple(ROBOT_BUILDERS))
+        self.task = make_task(task, robot)
+        self.obs_mode, self.control_mode, self.reward_type = obs_mode, control_mode, reward_type
+        self.render_mode = render_mode
+        self.max_episode_steps = max_episode_steps or self.task.max_episode_steps
+        self.n_substeps = int(round(1.0 / (control_hz * physics_dt)))
+        self.control_dt = self.n_substeps * physics_dt
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.control_dt))}
+
+        self.model, self.robot = self._compile(physics_dt, with_task=True)
+        self.data = mujoco.MjData(self.model)
+        self.task.bind(self.model, self.robot)
+        ik_model, _ = self._compile(physics_dt, with_task=False)
+        self.controller = OperationalSpaceController(
+            ik_model, [ee.site for ee in self.robot.end_effectors], self.robot.home_qpos,
+            self.robot.max_joint_velocity, self.control_dt, solver=ik_solver)
+        self._index_robot(ik_model)
+
+        self.cameras = tuple(cameras) if cameras is not None else ("front", *self.robot.cameras)
+        for camera in self.cameras:
+            if mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera) < 0:
+                raise ValueError(f"unknown camera {camera!r}; this scene has {self._camera_names()}")
+        height, width = (image_size, image_size) if isinstance(image_size, int) else tuple(image_size)
+        self.image_shape = (int(height), int(width), 3)
+        self._renderer: CameraRenderer | None = None
+        self._render_quality = render_quality
+
+        n_ee = len(self.robot.end_effectors)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (7 * n_ee,), np.float32)
+        self.observation_space = self._make_observation_space()
+        self._instruction = ""
+        self._elapsed = 0
+
+    # -- construction ---------------------------------------------------------------------------
+
+    def _compile(self, physics_dt: float, with_task: bool) -> tuple[mujoco.MjModel, RobotConfig]:
+        spec = new_tabletop_spec(physics_dt)
+        robot = ROBOT_BUILDERS[self.task.robot](spec)
+        if with_task:
+            self.task.build(spec)
+        return spec.compile(), robot
+
+    def _index_robot(self, ik_model: mujoco.MjModel) -> None:
+        """Cache the index maps between the simulator, the IK model and the actuators."""
+        ik_joints = [ik_model.joint(j).name for j in range(ik_model.njnt)]
+        self._sim_qadr = np.array([self.model.joint(j).qposadr[0] for j in ik_joints])
+        self._ik_range = ik_model.jnt_range.copy()
+        self._ik_limited = ik_model.jnt_limited.astype(bool)
+        self._ik_arm_qadr = np.array([ik_model.joint(j).qposadr[0] for j in self.robot.arm_joints])
+        self._arm_ctrl = np.array([self.model.actuator(a).id for a in self.robot.arm_actuators])
+        self._ee_sites = np.array([self.model.site(ee.site).id for ee in self.robot.end_effectors])
+        self._ee_ctrl = [np.array([self.model.actuator(a).id for a in ee.actuators])
+                         for ee in self.robot.end_effectors]
+        self._ee_opening = [np.array([self.model.joint(j).qposadr[0] for j in ee.opening_joints])
+                            for ee in self.robot.end_effectors]
+        robot_joints = [*self.robot.arm_joints, *(j for ee in self.robot.end_effectors for j in ee.opening_joints)]
+        self._state_qadr = np.array([self.model.joint(j).qposadr[0] for j in robot_joints])
+        self._home_qpos = {self.model.joint(j).qposadr[0]: v for j, v in self.robot.home_qpos.items()}
+
+    def _camera_names(self) -> list[str]:
+        return [self.model.camera(i).name for i in range(self.model.ncam)]
+
+    def _make_observation_space(self) -> gym.spaces.Dict:
+        n_ee = len(self.robot.end_effectors)
+        state_dim = len(self._state_qadr) + 8 * n_ee  # joints + per-EE (pos, quat, opening)
+        spaces: dict[str, gym.spaces.Space] = {}
+        if self.obs_mode == "rgb":
+            for camera in self.cameras:
+                spaces[f"observation.image.{camera}"] = gym.spaces.Box(0, 255, self.image_shape, np.uint8)
+        spaces["observation.state"] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
+        spaces["observation.environment_state"] = gym.spaces.Box(
+            -np.inf, np.inf, (self.task.environment_state_dim,), np.float32)
+        spaces["language_instruction"] = gym.spaces.Text(MAX_INSTRUCTION_LENGTH, min_length=1,
+                                                         charset=INSTRUCTION_CHARSET)
+        return gym.spaces.Dict(spaces)
+
+    # -- gymnasium API ---------------------------------------------------------------------------
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        super().reset(seed=seed)
+        mujoco.mj_resetData(self.model, self.data)
+        for adr, value in self._home_qpos.items():
+            self.data.qpos[adr] = value
+        self.data.ctrl[self._arm_ctrl] = [self.robot.home_qpos[j] for j in self.robot.arm_joints]
+        for ee, ctrl in zip(self.robot.end_effectors, self._ee_ctrl):
+            self.data.ctrl[ctrl] = ee.closure_to_ctrl(0.0)
+        self._instruction = self.task.reset(self.model, self.data, self.np_random)
+        mujoco.mj_forward(self.model, self.data)
+        # Let props settle on the table before the first observation.
+        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        self._elapsed = 0
+        return self._observation(), self._info(success=False, reason="")
+
+    def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        action = self._validate_action(action)
+        reason = self._apply_action(action)
+        if not reason:
+            reason = self._simulate()
+        self._elapsed += 1
+        success = not reason and self.task.is_success(self.model, self.data)
+        if not reason and self._elapsed >= self.max_episode_steps:
+            reason = "time_limit"
+        if self.reward_type == "dense":
+            reward = 1.0 if success else self.task.progress(self.model, self.data, self.data.site_xpos[self._ee_sites[0]])
+        else:
+            reward = float(success)
+        obs = self._observation()
+        return obs, float(reward), bool(success), bool(reason), self._info(success, reason)
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array":
+            return None
+        return self._render_camera("front")
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # -- internals -------------------------------------------------------------------------------
+
+    def _validate_action(self, action: np.ndarray) -> np.ndarray:
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != self.action_space.shape:
+            raise ValueError(f"action has shape {action.shape}; expected {self.action_space.shape}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action contains NaN or infinite values: {action}")
+        return np.clip(action, -1.0, 1.0)
+
+    def _apply_action(self, action: np.ndarray) -> str:
+        """Solve IK for the commanded poses and write actuator controls; returns a failure reason or ''."""
+        targets = []
+        for i, site in enumerate(self._ee_sites):
+            a = action[7 * i: 7 * i + 7]
+            pos, rot = self.data.site_xpos[site], self.data.site_xmat[site].reshape(3, 3)
+            if self.control_mode == "delta":
+                target_pos = pos + a[:3] * MAX_TRANSLATION
+                target_rot = _axis_angle_to_matrix(a[3:6] * MAX_ROTATION) @ rot
+            else:
+                target_pos = WORKSPACE_LOW + (a[:3] + 1.0) / 2.0 * (WORKSPACE_HIGH - WORKSPACE_LOW)
+                target_rot = _axis_angle_to_matrix(a[3:6] * np.pi)
+            target_pos = np.clip(target_pos, *_POSITION_TARGET_LIMITS)
+            targets.append(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(target_rot), target_pos))
+        q = self.data.qpos[self._sim_qadr]
+        # Contacts can push joints marginally past their limits, which makes the QP infeasible.
+        q = np.where(self._ik_limited, np.clip(q, self._ik_range[:, 0] + 1e-6, self._ik_range[:, 1] - 1e-6), q)
+        try:
+            q_cmd = self.controller.step(q, targets)
+        except mink.NoSolutionFound:
+            return "ik_failure"
+        self.data.ctrl[self._arm_ctrl] = q_cmd[self._ik_arm_qadr]
+        for i, (ee, ctrl) in enumerate(zip(self.robot.end_effectors, self._ee_ctrl)):
+            self.data.ctrl[ctrl] = ee.closure_to_ctrl((action[7 * i + 6] + 1.0) / 2.0)
+        return ""
+
+    def _simulate(self) -> str:
+        """Step physics for one control period; returns 'physics_unstable' on divergence."""
+        bad = mujoco.mjtWarning.mjWARN_BADQACC
+        before = self.data.warning[bad].number
+        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        if self.data.warning[bad].number != before or not np.all(np.isfinite(self.data.qpos)):
+            return "physics_unstable"
+        return ""
+
+    def _observation(self) -> dict:
+        obs: dict = {}
+        if self.obs_mode == "rgb":
+            for camera in self.cameras:
+                obs[f"observation.image.{camera}"] = self._render_camera(camera)
+        obs["observation.state"] = self._state()
+        obs["observation.environment_state"] = self.task.environment_state(self.data).astype(np.float32)
+        obs["language_instruction"] = self._instruction
+        return obs
+
+    def _state(self) -> np.ndarray:
+        parts = [self.data.qpos[self._state_qadr]]
+        for site, opening in zip(self._ee_sites, self._ee_opening):
+            quat = np.empty(4)
+            mujoco.mju_mat2Quat(quat, self.data.site_xmat[site])
+            parts += [self.data.site_xpos[site], quat, [self.data.qpos[opening].sum()]]
+        return np.concatenate(parts).astype(np.float32)
+
+    def _render_camera(self, camera: str) -> np.ndarray:
+        if self._renderer is None:
+            self._renderer = CameraRenderer(self.model, self.image_shape[0], self.image_shape[1],
+                                            self._render_quality)
+        return self._renderer.render(self.data, camera)
+
+    def _info(self, success: bool, reason: str) -> dict:
+        return {"is_success": success, "task": self.task.name, "truncation_reason": reason}
+
+    # -- helpers for scripted experts ------------------------------------------------------------
+
+    def end_effector_pose(self, index: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Measured position and rotation matrix of end effector ``index``."""
+        site = self._ee_sites[index]
+        return self.data.site_xpos[site].copy(), self.data.site_xmat[site].reshape(3, 3).copy()
+
+    def make_expert(self) -> WaypointExpert:
+        """The task's scripted expert, bound to this env's state (call after reset)."""
+        return WaypointExpert(lambda: self.task.expert_plan(self.model, self.data), MAX_TRANSLATION, MAX_ROTATION)
+
+
+def _axis_angle_to_matrix(axis_angle: np.ndarray) -> np.ndarray:
+    quat = np.array([1.0, 0.0, 0.0, 0.0])
+    mujoco.mju_quatIntegrate(quat, axis_angle, 1.0)
+    mat = np.empty(9)
+    mujoco.mju_quat2Mat(mat, quat)
+    return mat.reshape(3, 3)
+
+
+def _check_choice(name: str, value: object, choices: tuple) -> None:
+    if value not in choices:
+        raise ValueError(f"unknown {name} {value!r}; expected one of {list(choices)}")

@@ -1,0 +1,52 @@
+"""Franka Emika Panda with its hand, from MuJoCo Menagerie."""
+
+from __future__ import annotations
+
+import mujoco
+
+from .assets import robot_xml
+from .robot import EndEffector, RobotConfig
+
+_PREFIX = "panda/"
+_ARM_JOINTS = tuple(f"{_PREFIX}joint{i}" for i in range(1, 8))
+_FINGER_JOINTS = (f"{_PREFIX}finger_joint1", f"{_PREFIX}finger_joint2")
+_HOME = (0.0, 0.2, 0.0, -2.2, 0.0, 2.4, 0.785)
+# Franka's datasheet joint velocity limits (rad/s), slightly derated.
+_VMAX = (2.0, 2.0, 2.0, 2.0, 2.5, 2.5, 2.5)
+_COLLISION_RGBA = {"hand": (0.2, 0.2, 0.22, 1.0), "left_finger": (0.15, 0.15, 0.15, 1.0),
+                   "right_finger": (0.15, 0.15, 0.15, 1.0)}
+_LINK_RGBA = (0.92, 0.92, 0.94, 1.0)
+
+
+def add_franka(spec: mujoco.MjSpec, base_pos: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> RobotConfig:
+    """Attach the Panda to ``spec`` with a pinch site and a wrist camera."""
+    panda = mujoco.MjSpec.from_file(str(robot_xml("franka_emika_panda")))
+    panda.option.integrator = spec.option.integrator
+    for geom in panda.geoms:
+        if geom.classname.name.startswith(("collision", "fingertip")):
+            geom.rgba = _COLLISION_RGBA.get(geom.parent.name, _LINK_RGBA)
+    for body in panda.bodies:
+        body.gravcomp = 1.0
+    base = spec.worldbody.add_site(name="robot_base", pos=base_pos)
+    spec.attach(panda, site=base, prefix=_PREFIX)
+    hand = spec.body(f"{_PREFIX}hand")
+    hand.add_site(name="pinch", pos=(0, 0, 0.1034), size=(0.005, 0, 0), rgba=(1, 0, 0, 0), group=4)
+    # Looks along the fingers, tilted back toward the pinch point.
+    hand.add_camera(name="wrist", pos=(0.07, 0.0, 0.02), xyaxes=(0, 1, 0, 1, 0, 0.3), fovy=80)
+    return RobotConfig(
+        name="franka",
+        arm_joints=_ARM_JOINTS,
+        arm_actuators=tuple(f"{_PREFIX}actuator{i}" for i in range(1, 8)),
+        end_effectors=(
+            EndEffector(
+                site="pinch",
+                actuators=(f"{_PREFIX}actuator8",),
+                open_ctrl=(255.0,),
+                closed_ctrl=(0.0,),
+                opening_joints=_FINGER_JOINTS,
+            ),
+        ),
+        home_qpos={**dict(zip(_ARM_JOINTS, _HOME)), **dict.fromkeys(_FINGER_JOINTS, 0.04)},
+        cameras=("wrist",),
+        max_joint_velocity=dict(zip(_ARM_JOINTS, _VMAX)),
+    )

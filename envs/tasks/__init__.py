@@ -1,0 +1,35 @@
+"""Task registry: one task per module, looked up by robot suite and name."""
+
+from __future__ import annotations
+
+from .base import CATEGORIES, Task
+from .pick_place import PickPlace
+
+_TASKS: dict[str, dict[str, type[Task]]] = {}
+
+
+def register_task(cls: type[Task]) -> type[Task]:
+    """Add a task class to its robot's suite."""
+    if cls.category not in CATEGORIES:
+        raise ValueError(f"task {cls.name!r} has unknown category {cls.category!r}; expected one of {CATEGORIES}")
+    _TASKS.setdefault(cls.robot, {})[cls.name] = cls
+    return cls
+
+
+for _cls in (PickPlace,):
+    register_task(_cls)
+
+
+def list_tasks(robot: str = "franka") -> list[str]:
+    """Names of the tasks in a robot's suite."""
+    if robot not in _TASKS:
+        raise ValueError(f"unknown robot {robot!r}; expected one of {sorted(_TASKS)}")
+    return sorted(_TASKS[robot])
+
+
+def make_task(name: str, robot: str = "franka") -> Task:
+    """A fresh task instance; unknown names raise ``ValueError`` listing the suite."""
+    suite = list_tasks(robot)
+    if name not in suite:
+        raise ValueError(f"unknown {robot} task {name!r}; available: {suite}")
+    return _TASKS[robot][name]()
