@@ -40,6 +40,8 @@ MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
 WORKSPACE_LOW = np.array([0.15, -0.45, 0.0])
 WORKSPACE_HIGH = np.array([0.85, 0.45, 0.6])
 _POSITION_TARGET_LIMITS = (WORKSPACE_LOW - [0, 0, 0.05], WORKSPACE_HIGH)
+_INSTABILITY_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
+                         mujoco.mjtWarning.mjWARN_BADQACC)
 
 
 class DustEnv(gym.Env):
@@ -48,7 +50,9 @@ class DustEnv(gym.Env):
     Args:
         task: task name; see :func:`dust_rl.envs.list_tasks`.
         robot: robot suite (``"franka"``).
-        obs_mode: ``"rgb"`` (camera images + state) or ``"state"`` (no rendering, for RL).
+        obs_mode: ``"rgb"`` (camera images, state, instruction) or ``"state"`` (numeric
+            arrays only, no rendering: what RL baselines such as SB3 accept; the
+            instruction is then in ``info["language_instruction"]``).
         control_mode: ``"delta"`` (default; per step at most 2 cm and 0.1 rad) or
             ``"absolute"`` (pose in the workspace box, axis-angle / pi).
         image_size: image height and width in pixels (an int or ``(height, width)``).
@@ -161,8 +165,9 @@ class DustEnv(gym.Env):
         spaces["observation.state"] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
         spaces["observation.environment_state"] = gym.spaces.Box(
             -np.inf, np.inf, (self.task.environment_state_dim,), np.float32)
-        spaces["language_instruction"] = gym.spaces.Text(MAX_INSTRUCTION_LENGTH, min_length=1,
-                                                         charset=INSTRUCTION_CHARSET)
+        if self.obs_mode == "rgb":
+            spaces["language_instruction"] = gym.spaces.Text(MAX_INSTRUCTION_LENGTH, min_length=1,
+                                                             charset=INSTRUCTION_CHARSET)
         return gym.spaces.Dict(spaces)
 
     # -- gymnasium API ---------------------------------------------------------------------------
@@ -246,12 +251,15 @@ class DustEnv(gym.Env):
 
     def _simulate(self) -> str:
         """Step physics for one control period; returns 'physics_unstable' on divergence."""
-        bad = mujoco.mjtWarning.mjWARN_BADQACC
-        before = self.data.warning[bad].number
+        before = self._instability_warnings()
         mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
-        if self.data.warning[bad].number != before or not np.all(np.isfinite(self.data.qpos)):
+        # MuJoCo resets the state silently when it diverges; its warning counters tell.
+        if self._instability_warnings() != before or not np.all(np.isfinite(self.data.qpos)):
             return "physics_unstable"
         return ""
+
+    def _instability_warnings(self) -> int:
+        return sum(self.data.warning[w].number for w in _INSTABILITY_WARNINGS)
 
     def _observation(self) -> dict:
         obs: dict = {}
@@ -260,7 +268,8 @@ class DustEnv(gym.Env):
                 obs[f"observation.image.{camera}"] = self._render_camera(camera)
         obs["observation.state"] = self._state()
         obs["observation.environment_state"] = self.task.environment_state(self.data).astype(np.float32)
-        obs["language_instruction"] = self._instruction
+        if self.obs_mode == "rgb":
+            obs["language_instruction"] = self._instruction
         return obs
 
     def _state(self) -> np.ndarray:
@@ -278,7 +287,8 @@ class DustEnv(gym.Env):
         return self._renderer.render(self.data, camera)
 
     def _info(self, success: bool, reason: str) -> dict:
-        return {"is_success": success, "task": self.task.name, "truncation_reason": reason}
+        return {"is_success": success, "task": self.task.name, "truncation_reason": reason,
+                "language_instruction": self._instruction}
 
     # -- helpers for scripted experts ------------------------------------------------------------
 

@@ -10,6 +10,10 @@ from .robot import EndEffector, RobotConfig
 _PREFIX = "panda/"
 _ARM_JOINTS = tuple(f"{_PREFIX}joint{i}" for i in range(1, 8))
 _FINGER_JOINTS = (f"{_PREFIX}finger_joint1", f"{_PREFIX}finger_joint2")
+_ARM_ACTUATORS = tuple(f"actuator{i}" for i in range(1, 8))
+_ARM_DAMPING_SCALE = 0.3
+_GRIPPER_ACTUATOR = "actuator8"
+_GRIPPER_STIFFNESS_SCALE = 3.0
 _HOME = (0.0, 0.2, 0.0, -2.2, 0.0, 2.4, 0.785)
 # Franka's datasheet joint velocity limits (rad/s), slightly derated.
 _VMAX = (2.0, 2.0, 2.0, 2.0, 2.5, 2.5, 2.5)
@@ -25,8 +29,21 @@ def add_franka(spec: mujoco.MjSpec, base_pos: tuple[float, float, float] = (0.0,
     for geom in panda.geoms:
         if geom.classname.name.startswith(("collision", "fingertip")):
             geom.rgba = _COLLISION_RGBA.get(geom.parent.name, _LINK_RGBA)
+            # Collide with the world (contype 1) but not with the robot's own links:
+            # self-collision costs physics time and the IK does not plan around it.
+            geom.contype, geom.conaffinity = 2, 1
     for body in panda.bodies:
         body.gravcomp = 1.0
+    # Menagerie's servo damping (kd = kp / 10) gives a 0.1 s lag, so the arm covers only
+    # ~40% of each 50 ms command; kd = 0.03 kp tracks ~80% without overshoot.
+    for actuator in panda.actuators:
+        if actuator.name in _ARM_ACTUATORS:
+            actuator.biasprm[2] *= _ARM_DAMPING_SCALE
+        elif actuator.name == _GRIPPER_ACTUATOR:
+            # Menagerie's finger servo squeezes a 4 cm cube with ~2 N, which lets it slip
+            # when the arm accelerates; a stiffer servo gives ~6 N (the real hand: 70 N).
+            actuator.gainprm[0] *= _GRIPPER_STIFFNESS_SCALE
+            actuator.biasprm[1:3] *= _GRIPPER_STIFFNESS_SCALE
     base = spec.worldbody.add_site(name="robot_base", pos=base_pos)
     spec.attach(panda, site=base, prefix=_PREFIX)
     hand = spec.body(f"{_PREFIX}hand")
@@ -36,11 +53,11 @@ def add_franka(spec: mujoco.MjSpec, base_pos: tuple[float, float, float] = (0.0,
     return RobotConfig(
         name="franka",
         arm_joints=_ARM_JOINTS,
-        arm_actuators=tuple(f"{_PREFIX}actuator{i}" for i in range(1, 8)),
+        arm_actuators=tuple(_PREFIX + name for name in _ARM_ACTUATORS),
         end_effectors=(
             EndEffector(
                 site="pinch",
-                actuators=(f"{_PREFIX}actuator8",),
+                actuators=(_PREFIX + _GRIPPER_ACTUATOR,),
                 open_ctrl=(255.0,),
                 closed_ctrl=(0.0,),
                 opening_joints=_FINGER_JOINTS,

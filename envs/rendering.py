@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ctypes.util
 import os
+import weakref
 
 VISUAL_GROUP = 2
 COLLISION_GROUP = 3
@@ -49,6 +50,8 @@ class CameraRenderer:
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
         model.vis.global_.offheight = max(model.vis.global_.offheight, height)
         self._renderer = mujoco.Renderer(model, height, width)
+        # Free the GL context at interpreter exit too, while EGL is still loaded.
+        self._finalizer = weakref.finalize(self, self._renderer.close)
         flags = self._renderer.scene.flags
         if quality == "fast":
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
@@ -63,4 +66,4 @@ class CameraRenderer:
         return self._renderer.render()
 
     def close(self) -> None:
-        self._renderer.close()
+        self._finalizer()

@@ -1,0 +1,7 @@
+#!/usr/bin/env bash
+# Slow checks (50-seed expert tables) and the benchmarks.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+.venv/bin/python -m pytest -q -m slow "$@"
+.venv/bin/python -m dust_rl.benchmarks.env_speed
