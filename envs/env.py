@@ -40,8 +40,8 @@ MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
 WORKSPACE_LOW = np.array([0.15, -0.45, 0.0])
 WORKSPACE_HIGH = np.array([0.85, 0.45, 0.6])
 _POSITION_TARGET_LIMITS = (WORKSPACE_LOW - [0, 0, 0.05], WORKSPACE_HIGH)
-_INSTABILITY_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
-                         mujoco.mjtWarning.mjWARN_BADQACC)
+_INSTABILITY_WARNINGS = np.array([mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
+                                  mujoco.mjtWarning.mjWARN_BADQACC], dtype=int)
 
 
 class DustEnv(gym.Env):
@@ -139,8 +139,10 @@ class DustEnv(gym.Env):
         """Cache the index maps between the simulator, the IK model and the actuators."""
         ik_joints = [ik_model.joint(j).name for j in range(ik_model.njnt)]
         self._sim_qadr = np.array([self.model.joint(j).qposadr[0] for j in ik_joints])
-        self._ik_range = ik_model.jnt_range.copy()
-        self._ik_limited = ik_model.jnt_limited.astype(bool)
+        # Joint bounds for clipping the IK start (hinge/slide joints: one qpos each).
+        limited = ik_model.jnt_limited.astype(bool)
+        self._ik_low = np.where(limited, ik_model.jnt_range[:, 0] + 1e-6, -np.inf)
+        self._ik_high = np.where(limited, ik_model.jnt_range[:, 1] - 1e-6, np.inf)
         self._ik_arm_qadr = np.array([ik_model.joint(j).qposadr[0] for j in self.robot.arm_joints])
         self._arm_ctrl = np.array([self.model.actuator(a).id for a in self.robot.arm_actuators])
         self._ee_sites = np.array([self.model.site(ee.site).id for ee in self.robot.end_effectors])
@@ -219,9 +221,9 @@ class DustEnv(gym.Env):
         action = np.asarray(action, dtype=np.float64)
         if action.shape != self.action_space.shape:
             raise ValueError(f"action has shape {action.shape}; expected {self.action_space.shape}")
-        if not np.all(np.isfinite(action)):
+        if not np.isfinite(action).all():
             raise ValueError(f"action contains NaN or infinite values: {action}")
-        return np.clip(action, -1.0, 1.0)
+        return np.minimum(np.maximum(action, -1.0), 1.0)
 
     def _apply_action(self, action: np.ndarray) -> str:
         """Solve IK for the commanded poses and write actuator controls; returns a failure reason or ''."""
@@ -239,7 +241,7 @@ class DustEnv(gym.Env):
             targets.append(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(target_rot), target_pos))
         q = self.data.qpos[self._sim_qadr]
         # Contacts can push joints marginally past their limits, which makes the QP infeasible.
-        q = np.where(self._ik_limited, np.clip(q, self._ik_range[:, 0] + 1e-6, self._ik_range[:, 1] - 1e-6), q)
+        q = np.minimum(np.maximum(q, self._ik_low), self._ik_high)
         try:
             q_cmd = self.controller.step(q, targets)
         except mink.NoSolutionFound:
@@ -259,7 +261,7 @@ class DustEnv(gym.Env):
         return ""
 
     def _instability_warnings(self) -> int:
-        return sum(self.data.warning[w].number for w in _INSTABILITY_WARNINGS)
+        return int(self.data.warning.number[_INSTABILITY_WARNINGS].sum())
 
     def _observation(self) -> dict:
         obs: dict = {}
@@ -273,12 +275,16 @@ class DustEnv(gym.Env):
         return obs
 
     def _state(self) -> np.ndarray:
-        parts = [self.data.qpos[self._state_qadr]]
-        for site, opening in zip(self._ee_sites, self._ee_opening):
-            quat = np.empty(4)
-            mujoco.mju_mat2Quat(quat, self.data.site_xmat[site])
-            parts += [self.data.site_xpos[site], quat, [self.data.qpos[opening].sum()]]
-        return np.concatenate(parts).astype(np.float32)
+        """Joint positions, then per end effector: position, quaternion (wxyz), opening."""
+        n = len(self._state_qadr)
+        state = np.empty(n + 8 * len(self._ee_sites))
+        state[:n] = self.data.qpos[self._state_qadr]
+        for i, (site, opening) in enumerate(zip(self._ee_sites, self._ee_opening)):
+            block = state[n + 8 * i: n + 8 * i + 8]
+            block[:3] = self.data.site_xpos[site]
+            mujoco.mju_mat2Quat(block[3:7], self.data.site_xmat[site])
+            block[7] = self.data.qpos[opening].sum()
+        return state.astype(np.float32)
 
     def _render_camera(self, camera: str) -> np.ndarray:
         if self._renderer is None:
