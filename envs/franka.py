@@ -32,6 +32,9 @@ def add_franka(spec: mujoco.MjSpec, base_pos: tuple[float, float, float] = (0.0,
             # Collide with the world (contype 1) but not with the robot's own links:
             # self-collision costs physics time and the IK does not plan around it.
             geom.contype, geom.conaffinity = 2, 1
+    # The model's own light adds to the scene's and washes colours out (orange reads as yellow).
+    for light in panda.lights:
+        panda.delete(light)
     for body in panda.bodies:
         body.gravcomp = 1.0
     # Menagerie's servo damping (kd = kp / 10) gives a 0.1 s lag, so the arm covers only

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 from .base import CATEGORIES, Task
+from .close_drawer import CloseDrawer
+from .open_drawer import OpenDrawer
 from .pick_place import PickPlace
+from .press_button import PressButton
 
 _TASKS: dict[str, dict[str, type[Task]]] = {}
 
@@ -16,7 +19,7 @@ def register_task(cls: type[Task]) -> type[Task]:
     return cls
 
 
-for _cls in (PickPlace,):
+for _cls in (PickPlace, OpenDrawer, CloseDrawer, PressButton):
     register_task(_cls)
 
 
