@@ -5,8 +5,12 @@ from __future__ import annotations
 from .base import CATEGORIES, Task
 from .close_drawer import CloseDrawer
 from .open_drawer import OpenDrawer
+from .peg_insert import PegInsert
+from .pick_into_bin import PickIntoBin
 from .pick_place import PickPlace
 from .press_button import PressButton
+from .push import Push
+from .stack import Stack
 
 _TASKS: dict[str, dict[str, type[Task]]] = {}
 
@@ -19,7 +23,7 @@ def register_task(cls: type[Task]) -> type[Task]:
     return cls
 
 
-for _cls in (PickPlace, OpenDrawer, CloseDrawer, PressButton):
+for _cls in (PickPlace, PickIntoBin, OpenDrawer, CloseDrawer, Stack, Push, PressButton, PegInsert):
     register_task(_cls)
 
 

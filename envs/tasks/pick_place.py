@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import mink
 import mujoco
 import numpy as np
 
 from ..experts import Waypoint
 from ..robot import RobotConfig
-from ..scene import add_free_box, GEOM
-from .base import COLORS, Task, body_yaw, geoms_touch, sample_separated, set_free_body_pose
+from ..scene import GEOM, add_free_box
+from .base import COLORS, Task, geoms_touch, sample_separated, set_free_body_pose
+from .grasping import grasp_yaw, gripper_geoms, pick_and_place
 
 CUBE_HALF = 0.02
 PLATE_RADIUS = 0.07
@@ -36,8 +36,7 @@ class PickPlace(Task):
                        pos=(0, 0, PLATE_HALF_HEIGHT), rgba=(0.95, 0.95, 0.92, 1))
 
     def bind(self, model: mujoco.MjModel, robot: RobotConfig) -> None:
-        hand = model.site(robot.end_effectors[0].site).bodyid[0]
-        self._gripper_geoms = np.array(mink.get_subtree_geom_ids(model, hand))
+        self._gripper_geoms = gripper_geoms(model, robot)
         self._cube_geom = np.array([model.geom("target_cube").id])
         self._pinch = robot.end_effectors[0].site
 
@@ -71,21 +70,7 @@ class PickPlace(Task):
         return np.concatenate([data.body(b).xpos for b in ("target_cube", "distractor_cube", "plate")])
 
     def expert_plan(self, model: mujoco.MjModel, data: mujoco.MjData) -> list[Waypoint]:
-        cube = data.body("target_cube").xpos.copy()
-        yaw = body_yaw(data, "target_cube")
-        place = data.body("plate").xpos + [0, 0, 2 * PLATE_HALF_HEIGHT + CUBE_HALF + 0.01]
+        def on_plate() -> np.ndarray:
+            return data.body("plate").xpos + [0, 0, 2 * PLATE_HALF_HEIGHT + CUBE_HALF + 0.005]
 
-        def holding() -> bool:
-            return bool(np.linalg.norm(data.body("target_cube").xpos - data.site(self._pinch).xpos) < 0.03)
-
-        up = np.array([0, 0, 0.12])
-        return [
-            Waypoint(cube + up, closure=0.0, yaw=yaw, tolerance=0.02),
-            Waypoint(cube, closure=0.0, yaw=yaw, tolerance=0.006, speed=0.6),
-            Waypoint(cube, closure=1.0, yaw=yaw, hold=6, tolerance=0.02),
-            Waypoint(cube + up, closure=1.0, yaw=yaw, tolerance=0.02, requires=holding),
-            Waypoint(place + up, closure=1.0, yaw=yaw, tolerance=0.02, requires=holding),
-            Waypoint(place, closure=1.0, yaw=yaw, tolerance=0.008, speed=0.6, requires=holding),
-            Waypoint(place, closure=0.0, yaw=yaw, hold=4, tolerance=0.02),
-            Waypoint(place + up, closure=0.0, yaw=yaw, tolerance=0.02),
-        ]
+        return pick_and_place(data, "target_cube", self._pinch, on_plate, grasp_yaw(data, "target_cube"))

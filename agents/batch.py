@@ -1,0 +1,40 @@
+"""Random batches in the agent's TensorDict layout, for smoke tests and benchmarks.
+
+The layout itself (keys, shapes) is documented in :mod:`.dust_agent`.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from .config import DustConfig
+
+
+def random_batch(
+    config: DustConfig, batch_size: int, n_cond_tokens: int = 40, generator: torch.Generator | None = None
+) -> TensorDict:
+    """Standard-normal stand-ins for cached features, with every action present and unpadded.
+
+    Args:
+        config: gives the shapes.
+        batch_size: B.
+        n_cond_tokens: Nc.
+        generator: random source.
+
+    Returns:
+        TensorDict [B] with ``cond_tokens``, ``state``, ``action_chunk`` and ``future_tokens``.
+    """
+
+    def randn(*shape: int) -> torch.Tensor:
+        return torch.randn(batch_size, *shape, generator=generator)
+
+    return TensorDict(
+        {
+            "cond_tokens": randn(n_cond_tokens, config.cond_dim),
+            "state": randn(config.state_dim),
+            "action_chunk": randn(config.horizon, config.action_dim),
+            "future_tokens": randn(config.n_vision_tokens, config.vision_dim),
+        },
+        batch_size=[batch_size],
+    )

@@ -1,0 +1,214 @@
+"""The DUST trunk and its baselines as one configurable module.
+
+Token layout: the action modality is [state token, H action tokens], the
+vision modality is N_o future-vision tokens. Two-stream variants keep them as
+two streams with separate weights, meeting only in the joint attention of the
+MMDiT blocks; the streams are stacked as [2, B, N, d], the shorter one
+zero-padded to the longer (padding is masked out of every attention and never
+decoded), so that both run through each layer in one batched matmul.
+Single-stream variants concatenate the modalities into one stream with shared
+weights ([1, B, 1 + H + N_o, d]); the action-only variant has no vision tokens.
+
+Blocks: ``n_mmdit`` blocks whose self-attention is joint across streams, then
+``n_dit`` blocks whose self-attention stays within each stream; cross-attention
+to the backbone tokens alternates with self-attention (see :mod:`.mmdit`).
+Condition tokens are normalised and projected to ``d_model`` once, shared by
+all cross-attention blocks (cheaper than per-block projections from a wide
+backbone).
+
+Timesteps reach the blocks only through AdaLN. Each stream of a two-stream
+model has its own timestep embedder and modulation weights, fed by its own
+tau only; the single-stream ``"decoupled"`` variant gives every token the
+modulation of its own modality's tau.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .adaln import Modulation
+from .config import DustConfig
+from .embeddings import TimestepEmbedder, TokenDecoder, TokenEncoder, sincos_positions_1d, sincos_positions_2d
+from .mmdit import KV, AttentionKind, Block
+
+MODS_PER_BLOCK = 6  # shift, scale, gate for attention, then for the MLP
+SCALE_SLOTS = (1, 4)
+
+
+@dataclass
+class ChunkContext:
+    """What stays fixed while one action chunk is denoised.
+
+    Attributes:
+        state_token: embedded state [B, 1, d].
+        cross_kv: per block, the per-stream condition K/V (None for self-attention blocks).
+        cond_mask: bool [B, Nc] (True = valid) or None when all tokens are valid.
+    """
+
+    state_token: Tensor
+    cross_kv: list[KV | None]
+    cond_mask: Tensor | None
+
+    @property
+    def batch_size(self) -> int:
+        """Number of chunks being denoised."""
+        return self.state_token.shape[0]
+
+
+def pad_tokens(x: Tensor, n: int) -> Tensor:
+    """Zero-pad tokens [B, N, d] to n tokens."""
+    return x if x.shape[1] == n else F.pad(x, (0, 0, 0, n - x.shape[1]))
+
+
+class DustModel(nn.Module):
+    """Velocity network for actions and future-vision tokens.
+
+    Args:
+        config: sizes and variant.
+    """
+
+    def __init__(self, config: DustConfig) -> None:
+        super().__init__()
+        self.config = config
+        d = config.d_model
+        self.n_streams = 2 if config.two_streams else 1
+        n_blocks = config.n_mmdit + config.n_dit
+        self.n_action_tokens = 1 + config.horizon  # state token first
+        n_vision = config.n_vision_tokens if config.has_vision else 0
+
+        self.state_in = nn.Linear(config.state_dim, d)
+        self.action_in = TokenEncoder([config.action_dim, d], sincos_positions_1d(config.horizon, d))
+        self.action_out = TokenDecoder([d, config.action_dim])
+        if config.has_vision:
+            self.vision_in = TokenEncoder([config.vision_dim, d, d, d], sincos_positions_2d(*config.vision_grid, d))
+            self.vision_out = TokenDecoder([d, d, config.vision_dim])
+        self.cond_in = nn.Sequential(nn.LayerNorm(config.cond_dim), nn.Linear(config.cond_dim, d))
+        self.time_embed = TimestepEmbedder(self.n_streams, d)
+        # Per stream: 6 vectors per block, then the shift and scale of its decoder(s) (shared by both
+        # modality decoders in single-stream variants, like every other trunk weight there).
+        scale_slots = [MODS_PER_BLOCK * i + s for i in range(n_blocks) for s in SCALE_SLOTS]
+        n_slots = MODS_PER_BLOCK * n_blocks + 2
+        self.modulation = Modulation(self.n_streams, d, n_slots, [*scale_slots, n_slots - 1])
+        kinds = [self._block_kind(i) for i in range(n_blocks)]
+        self.blocks = nn.ModuleList(Block(k, self.n_streams, d, config.n_heads, config.mlp_ratio) for k in kinds)
+        # After the last joint block the streams no longer interact: one whose output is not needed can go.
+        self.last_joint_block = max((i for i, k in enumerate(kinds) if k == "joint"), default=-1)
+
+        key_valid = token_modality = None
+        if config.two_streams:  # streams are padded to a common token count; padding is never attended to
+            self.n_tokens = max(self.n_action_tokens, n_vision)
+            if self.n_action_tokens != n_vision:
+                key_valid = torch.arange(self.n_tokens) < torch.tensor([[self.n_action_tokens], [n_vision]])
+        elif config.has_vision and config.decoupled:
+            token_modality = torch.tensor([0] * self.n_action_tokens + [1] * n_vision)
+        self.register_buffer("key_valid", key_valid, persistent=False)
+        self.register_buffer("token_modality", token_modality, persistent=False)
+
+    def _block_kind(self, index: int) -> AttentionKind:
+        if index % 2 == 0:
+            return "cross"
+        return "joint" if self.config.two_streams and index < self.config.n_mmdit else "self"
+
+    def encode_context(self, state: Tensor, cond_tokens: Tensor, cond_mask: Tensor | None = None) -> ChunkContext:
+        """Embed what the denoising steps of one chunk share.
+
+        Args:
+            state: normalised state [B, Ds].
+            cond_tokens: backbone tokens [B, Nc, Dc].
+            cond_mask: bool [B, Nc], True where a token is valid; None if all are.
+        """
+        cond = self.cond_in(cond_tokens)
+        return ChunkContext(
+            state_token=self.state_in(state).unsqueeze(1),
+            cross_kv=[block.condition_kv(cond) for block in self.blocks],
+            cond_mask=cond_mask,
+        )
+
+    def _stream_taus(self, tau_a: Tensor, tau_o: Tensor | None) -> Tensor:
+        """Flow times [S, B, T] seen by each stream: T = 2 (action, vision) for the single-stream decoupled variant."""
+        cfg = self.config
+        if tau_o is not None and not cfg.decoupled and not torch.equal(tau_a, tau_o):
+            raise ValueError(f"variant {cfg.variant!r} shares one timestep; got tau_a != tau_o")
+        if cfg.two_streams:
+            return torch.stack([tau_a, tau_o]).unsqueeze(-1)
+        if self.token_modality is not None:
+            return torch.stack([tau_a, tau_o], dim=-1).unsqueeze(0)
+        return tau_a.view(1, -1, 1)
+
+    def _tokens(self, ctx: ChunkContext, noisy_action: Tensor, noisy_vision: Tensor | None) -> Tensor:
+        """Embedded tokens [S, B, N, d]."""
+        x_a = torch.cat([ctx.state_token, self.action_in(noisy_action)], dim=1)
+        if noisy_vision is None:
+            return x_a.unsqueeze(0)
+        x_o = self.vision_in(noisy_vision)
+        if self.config.two_streams:
+            return torch.stack([pad_tokens(x_a, self.n_tokens), pad_tokens(x_o, self.n_tokens)])
+        return torch.cat([x_a, x_o], dim=1).unsqueeze(0)
+
+    def forward(
+        self,
+        ctx: ChunkContext,
+        noisy_action: Tensor,
+        noisy_vision: Tensor | None,
+        tau_a: Tensor,
+        tau_o: Tensor | None,
+        need_action: bool = True,
+        need_vision: bool = True,
+    ) -> tuple[Tensor | None, Tensor | None]:
+        """Predict velocities of both modalities.
+
+        Args:
+            ctx: output of :meth:`encode_context`.
+            noisy_action: A_tau [B, H, Da].
+            noisy_vision: o_tau [B, N_o, Dv]; None for the action-only variant.
+            tau_a: action flow time [B].
+            tau_o: vision flow time [B]; None for the action-only variant. Shared-timestep
+                variants require it to equal ``tau_a``.
+            need_action: compute the action velocity (a sampler step that keeps actions fixed may skip it).
+            need_vision: compute the vision velocity.
+
+        Returns:
+            (action velocity [B, H, Da], vision velocity [B, N_o, Dv]); None where not needed or no vision.
+        """
+        need_vision = need_vision and noisy_vision is not None
+        mods = self.modulation(F.silu(self.time_embed(self._stream_taus(tau_a, tau_o))), self.token_modality)
+        x = self._tokens(ctx, noisy_action, noisy_vision)
+        everything = slice(None)
+        keep = everything
+        if self.n_streams == 2 and not (need_action and need_vision):
+            keep = slice(0 if need_action else 1, 2 if need_vision else 1)
+        streams = everything
+        for i, (block, kv) in enumerate(zip(self.blocks, ctx.cross_kv)):
+            if i == self.last_joint_block + 1 and keep != everything:
+                streams = keep
+                x = x[keep]
+            block_mods = mods[MODS_PER_BLOCK * i : MODS_PER_BLOCK * (i + 1)]
+            if streams != everything:
+                block_mods = [m[streams] for m in block_mods]
+            x = block(x, block_mods, kv, ctx.cond_mask, self.key_valid, streams)
+
+        # Decoders: tokens and AdaLN vectors of each modality, in stream s = row s of x (two streams)
+        # or in token ranges of the single stream.
+        shift, scale = mods[-2], mods[-1]
+        n_a = self.n_action_tokens
+        v_a = v_o = None
+        if self.n_streams == 2:
+            present = range(2)[streams]
+            if need_action:
+                v_a = self.action_out(x[present.index(0), :, 1:n_a], shift[0], scale[0])
+            if need_vision:
+                n_o = self.config.n_vision_tokens
+                v_o = self.vision_out(x[present.index(1), :, :n_o], shift[1], scale[1])
+            return v_a, v_o
+        per_token = shift.shape[2] > 1
+        if need_action:
+            rows = slice(1, n_a) if per_token else slice(None)
+            v_a = self.action_out(x[0, :, 1:n_a], shift[0, :, rows], scale[0, :, rows])
+        if need_vision:
+            rows = slice(n_a, None) if per_token else slice(None)
+            v_o = self.vision_out(x[0, :, n_a:], shift[0, :, rows], scale[0, :, rows])
+        return v_a, v_o

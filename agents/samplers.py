@@ -1,0 +1,115 @@
+"""Euler samplers for DUST: synchronous, asynchronous and action-only.
+
+A sampler is a schedule (a list of :class:`DenoiseStep`) run by
+:func:`run_schedule`. Each step evaluates the model once at (tau_a, tau_o) and
+moves each modality by its own step size; a step size of 0 leaves that
+modality unchanged.
+
+- Asynchronous (DUST): N_o = q * N_A. At global step j = 0..N_o-1 the model
+  sees tau_o = j / N_o and tau_a = floor(j / q) * q / N_o; vision moves by
+  1 / N_o every step, actions by q / N_o when j % q == 0. So vision makes N_o
+  updates and actions N_A.
+- Synchronous: the asynchronous schedule with q = 1 (both streams share steps).
+- Action-only: the vision tokens stay pure noise at tau_o = 0 and actions take
+  N_A steps; the only option for the action-only variant.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .config import DustConfig
+from .dust_model import ChunkContext, DustModel
+
+
+@dataclass(frozen=True)
+class DenoiseStep:
+    """One model evaluation of a sampler and the Euler moves it triggers.
+
+    Attributes:
+        index: global step j.
+        tau_a: action flow time fed to the model.
+        tau_o: vision flow time fed to the model.
+        dt_a: action Euler step (0: actions unchanged).
+        dt_o: vision Euler step (0: vision unchanged).
+    """
+
+    index: int
+    tau_a: float
+    tau_o: float
+    dt_a: float
+    dt_o: float
+
+
+def async_schedule(n_action_steps: int, vision_step_ratio: int) -> list[DenoiseStep]:
+    """DUST's asynchronous schedule with N_o = vision_step_ratio * n_action_steps vision steps."""
+    q = vision_step_ratio
+    n_o = q * n_action_steps
+    return [
+        DenoiseStep(j, (j // q) * q / n_o, j / n_o, q / n_o if j % q == 0 else 0.0, 1.0 / n_o) for j in range(n_o)
+    ]
+
+
+def sync_schedule(n_steps: int) -> list[DenoiseStep]:
+    """Both modalities share the same n_steps steps."""
+    return async_schedule(n_steps, 1)
+
+
+def action_only_schedule(n_steps: int) -> list[DenoiseStep]:
+    """Denoise actions only; the vision input stays noise at tau_o = 0."""
+    return [DenoiseStep(j, j / n_steps, 0.0, 1.0 / n_steps, 0.0) for j in range(n_steps)]
+
+
+def schedule_for(config: DustConfig) -> list[DenoiseStep]:
+    """The schedule a config asks for."""
+    name = config.sampler_name
+    if name == "async":
+        return async_schedule(config.n_action_steps, config.vision_step_ratio)
+    if name == "sync":
+        return sync_schedule(config.n_action_steps)
+    return action_only_schedule(config.n_action_steps)
+
+
+@torch.no_grad()
+def run_schedule(
+    model: DustModel,
+    ctx: ChunkContext,
+    schedule: list[DenoiseStep],
+    generator: torch.Generator | None = None,
+    callback: Callable[[DenoiseStep, Tensor, Tensor | None], None] | None = None,
+) -> tuple[Tensor, Tensor | None]:
+    """Integrate both modalities from noise along ``schedule``.
+
+    Args:
+        model: the velocity network.
+        ctx: chunk context from :meth:`DustModel.encode_context` (computed once per chunk).
+        schedule: steps from one of the schedule functions.
+        generator: random source of the initial noise (actions first, then vision).
+        callback: called after every step with (step, actions, vision) as they now stand,
+            e.g. to count or inspect updates.
+
+    Returns:
+        (action chunk [B, H, Da], future-vision tokens [B, N_o, Dv] or None).
+    """
+    cfg = model.config
+    b, device = ctx.batch_size, ctx.state_token.device
+    action = torch.randn(b, cfg.horizon, cfg.action_dim, generator=generator, device=device)
+    vision = None
+    if cfg.has_vision:
+        vision = torch.randn(b, cfg.n_vision_tokens, cfg.vision_dim, generator=generator, device=device)
+    for step in schedule:
+        tau_a = torch.full((b,), step.tau_a, device=device)
+        tau_o = None if vision is None else torch.full((b,), step.tau_o, device=device)
+        need_action, need_vision = step.dt_a != 0, step.dt_o != 0 and vision is not None
+        v_a, v_o = model(ctx, action, vision, tau_a, tau_o, need_action, need_vision)
+        if need_action:
+            action = torch.add(action, v_a, alpha=step.dt_a)
+        if need_vision:
+            vision = torch.add(vision, v_o, alpha=step.dt_o)
+        if callback is not None:
+            callback(step, action, vision)
+    return action, vision

@@ -1,0 +1,132 @@
+"""Samplers: schedules, update counts, determinism."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dust_rl.agents import (
+    DustAgent,
+    DustConfig,
+    action_only_schedule,
+    async_schedule,
+    random_batch,
+    run_schedule,
+    sync_schedule,
+)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """One intra-op thread: with another process on the second core, 2 OpenMP threads ran ~30x slower here."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def tiny(**overrides) -> DustConfig:
+    sizes = dict(action_dim=3, horizon=6, state_dim=5, vision_dim=7, vision_grid=(2, 3), cond_dim=11, d_model=32,
+                 n_heads=4, n_mmdit=2, n_dit=2)
+    return DustConfig(**{**sizes, **overrides})
+
+
+def trained_like_agent(config: DustConfig) -> DustAgent:
+    """An agent whose zero-initialised output layers are randomised, so every step moves its stream."""
+    agent = DustAgent(config).eval()
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for p in agent.parameters():
+            p.add_(0.2 * torch.randn(p.shape, generator=g))
+    return agent
+
+
+def obs_for(config: DustConfig, batch_size: int = 2):
+    return random_batch(config, batch_size, n_cond_tokens=4, generator=torch.Generator().manual_seed(1)).select(
+        "state", "cond_tokens"
+    )
+
+
+@pytest.mark.parametrize("n_action_steps,q", [(4, 1), (4, 4), (2, 8), (3, 2)])
+def test_async_schedule_matches_the_paper(n_action_steps, q):
+    steps = async_schedule(n_action_steps, q)
+    n_o = q * n_action_steps
+    assert len(steps) == n_o
+    for j, step in enumerate(steps):
+        assert step.tau_o == pytest.approx(j / n_o)
+        assert step.tau_a == pytest.approx((j // q) * q / n_o)
+        assert step.dt_o == pytest.approx(1 / n_o)
+        assert step.dt_a == (pytest.approx(q / n_o) if j % q == 0 else 0.0)
+    assert sum(s.dt_a for s in steps) == pytest.approx(1.0)
+    assert sum(s.dt_o for s in steps) == pytest.approx(1.0)
+
+
+def test_sync_and_action_only_schedules():
+    assert sync_schedule(5) == async_schedule(5, 1)
+    steps = action_only_schedule(4)
+    assert [s.tau_a for s in steps] == [0.0, 0.25, 0.5, 0.75]
+    assert all(s.tau_o == 0.0 and s.dt_o == 0.0 for s in steps)
+
+
+@pytest.mark.parametrize("n_action_steps,q", [(4, 1), (4, 4), (2, 8)])
+def test_async_sampler_makes_n_o_vision_and_n_a_action_updates(n_action_steps, q):
+    config = tiny(vision_step_ratio=q, n_action_steps=n_action_steps)
+    agent = trained_like_agent(config)
+    states = []
+    agent.predict_action(obs_for(config), torch.Generator().manual_seed(0), lambda step, a, o: states.append((a, o)))
+    assert len(states) == q * n_action_steps
+    n_action_updates = n_vision_updates = 0
+    previous_a = previous_o = None
+    for j, (a, o) in enumerate(states):
+        if j:
+            n_action_updates += not torch.equal(a, previous_a)
+            n_vision_updates += not torch.equal(o, previous_o)
+        previous_a, previous_o = a, o
+    # The first step always updates both streams (j = 0 is a multiple of q).
+    assert n_action_updates + 1 == n_action_steps
+    assert n_vision_updates + 1 == q * n_action_steps
+
+
+def test_action_only_sampling_leaves_vision_as_noise():
+    config = tiny(sampler="action_only")
+    agent = trained_like_agent(config)
+    states = []
+    agent.predict_action(obs_for(config), torch.Generator().manual_seed(0), lambda step, a, o: states.append((a, o)))
+    g = torch.Generator().manual_seed(0)
+    torch.randn(2, config.horizon, config.action_dim, generator=g)  # the sampler draws action noise first
+    initial_vision = torch.randn(2, config.n_vision_tokens, config.vision_dim, generator=g)
+    assert len(states) == config.n_action_steps
+    assert all(torch.equal(o, initial_vision) for _, o in states)
+    assert all(not torch.equal(a, b) for (a, _), (b, _) in zip(states, states[1:]))
+
+
+@pytest.mark.parametrize("config", [tiny(vision_step_ratio=4), tiny(variant="joint"), tiny(variant="action_only")],
+                         ids=["dust-async", "joint-sync", "action_only"])
+def test_seeded_sampling_is_bitwise_deterministic(config):
+    agent = trained_like_agent(config)
+    obs = obs_for(config)
+    first = agent.predict_action(obs, torch.Generator().manual_seed(7))
+    second = agent.predict_action(obs, torch.Generator().manual_seed(7))
+    other = agent.predict_action(obs, torch.Generator().manual_seed(8))
+    for key in first.keys():
+        assert torch.equal(first[key], second[key])
+        assert not torch.equal(first[key], other[key])
+
+
+def test_schedule_can_be_overridden_at_test_time():
+    config = tiny()  # trained for N_A = N_o = 4
+    agent = trained_like_agent(config)
+    seen = []
+    agent.predict_action(obs_for(config), schedule=async_schedule(4, 8), callback=lambda s, a, o: seen.append(s))
+    assert len(seen) == 32 and sum(s.dt_a > 0 for s in seen) == 4
+
+
+def test_run_schedule_returns_final_state_of_callback():
+    config = tiny()
+    agent = trained_like_agent(config)
+    obs = obs_for(config)
+    ctx = agent.model.encode_context(obs["state"], obs["cond_tokens"])
+    seen = []
+    action, vision = run_schedule(agent.model, ctx, async_schedule(2, 2), torch.Generator().manual_seed(0),
+                                  lambda s, a, o: seen.append((a, o)))
+    assert torch.equal(action, seen[-1][0]) and torch.equal(vision, seen[-1][1])
