@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+ALL_STREAMS = slice(None)
+
 
 class StreamLinear(nn.Module):
     """One linear layer per stream, applied to all streams in one batched matmul.
@@ -24,8 +26,8 @@ class StreamLinear(nn.Module):
         self.weight = nn.Parameter(torch.empty(n_streams, d_in, d_out).uniform_(-bound, bound))
         self.bias = nn.Parameter(torch.empty(n_streams, 1, d_out).uniform_(-bound, bound))
 
-    def forward(self, x: Tensor, streams: slice = slice(None)) -> Tensor:
+    def forward(self, x: Tensor, streams: slice = ALL_STREAMS) -> Tensor:
         """Map [S', ..., d_in] to [S', ..., d_out], S' being the ``streams`` selected from S."""
+        weight, bias = (self.weight, self.bias) if streams == ALL_STREAMS else (self.weight[streams], self.bias[streams])
         shape = x.shape
-        out = torch.baddbmm(self.bias[streams], x.reshape(shape[0], -1, shape[-1]), self.weight[streams])
-        return out.view(*shape[:-1], -1)
+        return torch.baddbmm(bias, x.reshape(shape[0], -1, shape[-1]), weight).view(*shape[:-1], -1)

@@ -4,7 +4,9 @@ Inputs are random stand-ins for cached backbone features (no backbone runs), so
 the numbers measure the flow-matching trunk and sampler alone. Latency is the
 wall time of one ``predict_action`` call (context encoding plus all denoising
 steps); the table gives the median and the best of ``--repeats`` calls, the
-best being the better estimate on a machine shared with other jobs.
+best being the better estimate on a machine shared with other jobs, and the
+median process CPU time per call, which with ``--threads 1`` estimates the
+latency on an idle core even while other jobs share the machine.
 
 Usage: python scripts/bench_agent.py [--threads 2] [--repeats 30] [--train-steps 8] [--compile]
 """
@@ -23,31 +25,35 @@ from dust_rl.agents import DustAgent, DustConfig, random_batch
 N_COND_TOKENS = 40
 
 
-def timed(fn: Callable[[], object], repeats: int, warmup: int = 3) -> list[float]:
-    """Wall times in seconds of ``repeats`` calls after ``warmup`` calls."""
+def timed(fn: Callable[[], object], repeats: int, warmup: int = 3) -> tuple[list[float], list[float]]:
+    """Wall and process CPU times in seconds of ``repeats`` calls after ``warmup`` calls."""
     for _ in range(warmup):
         fn()
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - start)
-    return times
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return wall, cpu
 
 
-def chunk_latency_ms(config: DustConfig, repeats: int, compile_model: bool) -> tuple[float, float]:
-    """Median and best wall time (ms) of one ``predict_action`` call at batch 1."""
+def chunk_latency_ms(config: DustConfig, repeats: int, compile_model: bool) -> tuple[float, float, float]:
+    """Median and best wall time and median CPU time (ms) of one ``predict_action`` call at batch 1."""
     agent = DustAgent(config).eval()
     if compile_model:
         agent.model.compile()
     generator = torch.Generator().manual_seed(0)
     obs = random_batch(config, 1, N_COND_TOKENS, generator).select("state", "cond_tokens")
-    times = timed(lambda: agent.predict_action(obs, generator), repeats)
-    return 1e3 * statistics.median(times), 1e3 * min(times)
+    wall, cpu = timed(lambda: agent.predict_action(obs, generator), repeats)
+    return 1e3 * statistics.median(wall), 1e3 * min(wall), 1e3 * statistics.median(cpu)
 
 
-def train_samples_per_s(config: DustConfig, batch_size: int, steps: int) -> tuple[float, float]:
-    """Median and best training throughput (forward, backward, fused AdamW step) on random cached features."""
+def train_samples_per_s(config: DustConfig, batch_size: int, steps: int) -> tuple[float, float, float]:
+    """Training throughput (forward, backward, fused AdamW step) on random cached features.
+
+    Returns samples/s from the median and the best wall time, and from the median CPU time.
+    """
     agent = DustAgent(config).train()
     optimizer = torch.optim.AdamW(agent.parameters(), lr=1e-4, fused=True)  # fused: ~5x faster step on CPU
     generator = torch.Generator().manual_seed(0)
@@ -59,8 +65,8 @@ def train_samples_per_s(config: DustConfig, batch_size: int, steps: int) -> tupl
         loss.backward()
         optimizer.step()
 
-    times = timed(step, steps, warmup=2)
-    return batch_size / statistics.median(times), batch_size / min(times)
+    wall, cpu = timed(step, steps, warmup=2)
+    return batch_size / statistics.median(wall), batch_size / min(wall), batch_size / statistics.median(cpu)
 
 
 def main() -> None:
@@ -87,14 +93,14 @@ def main() -> None:
         ("DUST N_A=4, N_o=32 (ms/chunk, batch 1)", DustConfig(vision_step_ratio=8), ""),
         ("action_only N_A=4 (ms/chunk, batch 1)", DustConfig(variant="action_only"), ""),
     ]
-    print(f"| {'measurement':<44} | {'median':>8} | {'best':>8} | {'target':>8} |")
-    print(f"|{'-' * 46}|{'-' * 10}|{'-' * 10}|{'-' * 10}|")
+    print(f"| {'measurement':<44} | {'median':>8} | {'best':>8} | {'cpu':>8} | {'target':>8} |")
+    print(f"|{'-' * 46}|{'-' * 10}|{'-' * 10}|{'-' * 10}|{'-' * 10}|")
     for name, config, target in rows:
-        median, best = chunk_latency_ms(config, args.repeats, args.compile)
-        print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {target:>8} |", flush=True)
-    median, best = train_samples_per_s(base, args.batch_size, args.train_steps)
+        median, best, cpu = chunk_latency_ms(config, args.repeats, args.compile)
+        print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {target:>8} |", flush=True)
+    median, best, cpu = train_samples_per_s(base, args.batch_size, args.train_steps)
     name = f"DUST training (samples/s, batch {args.batch_size})"
-    print(f"| {name:<44} | {median:8.1f} | {best:8.1f} | {'>= 300':>8} |")
+    print(f"| {name:<44} | {median:8.1f} | {best:8.1f} | {cpu:8.1f} | {'>= 300':>8} |")
 
 
 if __name__ == "__main__":
