@@ -1,29 +1,55 @@
-"""DUST agents: dual-stream flow-matching trunk, baselines, samplers, losses."""
+"""DUST agents: dual-stream flow-matching trunk, baselines, samplers, losses, frozen backbone, torchrl policy."""
 
+from .autoencoder import AutoencoderConfig, ConvAutoencoder
+from .backbone import FrozenBackbone, load_image_encoder, save_image_encoder
 from .batch import random_batch
+from .checkpoint_io import CheckpointError
 from .config import VARIANTS, DustConfig
 from .dust_agent import DustAgent
 from .dust_model import ChunkContext, DustModel
+from .execution import ChunkExecutor
+from .factory import env_spec, load_policy, make_policy, save_policy, unwrap
 from .flow_matching import action_validity, decoupled_loss, interpolate, masked_mse, sample_tau, velocity_target
+from .hf_vision import TransformersImageEncoder
+from .image_encoder import ImageEncoder
+from .policy import DustPolicy
 from .samplers import DenoiseStep, action_only_schedule, async_schedule, run_schedule, schedule_for, sync_schedule
+from .text_encoder import TextEncoder, TransformersTextEncoder
 
 __all__ = [
     "VARIANTS",
+    "AutoencoderConfig",
+    "CheckpointError",
     "ChunkContext",
+    "ChunkExecutor",
+    "ConvAutoencoder",
     "DenoiseStep",
     "DustAgent",
     "DustConfig",
     "DustModel",
+    "DustPolicy",
+    "FrozenBackbone",
+    "ImageEncoder",
+    "TextEncoder",
+    "TransformersImageEncoder",
+    "TransformersTextEncoder",
     "action_only_schedule",
     "action_validity",
     "async_schedule",
     "decoupled_loss",
+    "env_spec",
     "interpolate",
+    "load_image_encoder",
+    "load_policy",
+    "make_policy",
     "masked_mse",
     "random_batch",
     "run_schedule",
     "sample_tau",
+    "save_image_encoder",
+    "save_policy",
     "schedule_for",
     "sync_schedule",
+    "unwrap",
     "velocity_target",
 ]

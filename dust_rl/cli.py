@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import shlex
+import sys
 
 from dust_rl.envs import list_tasks
 
@@ -51,6 +53,93 @@ def _expert_table(args: argparse.Namespace) -> None:
         pathlib.Path(args.out).with_suffix(".json").write_text(json.dumps(rows, indent=2))
 
 
+def _collect(args: argparse.Namespace) -> None:
+    """Collect scripted-expert demonstrations into a dataset folder (re-run the same command to resume)."""
+    from dust_rl.data import DemoDataset, collect_demos
+    from dust_rl.data.tools import dataset_summary
+
+    tasks = list_tasks(args.robot) if args.task == "all" else args.task.split(",")
+    env_kwargs = {"image_size": args.image_size}
+    if args.cameras:
+        env_kwargs["cameras"] = args.cameras.split(",")
+    collect_demos(args.out, args.env, tasks, args.episodes, env_kwargs=env_kwargs, workers=args.workers,
+                  start_seed=args.seed, noise_std=args.noise_std, keep_failed=args.keep_failed)
+    print(dataset_summary(DemoDataset(args.out)))
+
+
+def _dataset_info(args: argparse.Namespace) -> None:
+    """Summarise a dataset: episodes, tasks, lengths, success, sizes."""
+    from dust_rl.data import DemoDataset
+    from dust_rl.data.tools import dataset_summary
+
+    print(dataset_summary(DemoDataset(args.dir)))
+
+
+def _dataset_video(args: argparse.Namespace) -> None:
+    """Write an MP4 grid of a dataset's episodes."""
+    from dust_rl.data import DemoDataset
+    from dust_rl.data.tools import write_episode_grid
+
+    dataset = DemoDataset(args.dir)
+    episodes = range(min(args.episodes, dataset.num_episodes))
+    print(write_episode_grid(dataset, args.out, episodes, columns=args.columns))
+
+
+def _dataset_export(args: argparse.Namespace) -> None:
+    """Export a dataset to another format (LeRobotDataset v3.0)."""
+    from dust_rl.data import DemoDataset
+    from dust_rl.data.lerobot_export import export_lerobot
+
+    print(export_lerobot(DemoDataset(args.dir), args.out, crf=args.crf))
+
+
+def _dataset_import(args: argparse.Namespace) -> None:
+    """Import a LeRobotDataset v3.0 folder as a new dataset."""
+    from dust_rl.data.lerobot_import import import_lerobot
+
+    import_lerobot(args.source, args.out)
+    print(args.out)
+
+
+def _pretrain_encoder(args: argparse.Namespace) -> None:
+    """Pretrain the frozen image encoder (conv autoencoder) on dataset frames and write it to one file."""
+    from dust_rl.agents import AutoencoderConfig
+    from dust_rl.data import DemoDataset
+    from dust_rl.pretrain_encoder import pretrain_encoder
+
+    config = AutoencoderConfig(image_size=args.image_size, latent_grid=args.grid, dim=args.dim, width=args.width)
+    report = pretrain_encoder([DemoDataset(d) for d in args.dataset], args.out, config, steps=args.steps,
+                              batch_size=args.batch_size, lr=args.lr, seed=args.seed,
+                              command=args.command_line)
+    heldout = "n/a" if report.heldout_loss is None else f"{report.heldout_loss:.5f}"
+    print(f"{report.path}: {report.steps} steps in {report.seconds:.0f} s on {report.train_frames} frames; "
+          f"pixel MSE train {report.train_loss:.5f}, held-out {heldout}")
+
+
+def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
+    dataset = commands.add_parser("dataset", help="inspect, export and import demonstration datasets")
+    actions = dataset.add_subparsers(dest="action", required=True)
+    info = actions.add_parser("info", help=_dataset_info.__doc__)
+    info.add_argument("dir")
+    info.set_defaults(func=_dataset_info)
+    video = actions.add_parser("video", help=_dataset_video.__doc__)
+    video.add_argument("dir")
+    video.add_argument("--out", required=True, help="MP4 file")
+    video.add_argument("--episodes", type=int, default=16, help="show the first N episodes")
+    video.add_argument("--columns", type=int, default=4)
+    video.set_defaults(func=_dataset_video)
+    export = actions.add_parser("export", help=_dataset_export.__doc__)
+    export.add_argument("dir")
+    export.add_argument("--format", choices=["lerobot"], default="lerobot")
+    export.add_argument("--out", required=True, help="new folder")
+    export.add_argument("--crf", type=int, default=18, help="H.264 quality (0 = lossless luma, 18 = near-transparent)")
+    export.set_defaults(func=_dataset_export)
+    imp = actions.add_parser("import", help=_dataset_import.__doc__)
+    imp.add_argument("source", help="LeRobotDataset v3.0 folder")
+    imp.add_argument("--out", required=True, help="new dataset folder")
+    imp.set_defaults(func=_dataset_import)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dust-rl", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -72,12 +161,48 @@ def build_parser() -> argparse.ArgumentParser:
     table.add_argument("--seeds", type=int, default=50)
     table.add_argument("--out", default=None, help="also write the table (.md) and rows (.json) here")
     table.set_defaults(func=_expert_table)
+
+    collect = commands.add_parser("collect", help=_collect.__doc__)
+    collect.add_argument("--env", default="DustFranka-v0")
+    collect.add_argument("--robot", default="franka", help="suite used by --task all")
+    collect.add_argument("--task", default="pick_place", help="task name, comma-separated names, or 'all'")
+    collect.add_argument("--episodes", type=int, default=100, help="successful episodes per task")
+    collect.add_argument("--out", required=True, help="dataset folder (an existing one is resumed)")
+    collect.add_argument("--workers", type=int, default=1, help="env processes")
+    collect.add_argument("--seed", type=int, default=0, help="first episode seed of every task")
+    collect.add_argument("--image-size", type=int, default=128)
+    collect.add_argument("--cameras", default=None, help="comma-separated cameras (default: all of the robot's)")
+    collect.add_argument("--noise-std", type=float, default=0.0,
+                         help="DART: Gaussian noise on the executed action; the label stays the expert's")
+    collect.add_argument("--keep-failed", action="store_true", help="also store failed episodes")
+    collect.set_defaults(func=_collect)
+    _add_dataset_commands(commands)
+
+    pretrain = commands.add_parser("pretrain-encoder", help=_pretrain_encoder.__doc__)
+    pretrain.add_argument("--dataset", action="append", required=True, help="dataset folder (repeat for several)")
+    pretrain.add_argument("--out", required=True, help="encoder file (written atomically)")
+    pretrain.add_argument("--steps", type=int, default=3000)
+    pretrain.add_argument("--batch-size", type=int, default=64)
+    pretrain.add_argument("--lr", type=float, default=2e-3)
+    pretrain.add_argument("--seed", type=int, default=0)
+    pretrain.add_argument("--image-size", type=int, default=128, help="frames are resized to this")
+    pretrain.add_argument("--grid", type=int, default=4, help="latent token grid side")
+    pretrain.add_argument("--dim", type=int, default=64, help="token size")
+    pretrain.add_argument("--width", type=int, default=16, help="channels of the first conv stage")
+    pretrain.set_defaults(func=_pretrain_encoder)
     return parser
 
 
 def main(argv: list[str] | None = None) -> None:
+    from dust_rl.data.errors import DatasetError
+
+    argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
-    args.func(args)
+    args.command_line = shlex.join(["dust-rl", *argv])  # provenance for files a command writes
+    try:
+        args.func(args)
+    except (DatasetError, FileExistsError) as err:
+        raise SystemExit(f"dust-rl: error: {err}") from err
 
 
 if __name__ == "__main__":

@@ -37,7 +37,7 @@ def run_expert_episode(env: DustEnv, seed: int, record: bool = False) -> Episode
     expert = env.make_expert()
     frames = [camera_strip(obs)] if record else []
     for step in range(1, env.max_episode_steps + 1):
-        obs, _, terminated, truncated, info = env.step(expert.act(*env.end_effector_pose()))
+        obs, _, terminated, truncated, info = env.step(expert.act())
         if record:
             frames.append(camera_strip(obs))
         if terminated or truncated:

@@ -2,7 +2,8 @@
 
 The policy commands end-effector poses; every control step this controller
 moves each mink ``FrameTask`` target, solves one QP (``mink.solve_ik``) under
-joint-position and joint-velocity limits with a ``PostureTask`` regulariser,
+joint-position and joint-velocity limits (and, where the robot asks for it,
+collision avoidance between named geoms) with a ``PostureTask`` regulariser,
 and integrates the result into joint position targets for the actuators.
 
 Each step starts from the measured joint positions, so the controller holds
@@ -33,6 +34,10 @@ class OperationalSpaceController:
         orientation_cost: FrameTask orientation weight.
         posture_cost: PostureTask weight; small, so it resolves redundancy without
             pulling the end effector off its target (1e-2 drifts ~0.4 mm per step).
+        joint_posture_costs: joint name -> PostureTask weight overriding ``posture_cost``
+            (a stiffer waist lets the arms do the reaching and moves the waist only when needed).
+        collision_pairs: pairs of geom-name groups kept apart by a
+            ``mink.CollisionAvoidanceLimit``; empty for none.
     """
 
     def __init__(
@@ -46,6 +51,8 @@ class OperationalSpaceController:
         position_cost: float = 1.0,
         orientation_cost: float = 0.5,
         posture_cost: float = 1e-3,
+        joint_posture_costs: Mapping[str, float] | None = None,
+        collision_pairs: Sequence[tuple[Sequence[str], Sequence[str]]] = (),
     ) -> None:
         self.model = model
         self.dt = dt
@@ -59,9 +66,15 @@ class OperationalSpaceController:
         self.home = self.configuration.q.copy()
         for joint, value in home_qpos.items():
             self.home[model.joint(joint).qposadr[0]] = value
-        self.posture_task = mink.PostureTask(model, cost=posture_cost)
+        cost = np.full(model.nv, posture_cost)
+        for joint, value in (joint_posture_costs or {}).items():
+            cost[model.joint(joint).dofadr[0]] = value
+        self.posture_task = mink.PostureTask(model, cost=cost)
         self.posture_task.set_target(self.home)
         self.limits = [mink.ConfigurationLimit(model), mink.VelocityLimit(model, dict(max_joint_velocity))]
+        if collision_pairs:
+            pairs = [(list(a), list(b)) for a, b in collision_pairs]
+            self.limits.append(mink.CollisionAvoidanceLimit(model, pairs))
         self._tasks = [*self.frame_tasks, self.posture_task]
 
     def step(self, q: np.ndarray, targets: Sequence[mink.SE3]) -> np.ndarray:

@@ -36,10 +36,8 @@ MAX_INSTRUCTION_LENGTH = 256
 
 MAX_TRANSLATION = 0.02  # metres per control step at |action| = 1 (delta mode)
 MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
-# Absolute mode: position in this box (table frame) and axis-angle up to pi.
-WORKSPACE_LOW = np.array([0.15, -0.45, 0.0])
-WORKSPACE_HIGH = np.array([0.85, 0.45, 0.6])
-_POSITION_TARGET_LIMITS = (WORKSPACE_LOW - [0, 0, 0.05], WORKSPACE_HIGH)
+# Position targets may dip this far below the robot's workspace box (to press on the table).
+_TARGET_BELOW_WORKSPACE = np.array([0.0, 0.0, 0.05])
 _INSTABILITY_WARNINGS = np.array([mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
                                   mujoco.mjtWarning.mjWARN_BADQACC], dtype=int)
 
@@ -49,14 +47,15 @@ class DustEnv(gym.Env):
 
     Args:
         task: task name; see :func:`dust_rl.envs.list_tasks`.
-        robot: robot suite (``"franka"``).
+        robot: robot suite (``"franka"``, ``"humanoid"``).
         obs_mode: ``"rgb"`` (camera images, state, instruction) or ``"state"`` (numeric
             arrays only, no rendering: what RL baselines such as SB3 accept; the
             instruction is then in ``info["language_instruction"]``).
         control_mode: ``"delta"`` (default; per step at most 2 cm and 0.1 rad) or
-            ``"absolute"`` (pose in the workspace box, axis-angle / pi).
+            ``"absolute"`` (pose in the robot's workspace box, axis-angle / pi).
         image_size: image height and width in pixels (an int or ``(height, width)``).
-        cameras: cameras to render; defaults to ``front`` plus the robot's own.
+        cameras: cameras to render; defaults to the robot's (Franka: ``front``, ``wrist``;
+            humanoid: ``head``, with ``left_wrist``, ``right_wrist`` and ``front`` on request).
         reward_type: ``"sparse"`` (1 on success) or ``"dense"`` (staged shaping, 1 on success).
         render_mode: ``"rgb_array"`` or None.
         render_quality: ``"fast"`` (no shadows/MSAA, low-poly robot) or ``"visual"``.
@@ -65,9 +64,13 @@ class DustEnv(gym.Env):
         physics_dt: MuJoCo timestep (s).
         ik_solver: QP solver for mink (``"daqp"`` or ``"quadprog"``).
 
-    Actions outside [-1, 1] are clipped; non-finite or wrongly shaped actions
-    raise ``ValueError``. An infeasible IK problem or diverging physics ends the
-    episode with ``truncated=True`` and ``info["truncation_reason"]`` set.
+    The action has 7 numbers per end effector, in the robot's end-effector order
+    (humanoid: left hand, then right hand): translation (3), rotation as a
+    world-frame axis-angle (3), closure (1; -1 open, 1 closed; a hand closes
+    through its grasp synergy). Actions outside [-1, 1] are clipped; non-finite
+    or wrongly shaped actions raise ``ValueError``. An infeasible IK problem or
+    diverging physics ends the episode with ``truncated=True`` and
+    ``info["truncation_reason"]`` set.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
@@ -108,10 +111,11 @@ class DustEnv(gym.Env):
         ik_model, _ = self._compile(physics_dt, with_task=False)
         self.controller = OperationalSpaceController(
             ik_model, [ee.site for ee in self.robot.end_effectors], self.robot.home_qpos,
-            self.robot.max_joint_velocity, self.control_dt, solver=ik_solver)
+            self.robot.max_joint_velocity, self.control_dt, solver=ik_solver,
+            joint_posture_costs=self.robot.posture_costs, collision_pairs=self.robot.collision_pairs)
         self._index_robot(ik_model)
 
-        self.cameras = tuple(cameras) if cameras is not None else ("front", *self.robot.cameras)
+        self.cameras = tuple(cameras) if cameras is not None else self.robot.default_cameras
         for camera in self.cameras:
             if mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera) < 0:
                 raise ValueError(f"unknown camera {camera!r}; this scene has {self._camera_names()}")
@@ -150,6 +154,7 @@ class DustEnv(gym.Env):
                          for ee in self.robot.end_effectors]
         self._ee_opening = [np.array([self.model.joint(j).qposadr[0] for j in ee.opening_joints])
                             for ee in self.robot.end_effectors]
+        self._workspace_low, self._workspace_high = (np.asarray(corner, float) for corner in self.robot.workspace)
         robot_joints = [*self.robot.arm_joints, *(j for ee in self.robot.end_effectors for j in ee.opening_joints)]
         self._state_qadr = np.array([self.model.joint(j).qposadr[0] for j in robot_joints])
         self._home_qpos = {self.model.joint(j).qposadr[0]: v for j, v in self.robot.home_qpos.items()}
@@ -208,7 +213,7 @@ class DustEnv(gym.Env):
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array":
             return None
-        return self._render_camera("front")
+        return self._render_camera(self.robot.default_cameras[0])
 
     def close(self) -> None:
         if self._renderer is not None:
@@ -235,9 +240,9 @@ class DustEnv(gym.Env):
                 target_pos = pos + a[:3] * MAX_TRANSLATION
                 target_rot = _axis_angle_to_matrix(a[3:6] * MAX_ROTATION) @ rot
             else:
-                target_pos = WORKSPACE_LOW + (a[:3] + 1.0) / 2.0 * (WORKSPACE_HIGH - WORKSPACE_LOW)
+                target_pos = self._workspace_low + (a[:3] + 1.0) / 2.0 * (self._workspace_high - self._workspace_low)
                 target_rot = _axis_angle_to_matrix(a[3:6] * np.pi)
-            target_pos = np.clip(target_pos, *_POSITION_TARGET_LIMITS)
+            target_pos = np.clip(target_pos, self._workspace_low - _TARGET_BELOW_WORKSPACE, self._workspace_high)
             targets.append(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(target_rot), target_pos))
         q = self.data.qpos[self._sim_qadr]
         # Contacts can push joints marginally past their limits, which makes the QP infeasible.
@@ -279,11 +284,11 @@ class DustEnv(gym.Env):
         n = len(self._state_qadr)
         state = np.empty(n + 8 * len(self._ee_sites))
         state[:n] = self.data.qpos[self._state_qadr]
-        for i, (site, opening) in enumerate(zip(self._ee_sites, self._ee_opening)):
+        for i, (ee, site, opening) in enumerate(zip(self.robot.end_effectors, self._ee_sites, self._ee_opening)):
             block = state[n + 8 * i: n + 8 * i + 8]
             block[:3] = self.data.site_xpos[site]
             mujoco.mju_mat2Quat(block[3:7], self.data.site_xmat[site])
-            block[7] = self.data.qpos[opening].sum()
+            block[7] = ee.opening(self.data.qpos[opening])
         return state.astype(np.float32)
 
     def _render_camera(self, camera: str) -> np.ndarray:
@@ -303,9 +308,14 @@ class DustEnv(gym.Env):
         site = self._ee_sites[index]
         return self.data.site_xpos[site].copy(), self.data.site_xmat[site].reshape(3, 3).copy()
 
+    def end_effector_poses(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Measured position and rotation matrix of every end effector, in action order."""
+        return [self.end_effector_pose(i) for i in range(len(self._ee_sites))]
+
     def make_expert(self) -> WaypointExpert:
-        """The task's scripted expert, bound to this env's state (call after reset)."""
-        return WaypointExpert(lambda: self.task.expert_plan(self.model, self.data), MAX_TRANSLATION, MAX_ROTATION)
+        """The task's scripted expert, bound to this env's state (call after reset; ``act()`` each step)."""
+        return WaypointExpert(lambda: self.task.expert_plan(self.model, self.data), self.robot.end_effectors,
+                              self.end_effector_poses, MAX_TRANSLATION, MAX_ROTATION)
 
 
 def _axis_angle_to_matrix(axis_angle: np.ndarray) -> np.ndarray:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import mujoco
+import numpy as np
 
 from .assets import robot_xml
 from .robot import EndEffector, RobotConfig
@@ -20,6 +21,10 @@ _VMAX = (2.0, 2.0, 2.0, 2.0, 2.5, 2.5, 2.5)
 _COLLISION_RGBA = {"hand": (0.2, 0.2, 0.22, 1.0), "left_finger": (0.15, 0.15, 0.15, 1.0),
                    "right_finger": (0.15, 0.15, 0.15, 1.0)}
 _LINK_RGBA = (0.92, 0.92, 0.94, 1.0)
+# The hand pointing straight down, fingers closing along world y, at yaw 0.
+_TOP_DOWN = ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))
+# Absolute-mode position box (table frame): the reachable part of the table and above it.
+_WORKSPACE = ((0.15, -0.45, 0.0), (0.85, 0.45, 0.6))
 
 
 def add_franka(spec: mujoco.MjSpec, base_pos: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> RobotConfig:
@@ -64,9 +69,13 @@ def add_franka(spec: mujoco.MjSpec, base_pos: tuple[float, float, float] = (0.0,
                 open_ctrl=(255.0,),
                 closed_ctrl=(0.0,),
                 opening_joints=_FINGER_JOINTS,
+                grasp_rotation=_TOP_DOWN,
+                yaw_period=np.pi,  # the two fingers are symmetric
             ),
         ),
         home_qpos={**dict(zip(_ARM_JOINTS, _HOME)), **dict.fromkeys(_FINGER_JOINTS, 0.04)},
         cameras=("wrist",),
+        default_cameras=("front", "wrist"),
         max_joint_velocity=dict(zip(_ARM_JOINTS, _VMAX)),
+        workspace=_WORKSPACE,
     )

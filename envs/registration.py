@@ -1,10 +1,10 @@
-"""Gymnasium registration: ``DustFranka-v0`` (task chosen by the ``task`` kwarg)."""
+"""Gymnasium registration: ``DustFranka-v0`` and ``DustHumanoid-v0`` (task chosen by the ``task`` kwarg)."""
 
 from __future__ import annotations
 
 import gymnasium as gym
 
-ENV_IDS = {"DustFranka-v0": "franka"}
+ENV_IDS = {"DustFranka-v0": "franka", "DustHumanoid-v0": "humanoid"}
 
 
 def register_envs() -> None:

@@ -78,3 +78,22 @@ def add_marker(spec: mujoco.MjSpec, name: str, half_size: Sequence[float],
     body.add_geom(name=name, type=GEOM.mjGEOM_BOX, size=(half_size[0], half_size[1], 0.0005),
                   pos=(0, 0, 0.0005), rgba=rgba, contype=0, conaffinity=0)
     return body
+
+
+def add_open_box(spec: mujoco.MjSpec, name: str, inner_half: float, wall_thickness: float, wall_height: float,
+                 floor_thickness: float, rgba: Sequence[float] = (0.5, 0.5, 0.5, 1)) -> mujoco.MjsBody:
+    """A static open-topped square box (bin, basket, pot) that reset can move: a mocap body.
+
+    Its geoms are ``{name}_floor`` and ``{name}_wall_0..3``; the body frame is at the floor's centre.
+    """
+    body = spec.worldbody.add_body(name=name, mocap=True)
+    outer = inner_half + wall_thickness
+    body.add_geom(name=f"{name}_floor", type=GEOM.mjGEOM_BOX, size=(outer, outer, floor_thickness / 2),
+                  pos=(0, 0, floor_thickness / 2), rgba=rgba)
+    offset = inner_half + wall_thickness / 2
+    across, along = (outer, wall_thickness / 2), (wall_thickness / 2, inner_half)
+    for i, (xy, half) in enumerate((((0, offset), across), ((0, -offset), across), ((offset, 0), along),
+                                    ((-offset, 0), along))):
+        body.add_geom(name=f"{name}_wall_{i}", type=GEOM.mjGEOM_BOX, size=(*half, wall_height / 2),
+                      pos=(*xy, wall_height / 2), rgba=rgba)
+    return body

@@ -10,7 +10,8 @@ worlds see identical episodes.
 
 from __future__ import annotations
 
-from torchrl.envs import Compose, GymEnv, PermuteTransform, RenameTransform, TransformedEnv
+import gymnasium as gym
+from torchrl.envs import Compose, EnvBase, GymEnv, GymWrapper, PermuteTransform, RenameTransform, TransformedEnv
 
 
 def canonical_key(flat_key: str) -> str | tuple[str, ...]:
@@ -18,19 +19,24 @@ def canonical_key(flat_key: str) -> str | tuple[str, ...]:
     return tuple(flat_key.split(".")) if "." in flat_key else flat_key
 
 
-def make_torchrl_env(env_id: str = "DustFranka-v0", **kwargs) -> TransformedEnv:
-    """A torchrl ``GymEnv`` of ``env_id`` whose observations follow the VLA schema.
-
-    Args:
-        env_id: registered gymnasium id.
-        **kwargs: forwarded to the environment (``task``, ``obs_mode``, ...).
-    """
-    import dust_rl  # noqa: F401  (registers the ids)
-
-    base = GymEnv(env_id, **kwargs)
+def canonical_transforms(base: EnvBase) -> Compose:
+    """Transforms that nest ``base``'s flat observation keys into the VLA schema."""
     flat_keys = [key for key in base.observation_spec.keys() if isinstance(key, str) and "." in key]
     image_keys = [canonical_key(k) for k in flat_keys if k.startswith("observation.image.")]
     transforms = [RenameTransform(in_keys=flat_keys, out_keys=[canonical_key(k) for k in flat_keys])]
     if image_keys:
         transforms.append(PermuteTransform(dims=[-1, -3, -2], in_keys=image_keys))
-    return TransformedEnv(base, Compose(*transforms))
+    return Compose(*transforms)
+
+
+def make_torchrl_env(env: str | gym.Env = "DustFranka-v0", **kwargs) -> TransformedEnv:
+    """A torchrl env whose observations follow the VLA schema.
+
+    Args:
+        env: a registered gymnasium id, or an already built (possibly wrapped) gymnasium env.
+        **kwargs: forwarded to the environment when ``env`` is an id (``task``, ``obs_mode``, ...).
+    """
+    import dust_rl  # noqa: F401  (registers the ids)
+
+    base = GymEnv(env, **kwargs) if isinstance(env, str) else GymWrapper(env)
+    return TransformedEnv(base, canonical_transforms(base))

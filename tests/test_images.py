@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from conftest import FRANKA_TASKS
+from conftest import SUITE_TASKS
 from dust_rl.envs import DustEnv
 
 
@@ -19,18 +19,20 @@ def _visible_geoms(env: DustEnv, camera: str) -> set[int]:
     return set(np.unique(ids[ids >= 0]).tolist())
 
 
-@pytest.mark.parametrize("task", FRANKA_TASKS)
-def test_front_camera_shows_task_objects(task):
-    env = DustEnv(task=task, image_size=96)
+@pytest.mark.parametrize(("robot", "task"), SUITE_TASKS)
+def test_default_cameras_show_task_objects(robot, task):
+    env = DustEnv(task=task, robot=robot, image_size=96)
     obs, _ = env.reset(seed=0)
     for camera in env.cameras:
         image = obs[f"observation.image.{camera}"]
         assert image.std() > 10, f"{camera} image looks blank"
     scenery = {"floor", "table"}
+    robot_root = env.model.body_rootid[env.model.site(env.robot.end_effectors[0].site).bodyid[0]]
     task_geoms = {g for g in range(env.model.ngeom)
-                  if not env.model.body(env.model.geom_bodyid[g]).name.startswith("panda/")
+                  if env.model.body_rootid[env.model.geom_bodyid[g]] != robot_root
                   and env.model.geom(g).name not in scenery}
-    assert task_geoms & _visible_geoms(env, "front"), "no task object visible in the front camera"
+    main_camera = env.robot.default_cameras[0]  # Franka: front; humanoid: head
+    assert task_geoms & _visible_geoms(env, main_camera), f"no task object visible in the {main_camera} camera"
     env.close()
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from .base import CATEGORIES, Task
 from .close_drawer import CloseDrawer
+from .humanoid import HUMANOID_TASKS
 from .open_drawer import OpenDrawer
 from .peg_insert import PegInsert
 from .pick_into_bin import PickIntoBin
@@ -23,7 +24,8 @@ def register_task(cls: type[Task]) -> type[Task]:
     return cls
 
 
-for _cls in (PickPlace, PickIntoBin, OpenDrawer, CloseDrawer, Stack, Push, PressButton, PegInsert):
+for _cls in (PickPlace, PickIntoBin, OpenDrawer, CloseDrawer, Stack, Push, PressButton, PegInsert,
+              *HUMANOID_TASKS):
     register_task(_cls)
 
 

@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 
 if TYPE_CHECKING:
-    from ..experts import Waypoint
+    from ..experts import Step
     from ..robot import RobotConfig
 
 CATEGORIES = ("pick_and_place", "open_close", "other")
@@ -57,15 +57,19 @@ class Task(abc.ABC):
 
     @abc.abstractmethod
     def progress(self, model: mujoco.MjModel, data: mujoco.MjData, eef_pos: np.ndarray) -> float:
-        """Dense shaping in [0, 1): staged distances toward the goal."""
+        """Dense shaping in [0, 1): staged distances toward the goal.
+
+        ``eef_pos`` is the first end effector's position; tasks for several end
+        effectors read the others from ``data`` through the sites bound in :meth:`bind`.
+        """
 
     @abc.abstractmethod
     def environment_state(self, data: mujoco.MjData) -> np.ndarray:
         """Privileged object state (positions, joint values), ``environment_state_dim`` floats."""
 
     @abc.abstractmethod
-    def expert_plan(self, model: mujoco.MjModel, data: mujoco.MjData) -> list[Waypoint]:
-        """Waypoints that solve the task from the current state."""
+    def expert_plan(self, model: mujoco.MjModel, data: mujoco.MjData) -> list[Step]:
+        """Plan steps that solve the task from the current state (one waypoint per end effector each)."""
 
 
 def set_free_body_pose(data: mujoco.MjData, body: str, pos: np.ndarray, yaw: float = 0.0) -> None:

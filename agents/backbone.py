@@ -1,0 +1,126 @@
+"""The frozen backbone: an image encoder and a text encoder that are never trained with the policy.
+
+Paper: a frozen VLM (Eagle-2, layer 12) conditions the trunk and a frozen
+image model (SigLIP-2) defines the future targets. Here one frozen image
+encoder serves both, and MiniLM embeds the instruction. Freezing is enforced:
+parameters never require grad, the module stays in eval mode, and encoding
+runs without autograd, so its outputs can be cached once per dataset row.
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import torch
+from torch import Tensor, nn
+
+from .autoencoder import AutoencoderConfig, ConvAutoencoder
+from .checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
+from .hf_vision import TransformersImageEncoder
+from .image_encoder import ImageEncoder, image_tokens
+from .text_encoder import TextEncoder, TransformersTextEncoder
+
+IMAGE_ENCODER_KIND = "dust-rl-image-encoder"
+
+
+class FrozenBackbone(nn.Module):
+    """Frozen image and text encoders, with instruction embeddings cached per string.
+
+    Args:
+        image_encoder: pixels to feature map.
+        text_encoder: instruction strings to token embeddings.
+    """
+
+    def __init__(self, image_encoder: ImageEncoder, text_encoder: TextEncoder) -> None:
+        super().__init__()
+        self.image, self.text = image_encoder, text_encoder
+        self.requires_grad_(False)
+        self.eval()
+        self._text_cache: dict[str, tuple[Tensor, Tensor]] = {}
+
+    def train(self, mode: bool = True) -> FrozenBackbone:
+        """Stay in eval mode whatever the parent asks (no dropout or norm-statistics updates)."""
+        return super().train(False)
+
+    @property
+    def image_dim(self) -> int:
+        return self.image.dim
+
+    @property
+    def text_dim(self) -> int:
+        return self.text.dim
+
+    @property
+    def text_tokens_per_instruction(self) -> int:
+        return self.text.max_tokens
+
+    @torch.no_grad()
+    def image_tokens(self, images: Tensor, grid: tuple[int, int]) -> Tensor:
+        """Tokens [B, rows*cols, image_dim] of images [B, 3, H, W] (uint8 or float in [0, 1])."""
+        return image_tokens(self.image, images, grid)
+
+    @torch.no_grad()
+    def text_tokens(self, texts: list[str]) -> tuple[Tensor, Tensor]:
+        """Token embeddings [B, L, text_dim] and mask [B, L]; each distinct string is encoded once."""
+        new = list(dict.fromkeys(t for t in texts if t not in self._text_cache))
+        if new:
+            tokens, mask = self.text(new)
+            self._text_cache.update({t: (tokens[i], mask[i]) for i, t in enumerate(new)})
+        cached = [self._text_cache[t] for t in texts]
+        return torch.stack([c[0] for c in cached]), torch.stack([c[1] for c in cached])
+
+    def reference(self) -> dict:
+        """How to rebuild both encoders (see :func:`build_image_encoder`, :func:`build_text_encoder`)."""
+        return {"image": self.image.reference(), "text": self.text.reference()}
+
+    def image_weights(self) -> dict[str, Tensor] | None:
+        """Image encoder weights a policy checkpoint must store: None when its reference points to a path."""
+        return None if self.image.reference().get("path") else self.image.state_dict()
+
+    @classmethod
+    def from_reference(cls, reference: dict, image_weights: dict[str, Tensor] | None = None) -> FrozenBackbone:
+        """Rebuild a backbone from :meth:`reference` (and :meth:`image_weights`)."""
+        return cls(build_image_encoder(reference["image"], image_weights), build_text_encoder(reference["text"]))
+
+
+def build_image_encoder(reference: dict, weights: dict[str, Tensor] | None = None) -> ImageEncoder:
+    """An image encoder from its :meth:`ImageEncoder.reference`, with ``weights`` loaded if given."""
+    kind = reference.get("kind")
+    if kind == "conv_autoencoder":
+        encoder: ImageEncoder = ConvAutoencoder(AutoencoderConfig(**reference["config"]))
+    elif kind == "transformers_vision":
+        encoder = TransformersImageEncoder(path=reference["path"], config=reference.get("config"),
+                                           mean=reference["mean"], std=reference["std"])
+    else:
+        raise CheckpointError(f"unknown image encoder kind {kind!r}")
+    if weights is not None:
+        encoder.load_state_dict(weights)
+    return encoder.eval()
+
+
+def build_text_encoder(reference: dict) -> TextEncoder:
+    """A text encoder from its :meth:`TextEncoder.reference`."""
+    if reference.get("kind") != "transformers_text":
+        raise CheckpointError(f"unknown text encoder kind {reference.get('kind')!r}")
+    return TransformersTextEncoder(reference["path"], max_tokens=reference["max_tokens"])
+
+
+def save_image_encoder(encoder: ImageEncoder, path: str | pathlib.Path, info: dict | None = None) -> pathlib.Path:
+    """Write a (pretrained) image encoder to one file, atomically.
+
+    Args:
+        encoder: the encoder.
+        path: target file.
+        info: JSON-able provenance (data, command, losses) kept beside the weights.
+    """
+    return save_checkpoint({"reference": encoder.reference(), "state_dict": encoder.state_dict(),
+                            "info": info or {}}, path, IMAGE_ENCODER_KIND)
+
+
+def load_image_encoder(path: str | pathlib.Path) -> ImageEncoder:
+    """Read an encoder written by :func:`save_image_encoder` (raises :class:`CheckpointError` if unusable)."""
+    payload = load_checkpoint(path, IMAGE_ENCODER_KIND)
+    try:
+        return build_image_encoder(payload["reference"], payload["state_dict"])
+    except (KeyError, TypeError, RuntimeError) as err:
+        raise CheckpointError(f"{path}: image encoder does not load ({err})") from err

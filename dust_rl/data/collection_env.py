@@ -1,0 +1,38 @@
+"""The env a demonstration collector steps: DustEnv + expert + seeds, with torchrl's VLA keys.
+
+Built inside each collector worker from a picklable constructor, so the scripted
+expert and the seed schedule live next to the simulator they read.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import gymnasium as gym
+from torchrl.envs import StepCounter, TransformedEnv
+
+import dust_rl  # noqa: F401  (registers the env ids)
+from dust_rl.envs.expert_wrapper import ExpertActionWrapper
+from dust_rl.envs.torchrl_env import make_torchrl_env
+
+from .seeding import EpisodeSeedWrapper, SeedSchedule
+
+
+def make_collection_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> TransformedEnv:
+    """A torchrl env of ``env_id`` with ``expert_action``, ``episode_seed``, ``is_success`` and ``step_count``.
+
+    Observations use the canonical VLA keys (``("observation", "image", cam)`` uint8 ``[C, H, W]``,
+    ``("observation", "state")``, ``language_instruction``), like ``make_torchrl_env``.
+    """
+    env = make_torchrl_env(EpisodeSeedWrapper(ExpertActionWrapper(gym.make(env_id, **env_kwargs)), schedule))
+    env.append_transform(StepCounter())
+    return env
+
+
+def collection_env_fns(env_id: str, env_kwargs: dict, start_seed: int, known_seeds: frozenset[int],
+                       num_workers: int) -> list[Callable[[], TransformedEnv]]:
+    """One env constructor per worker, each with its share of the unknown seeds."""
+    return [functools.partial(make_collection_env, env_id, env_kwargs,
+                              SeedSchedule(start_seed, known_seeds, worker, num_workers))
+            for worker in range(num_workers)]

@@ -1,0 +1,107 @@
+"""Read a demonstration dataset: its metadata, its rows as a memmap TensorDict, a replay buffer.
+
+Loading checks what a training run would otherwise trip over later: the metadata
+format, that every data file is whole, that row counts agree with the episode
+table, and (on request) that the dataset fits the env it will be used with.
+"""
+
+from __future__ import annotations
+
+import functools
+import pathlib
+
+import gymnasium as gym
+import torch
+from tensordict import NonTensorStack, TensorDict
+from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
+from torchrl.data.replay_buffers.samplers import Sampler
+
+from .errors import DatasetError
+from .layout import META_FILE
+from .memmap_io import load_memmap_checked
+from .metadata import env_spec, read_meta, spec_mismatches
+
+INSTRUCTION_KEY = "language_instruction"
+
+
+class DemoDataset:
+    """A finalised dataset folder (see :mod:`dust_rl.data.layout`).
+
+    Args:
+        root: the folder written by :func:`dust_rl.data.collect_demos` (or ``dataset import``).
+        env: if given, raise :class:`DatasetError` unless the dataset's cameras, image shape,
+            state/action sizes and control rate match this env's.
+
+    Attributes:
+        meta: the parsed ``meta.json``.
+        data: all rows, a memmap TensorDict ``[num_rows]`` (nothing is read until indexed).
+    """
+
+    def __init__(self, root: str | pathlib.Path, env: gym.Env | None = None) -> None:
+        self.root = pathlib.Path(root)
+        self.meta = read_meta(self.root)
+        if not self.meta.get("data"):
+            raise DatasetError(f"{self.root}: collection was not finished (no consolidated data in {META_FILE}); "
+                               "re-run the collect command to resume it")
+        self.data = load_memmap_checked(self.root / self.meta["data"])
+        if self.data.shape[0] != self.meta["num_rows"] or self.meta["num_rows"] != sum(self.lengths.tolist()):
+            raise DatasetError(f"{self.root}: {self.data.shape[0]} rows on disk, but {META_FILE} expects "
+                               f"{self.meta['num_rows']} (episode lengths sum to {sum(self.lengths.tolist())})")
+        if env is not None:
+            self.check_env(env)
+
+    def __len__(self) -> int:
+        return self.data.shape[0]
+
+    @property
+    def num_episodes(self) -> int:
+        return len(self.meta["episodes"])
+
+    @property
+    def tasks(self) -> list[str]:
+        return self.meta["tasks"]
+
+    @property
+    def instructions(self) -> list[str]:
+        return self.meta["instructions"]
+
+    @property
+    def cameras(self) -> list[str]:
+        return self.meta["spec"]["cameras"]
+
+    @functools.cached_property
+    def lengths(self) -> torch.Tensor:
+        return torch.tensor([episode["length"] for episode in self.meta["episodes"]], dtype=torch.int64)
+
+    @functools.cached_property
+    def episode_starts(self) -> torch.Tensor:
+        return torch.tensor([episode["row_start"] for episode in self.meta["episodes"]], dtype=torch.int64)
+
+    @functools.cached_property
+    def row_episode_end(self) -> torch.Tensor:
+        """Per row, the row index one past its episode's last row (for window boundaries)."""
+        return torch.repeat_interleave(self.episode_starts + self.lengths, self.lengths)
+
+    def episode(self, index: int) -> TensorDict:
+        """Rows of episode ``index`` (a memmap view) with its instruction attached."""
+        start, length = int(self.episode_starts[index]), int(self.lengths[index])
+        rows = self.data[start:start + length]
+        return self.with_instructions(rows)
+
+    def with_instructions(self, rows: TensorDict) -> TensorDict:
+        """``rows`` plus a ``language_instruction`` string per row, from ``instruction_index``."""
+        texts = [self.instructions[i] for i in rows.get("instruction_index").reshape(-1).tolist()]
+        out = rows.clone(recurse=False)  # a shallow copy: the memmap rows stay read-only
+        out.set(INSTRUCTION_KEY, NonTensorStack.from_list(texts) if rows.ndim else texts[0])
+        return out
+
+    def check_env(self, env: gym.Env) -> None:
+        """Raise :class:`DatasetError` naming each way the dataset's arrays do not fit ``env``."""
+        problems = spec_mismatches(self.meta["spec"], env_spec(env))
+        if problems:
+            raise DatasetError(f"{self.root} does not match the requested env:\n  " + "\n  ".join(problems))
+
+    def replay_buffer(self, batch_size: int, sampler: Sampler | None = None) -> TensorDictReplayBuffer:
+        """A torchrl replay buffer over the memmap rows (random rows unless ``sampler`` says otherwise)."""
+        return TensorDictReplayBuffer(storage=TensorStorage(self.data), sampler=sampler or RandomSampler(),
+                                      batch_size=batch_size)

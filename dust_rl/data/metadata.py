@@ -1,0 +1,93 @@
+"""Dataset metadata: collection config, env spec and versions, and their checks.
+
+``meta.json`` is written before the first episode, so a second ``collect`` into the
+same folder can tell a resume (same config) from a conflicting request (a different
+env, image size, noise...) and refuse the latter instead of mixing data.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import pathlib
+
+import gymnasium as gym
+
+from .errors import DatasetError
+from .layout import FORMAT_VERSION, META_FILE, read_json, write_json_atomic
+
+# Config entries that must be equal to append to an existing dataset.
+FIXED_CONFIG = ("env_id", "env_kwargs", "start_seed", "noise_std", "keep_failed")
+_VERSIONED_PACKAGES = ("dust-rl", "mujoco", "torch", "torchrl", "tensordict", "gymnasium")
+_IMAGE_PREFIX = "observation.image."
+
+
+def env_spec(env: gym.Env) -> dict:
+    """The parts of an env that a dataset's arrays depend on (cameras, shapes, rates)."""
+    spaces = env.observation_space.spaces
+    cameras = [key.removeprefix(_IMAGE_PREFIX) for key in spaces if key.startswith(_IMAGE_PREFIX)]
+    unwrapped = env.unwrapped
+    return {
+        "cameras": cameras,
+        "image_shape": list(spaces[_IMAGE_PREFIX + cameras[0]].shape) if cameras else None,
+        "state_dim": int(spaces["observation.state"].shape[0]),
+        "action_dim": int(env.action_space.shape[0]),
+        "control_hz": round(1.0 / unwrapped.control_dt, 6),
+        "fps": int(unwrapped.metadata["render_fps"]),
+    }
+
+
+def spec_mismatches(expected: dict, actual: dict) -> list[str]:
+    """Human-readable differences between two :func:`env_spec` results."""
+    return [f"{key}: dataset has {expected.get(key)!r}, env has {actual[key]!r}"
+            for key in actual if expected.get(key) != actual[key]]
+
+
+def package_versions() -> dict[str, str | None]:
+    versions = {}
+    for name in _VERSIONED_PACKAGES:
+        try:
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
+def read_meta(root: pathlib.Path) -> dict:
+    """``meta.json`` of the dataset at ``root``, with its format version checked."""
+    path = root / META_FILE
+    if not path.is_file():
+        raise DatasetError(f"{root}: not a dust-rl dataset (no {META_FILE})")
+    try:
+        meta = read_json(path)
+    except (OSError, ValueError) as err:
+        raise DatasetError(f"{path}: unreadable ({err})") from err
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise DatasetError(f"{path}: dataset format version {meta.get('format_version')!r}; "
+                           f"this dust-rl reads version {FORMAT_VERSION}")
+    return meta
+
+
+def open_meta(root: pathlib.Path, config: dict, tasks: list[str], episodes: int, spec: dict) -> dict:
+    """Create ``meta.json`` or check that ``config``/``spec`` match the existing one; record the request.
+
+    Args:
+        config: the :data:`FIXED_CONFIG` entries of this collection.
+        tasks: tasks requested now; they join the dataset with ``episodes`` each.
+        spec: :func:`env_spec` of the env about to be collected.
+    """
+    if (root / META_FILE).exists():
+        meta = read_meta(root)
+        if meta.get("source"):
+            raise DatasetError(f"{root} was imported from {meta['source']}; collect into a new folder")
+        problems = [f"{key}: dataset has {meta[key]!r}, requested {config[key]!r}"
+                    for key in FIXED_CONFIG if meta.get(key) != config[key]]
+        problems += spec_mismatches(meta["spec"], spec)
+        if problems:
+            raise DatasetError(f"{root} holds a different collection; use another --out or the same settings:\n  "
+                               + "\n  ".join(problems))
+    else:
+        meta = {"format_version": FORMAT_VERSION, **config, "spec": spec, "episodes_per_task": {}, "data": None}
+    meta["episodes_per_task"] = {**meta["episodes_per_task"], **{task: episodes for task in tasks}}
+    meta["versions"] = package_versions()
+    write_json_atomic(root / META_FILE, meta)
+    return meta

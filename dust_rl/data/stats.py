@@ -1,0 +1,30 @@
+"""Normalisation statistics of the numeric dataset entries (state, actions)."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
+
+STAT_KEYS = (("observation", "state"), ("observation", "environment_state"), "action", EXPERT_ACTION_KEY)
+
+
+def stat_name(key: str | tuple[str, ...]) -> str:
+    """``("observation", "state")`` -> ``"observation.state"`` (the JSON/LeRobot name)."""
+    return key if isinstance(key, str) else ".".join(key)
+
+
+def compute_stats(rows: TensorDictBase) -> dict[str, dict[str, list[float]]]:
+    """Per-dimension mean, std, min, max and count of each entry in :data:`STAT_KEYS` present in ``rows``."""
+    stats = {}
+    for key in STAT_KEYS:
+        if key not in rows.keys(include_nested=True):
+            continue
+        values = rows.get(key).to(torch.float64).reshape(rows.shape[0], -1)
+        stats[stat_name(key)] = {
+            "mean": values.mean(0).tolist(), "std": values.std(0, correction=0).tolist(),
+            "min": values.min(0).values.tolist(), "max": values.max(0).values.tolist(),
+            "count": [values.shape[0]],
+        }
+    return stats

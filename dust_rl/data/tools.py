@@ -1,0 +1,78 @@
+"""Looking at a dataset: a text summary and a grid video of its episodes."""
+
+from __future__ import annotations
+
+import pathlib
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+
+from .dataset import DemoDataset
+from .video import write_mp4
+
+
+def folder_size(path: pathlib.Path) -> int:
+    """Bytes of all files under ``path``."""
+    return sum(file.stat().st_size for file in path.rglob("*") if file.is_file())
+
+
+def dataset_summary(dataset: DemoDataset) -> str:
+    """Episodes, tasks, lengths, success and sizes, as markdown."""
+    meta, spec = dataset.meta, dataset.meta["spec"]
+    data_bytes = folder_size(dataset.root / meta["data"])
+    lines = [
+        f"# {dataset.root}",
+        f"- env: {meta['env_id']} {meta['env_kwargs']}" + (f" (imported from {meta['source']})" if meta.get("source") else ""),
+        f"- episodes: {dataset.num_episodes}, transitions: {len(dataset)}, instructions: {len(dataset.instructions)}",
+        f"- cameras: {', '.join(spec['cameras'])} at {spec['image_shape']}; state {spec['state_dim']}, "
+        f"action {spec['action_dim']}; {spec['control_hz']:g} Hz",
+        f"- seeds from {meta['start_seed']}; action noise std {meta['noise_std']}; failed episodes kept: {meta['keep_failed']}",
+        f"- size: {data_bytes / 2**20:.1f} MiB consolidated ({1000 * data_bytes / max(len(dataset), 1) / 2**20:.2f} MiB "
+        f"per 1000 transitions), {folder_size(dataset.root) / 2**20:.1f} MiB in the folder",
+        "",
+        "| task | episodes | success | length mean | min | max |",
+        "|---|---|---|---|---|---|",
+    ]
+    for task in dataset.tasks:
+        episodes = [e for e in meta["episodes"] if e["task"] == task]
+        lengths = np.array([e["length"] for e in episodes])
+        success = np.mean([e["success"] for e in episodes]) if episodes else float("nan")
+        lines.append(f"| {task} | {len(episodes)} | {100 * success:.0f}% | {lengths.mean():.1f} | "
+                     f"{lengths.min()} | {lengths.max()} |" if episodes else f"| {task} | 0 | - | - | - | - |")
+    return "\n".join(lines)
+
+
+def write_episode_grid(dataset: DemoDataset, out: str | pathlib.Path, episodes: Sequence[int] | None = None,
+                       columns: int = 4, scale: int | None = None) -> pathlib.Path:
+    """An MP4 playing episodes side by side (all cameras of an episode in one cell); finished cells hold their last frame.
+
+    Args:
+        episodes: episode indices; defaults to the first 16.
+        columns: cells per grid row.
+        scale: integer upscaling of the pixels; defaults to reaching at least 128 pixels per image.
+    """
+    episodes = list(episodes) if episodes is not None else list(range(min(16, dataset.num_episodes)))
+    if not episodes:
+        raise ValueError("no episodes to show")
+    height = dataset.meta["spec"]["image_shape"][0]
+    scale = scale or max(1, -(-128 // height))
+    out = pathlib.Path(out)
+    write_mp4(out, _grid_frames(dataset, episodes, columns, scale), dataset.meta["spec"]["fps"])
+    return out
+
+
+def _grid_frames(dataset: DemoDataset, episodes: list[int], columns: int, scale: int) -> Iterator[np.ndarray]:
+    cells = [_cell_frames(dataset, index) for index in episodes]
+    blank = np.zeros_like(cells[0][0])
+    rows = -(-len(cells) // columns)
+    for t in range(max(len(cell) for cell in cells)):
+        tiles = [cell[min(t, len(cell) - 1)] for cell in cells] + [blank] * (rows * columns - len(cells))
+        grid = np.concatenate([np.concatenate(tiles[r * columns:(r + 1) * columns], axis=1) for r in range(rows)])
+        yield grid.repeat(scale, axis=0).repeat(scale, axis=1)
+
+
+def _cell_frames(dataset: DemoDataset, index: int) -> np.ndarray:
+    """Frames ``[T, H, W * cameras, 3]`` of one episode, cameras side by side."""
+    rows = dataset.episode(index)
+    images = [rows.get(("observation", "image", camera)).permute(0, 2, 3, 1).numpy() for camera in dataset.cameras]
+    return np.concatenate(images, axis=2)

@@ -1,0 +1,51 @@
+"""H.264 MP4 streams through PyAV (FFmpeg's libraries, bundled in the wheel)."""
+
+from __future__ import annotations
+
+import pathlib
+from collections.abc import Iterable, Iterator
+
+import av
+import numpy as np
+
+from .errors import DatasetError
+
+CODEC = "libx264"  # the encoder
+VIDEO_CODEC = "h264"  # the stream format it writes
+PIX_FMT = "yuv420p"
+
+
+def write_mp4(path: pathlib.Path, frames: Iterable[np.ndarray], fps: int, crf: int = 18) -> int:
+    """Encode RGB uint8 frames ``[H, W, 3]`` (even H and W) as one H.264 stream; returns the frame count.
+
+    Frame ``i`` gets presentation time ``i / fps``, so a frame's index is its timestamp times ``fps``.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    count = 0
+    with av.open(str(path), "w") as container:
+        stream = None
+        for frame in frames:
+            if stream is None:
+                height, width = frame.shape[:2]
+                if height % 2 or width % 2:
+                    raise ValueError(f"H.264 ({PIX_FMT}) needs even image sizes, got {height}x{width}")
+                stream = container.add_stream(CODEC, rate=fps)
+                stream.width, stream.height, stream.pix_fmt = width, height, PIX_FMT
+                stream.options = {"crf": str(crf)}
+            for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")):
+                container.mux(packet)
+            count += 1
+        if stream is not None:
+            for packet in stream.encode():
+                container.mux(packet)
+    return count
+
+
+def read_mp4(path: pathlib.Path) -> Iterator[np.ndarray]:
+    """Decoded RGB uint8 frames ``[H, W, 3]`` of the first video stream, in order."""
+    try:
+        with av.open(str(path)) as container:
+            for frame in container.decode(video=0):
+                yield frame.to_ndarray(format="rgb24")
+    except (av.FFmpegError, OSError) as err:
+        raise DatasetError(f"{path}: cannot decode video ({err})") from err

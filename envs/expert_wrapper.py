@@ -1,0 +1,51 @@
+"""Expose the scripted expert's action as an observation.
+
+Demonstration collectors run many env processes; putting the expert inside
+the env (rather than in the policy) lets the expert read the simulator
+state in its own process, so any torchrl policy only has to read the
+``"expert_action"`` key. The expert is rebuilt at every reset and queried
+once per step, exactly as a direct expert rollout would query it, so with
+the expert's action executed the trajectory is the expert's own.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+EXPERT_ACTION_KEY = "expert_action"
+
+
+class ExpertActionWrapper(gym.Wrapper):
+    """Adds ``"expert_action"`` (the expert's action for the current state) to every observation.
+
+    Works on any env whose ``unwrapped`` has ``make_expert()``
+    (``DustEnv``), e.g. ``ExpertActionWrapper(gym.make("DustFranka-v0", task="press_button"))``
+    or, for torchrl, ``GymEnv(ExpertActionWrapper(...))`` / ``GymWrapper``.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        if not isinstance(env.observation_space, gym.spaces.Dict):
+            raise TypeError(f"ExpertActionWrapper needs a Dict observation space, got {env.observation_space}")
+        if not hasattr(env.unwrapped, "make_expert"):
+            raise TypeError(f"{type(env.unwrapped).__name__} has no scripted expert (make_expert)")
+        action_space = env.action_space
+        self.observation_space = gym.spaces.Dict({
+            **env.observation_space.spaces,
+            EXPERT_ACTION_KEY: gym.spaces.Box(-1.0, 1.0, action_space.shape, np.float32),
+        })
+        self._expert = None
+
+    def reset(self, **kwargs) -> tuple[dict, dict]:
+        obs, info = self.env.reset(**kwargs)
+        self._expert = self.env.unwrapped.make_expert()
+        return self._with_expert_action(obs), info
+
+    def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return self._with_expert_action(obs), reward, terminated, truncated, info
+
+    def _with_expert_action(self, obs: dict) -> dict:
+        action = self._expert.act()
+        return {**obs, EXPERT_ACTION_KEY: np.clip(action, -1.0, 1.0).astype(np.float32)}

