@@ -235,15 +235,18 @@ class DustEnv(gym.Env):
         targets = []
         for i, site in enumerate(self._ee_sites):
             a = action[7 * i: 7 * i + 7]
-            pos, rot = self.data.site_xpos[site], self.data.site_xmat[site].reshape(3, 3)
+            pose = np.empty(7)  # mink's wxyz_xyz layout
             if self.control_mode == "delta":
-                target_pos = pos + a[:3] * MAX_TRANSLATION
-                target_rot = _axis_angle_to_matrix(a[3:6] * MAX_ROTATION) @ rot
+                current = np.empty(4)
+                mujoco.mju_mat2Quat(current, self.data.site_xmat[site])
+                mujoco.mju_mulQuat(pose[:4], _axis_angle_to_quat(a[3:6] * MAX_ROTATION), current)
+                pose[4:] = self.data.site_xpos[site] + a[:3] * MAX_TRANSLATION
             else:
-                target_pos = self._workspace_low + (a[:3] + 1.0) / 2.0 * (self._workspace_high - self._workspace_low)
-                target_rot = _axis_angle_to_matrix(a[3:6] * np.pi)
-            target_pos = np.clip(target_pos, self._workspace_low - _TARGET_BELOW_WORKSPACE, self._workspace_high)
-            targets.append(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(target_rot), target_pos))
+                pose[:4] = _axis_angle_to_quat(a[3:6] * np.pi)
+                pose[4:] = self._workspace_low + (a[:3] + 1.0) / 2.0 * (self._workspace_high - self._workspace_low)
+            pose[4:] = np.minimum(np.maximum(pose[4:], self._workspace_low - _TARGET_BELOW_WORKSPACE),
+                                  self._workspace_high)
+            targets.append(mink.SE3(pose))
         q = self.data.qpos[self._sim_qadr]
         # Contacts can push joints marginally past their limits, which makes the QP infeasible.
         q = np.minimum(np.maximum(q, self._ik_low), self._ik_high)
@@ -318,12 +321,10 @@ class DustEnv(gym.Env):
                               self.end_effector_poses, MAX_TRANSLATION, MAX_ROTATION)
 
 
-def _axis_angle_to_matrix(axis_angle: np.ndarray) -> np.ndarray:
+def _axis_angle_to_quat(axis_angle: np.ndarray) -> np.ndarray:
     quat = np.array([1.0, 0.0, 0.0, 0.0])
     mujoco.mju_quatIntegrate(quat, axis_angle, 1.0)
-    mat = np.empty(9)
-    mujoco.mju_quat2Mat(mat, quat)
-    return mat.reshape(3, 3)
+    return quat
 
 
 def _check_choice(name: str, value: object, choices: tuple) -> None:

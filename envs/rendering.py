@@ -10,6 +10,7 @@ recognisable.
 
 from __future__ import annotations
 
+import atexit
 import ctypes.util
 import os
 import weakref
@@ -50,8 +51,7 @@ class CameraRenderer:
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
         model.vis.global_.offheight = max(model.vis.global_.offheight, height)
         self._renderer = mujoco.Renderer(model, height, width)
-        # Free the GL context at interpreter exit too, while EGL is still loaded.
-        self._finalizer = weakref.finalize(self, self._renderer.close)
+        _track_for_exit(self)
         flags = self._renderer.scene.flags
         if quality == "fast":
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
@@ -66,4 +66,25 @@ class CameraRenderer:
         return self._renderer.render()
 
     def close(self) -> None:
-        self._finalizer()
+        self._renderer.close()
+        _LIVE_RENDERERS.discard(self)
+
+
+_LIVE_RENDERERS: weakref.WeakSet[CameraRenderer] = weakref.WeakSet()
+_exit_hook: list = []  # the registered hook, once
+
+
+def _track_for_exit(renderer: CameraRenderer) -> None:
+    """Close still-open renderers at exit before MuJoCo's EGL module terminates the display.
+
+    ``atexit`` runs hooks last-in first-out, so the hook must be registered after
+    ``mujoco.egl`` (imported by the first ``mujoco.Renderer``) registered its own.
+    """
+    if not _exit_hook:
+        _exit_hook.append(atexit.register(_close_live_renderers))
+    _LIVE_RENDERERS.add(renderer)
+
+
+def _close_live_renderers() -> None:
+    for renderer in list(_LIVE_RENDERERS):
+        renderer.close()

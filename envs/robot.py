@@ -43,10 +43,14 @@ class EndEffector:
     yaw_period: float = 2 * np.pi
     opening_weights: tuple[float, ...] | None = None
 
+    def __post_init__(self) -> None:
+        # Arrays once, not per control step (frozen dataclass, hence object.__setattr__).
+        object.__setattr__(self, "_open", np.asarray(self.open_ctrl, dtype=float))
+        object.__setattr__(self, "_span", np.asarray(self.closed_ctrl, dtype=float) - self._open)
+
     def closure_to_ctrl(self, closure: float) -> np.ndarray:
         """Map a closure in [0, 1] (0 open, 1 closed) to actuator controls (a grasp synergy)."""
-        lo, hi = np.asarray(self.open_ctrl), np.asarray(self.closed_ctrl)
-        return lo + closure * (hi - lo)
+        return self._open + closure * self._span
 
     def opening(self, joint_positions: np.ndarray) -> float:
         """Scalar opening from the positions of ``opening_joints``."""
