@@ -5,7 +5,7 @@ closures; an operational-space controller (mink) turns them into joint
 targets for the robot's position actuators at the control rate while
 MuJoCo steps physics at the physics rate. Observations use the flat
 LeRobot-style names of the torchrl VLA schema (``observation.image.<cam>``,
-``observation.state``, ``language_instruction``); ``dust_rl.envs.torchrl``
+``observation.state``, ``language_instruction``); ``dust_rl.envs.torchrl_env``
 nests them into the canonical TensorDict keys.
 """
 

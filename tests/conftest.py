@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -73,3 +74,28 @@ def demo_dir(tmp_path_factory):
     collect_demos(root, tasks=["press_button"], episodes=3, env_kwargs=DEMO_ENV_KWARGS, progress=False)
     collect_demos(root, tasks=list(DEMO_TASKS), episodes=3, env_kwargs=DEMO_ENV_KWARGS, progress=False)
     return root
+
+
+def seeded_rollout(env: DustEnv, seed: int, steps: int = 50) -> tuple[list[dict], list[float]]:
+    """Observations and rewards of ``reset(seed=seed)`` then fixed random actions, until the episode ends."""
+    observations, rewards = [env.reset(seed=seed)[0]], []
+    actions = np.random.default_rng(1234).uniform(-1, 1, (steps, *env.action_space.shape)).astype(np.float32)
+    for action in actions:
+        obs, reward, terminated, truncated, _ = env.step(action)
+        observations.append(obs)
+        rewards.append(reward)
+        if terminated or truncated:
+            break
+    return observations, rewards
+
+
+def assert_same_observations(a: list[dict], b: list[dict]) -> None:
+    """Bit-for-bit equality of two observation sequences."""
+    assert len(a) == len(b)
+    for obs_a, obs_b in zip(a, b):
+        assert obs_a.keys() == obs_b.keys()
+        for key in obs_a:
+            if isinstance(obs_a[key], np.ndarray):
+                assert obs_a[key].tobytes() == obs_b[key].tobytes(), key
+            else:
+                assert obs_a[key] == obs_b[key], key

@@ -16,7 +16,7 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from torchrl.envs import GymEnv
 from torchrl.envs.utils import check_env_specs
 
-from conftest import HUMANOID_TASKS
+from conftest import HUMANOID_TASKS, assert_same_observations, seeded_rollout
 from dust_rl.envs import DustEnv
 from dust_rl.envs.env import MAX_TRANSLATION
 from dust_rl.envs.rendering import COLLISION_GROUP, VISUAL_GROUP
@@ -85,27 +85,13 @@ def test_observation_layout_and_head_camera():
     wrists.close()
 
 
-def _rollout(env: DustEnv, seed: int, steps: int = 25) -> tuple[list[dict], list[float]]:
-    observations = [env.reset(seed=seed)[0]]
-    rewards = []
-    for action in np.random.default_rng(7).uniform(-1, 1, (steps, ACTION_DIM)).astype(np.float32):
-        obs, reward, terminated, truncated, _ = env.step(action)
-        observations.append(obs)
-        rewards.append(reward)
-        if terminated or truncated:
-            break
-    return observations, rewards
-
-
 def test_same_seed_bit_for_bit_in_separate_envs():
     first, second = (DustEnv(task="open_lid", robot="humanoid", image_size=32, reward_type="dense") for _ in range(2))
-    obs_a, rewards_a = _rollout(first, seed=5)
-    obs_b, rewards_b = _rollout(second, seed=5)
-    assert rewards_a == rewards_b and len(obs_a) == len(obs_b) > 10
-    for a, b in zip(obs_a, obs_b):
-        for key in a:
-            assert (a[key].tobytes() == b[key].tobytes()) if isinstance(a[key], np.ndarray) else a[key] == b[key], key
-    other, _ = _rollout(first, seed=6, steps=1)
+    obs_a, rewards_a = seeded_rollout(first, seed=5, steps=25)
+    obs_b, rewards_b = seeded_rollout(second, seed=5, steps=25)
+    assert rewards_a == rewards_b and len(obs_a) > 10
+    assert_same_observations(obs_a, obs_b)
+    other, _ = seeded_rollout(first, seed=6, steps=1)
     assert not np.array_equal(other[0]["observation.environment_state"], obs_a[0]["observation.environment_state"])
 
 
