@@ -71,7 +71,7 @@ class CameraRenderer:
 
 
 _LIVE_RENDERERS: weakref.WeakSet[CameraRenderer] = weakref.WeakSet()
-_exit_hook: list = []  # the registered hook, once
+_exit_hook_registered = False
 
 
 def _track_for_exit(renderer: CameraRenderer) -> None:
@@ -80,8 +80,10 @@ def _track_for_exit(renderer: CameraRenderer) -> None:
     ``atexit`` runs hooks last-in first-out, so the hook must be registered after
     ``mujoco.egl`` (imported by the first ``mujoco.Renderer``) registered its own.
     """
-    if not _exit_hook:
-        _exit_hook.append(atexit.register(_close_live_renderers))
+    global _exit_hook_registered
+    if not _exit_hook_registered:
+        atexit.register(_close_live_renderers)
+        _exit_hook_registered = True
     _LIVE_RENDERERS.add(renderer)
 
 

@@ -76,19 +76,23 @@ def test_streams_keep_separate_weights_and_baselines_share():
     assert all(block.qkv.weight.shape[0] == 1 for block in joint.blocks)
 
 
-def _record(module: nn.Module, store: list) -> None:
-    """Keep the conditioning going into a Modulation and the vectors coming out ([S, B, T, d] each)."""
-    module.register_forward_hook(lambda mod, args, out: store.append((args[0].clone(), torch.cat(out, -1).clone())))
+def _recording_model(variant: str):
+    """A randomised model of ``variant``, its inputs and context, and the list its Modulation fills.
+
+    Each forward appends (conditioning into the Modulation, vectors out), [S, B, T, d] each.
+    """
+    config = tiny(variant)
+    model = randomised(DustModel(config))
+    seen: list = []
+    model.modulation.register_forward_hook(
+        lambda mod, args, out: seen.append((args[0].clone(), torch.cat(out, -1).clone())))
+    x = model_inputs(config)
+    return config, model, x, model.encode_context(x["state"], x["cond"]), seen
 
 
 @pytest.mark.parametrize("variant", ["dust", "mmdit_shared"])
 def test_each_stream_adaln_sees_only_its_own_timestep(variant):
-    config = tiny(variant)
-    model = randomised(DustModel(config))
-    seen = []
-    _record(model.modulation, seen)
-    x = model_inputs(config)
-    ctx = model.encode_context(x["state"], x["cond"])
+    config, model, x, ctx, seen = _recording_model(variant)
     tau_a = torch.tensor([0.3, 0.6])
     with torch.no_grad():
         if config.decoupled:
@@ -107,12 +111,7 @@ def test_each_stream_adaln_sees_only_its_own_timestep(variant):
 
 
 def test_single_stream_decoupled_conditions_each_token_on_its_modality():
-    config = tiny("decoupled")
-    model = randomised(DustModel(config))
-    seen = []
-    _record(model.modulation, seen)
-    x = model_inputs(config)
-    ctx = model.encode_context(x["state"], x["cond"])
+    config, model, x, ctx, seen = _recording_model("decoupled")
     tau_a = torch.tensor([0.3, 0.6])
     with torch.no_grad():
         model(ctx, x["action"], x["vision"], tau_a, torch.tensor([0.1, 0.2]))
