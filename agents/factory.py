@@ -93,13 +93,13 @@ def unwrap(policy: ChunkExecutor | DustPolicy) -> DustPolicy:
 
 
 def save_policy(policy: ChunkExecutor | DustPolicy, path: str | pathlib.Path) -> pathlib.Path:
-    """Write config, trainable weights, normalisation stats and backbone reference to one file, atomically."""
+    """Write config, trainable weights, normalisation stats, backbone reference and ``info`` to one file, atomically."""
     policy = unwrap(policy)
     weights = {k: v for k, v in policy.state_dict().items() if not k.startswith("backbone.")}
     return save_checkpoint({
         "config": dataclasses.asdict(policy.config), "cameras": policy.cameras, "future_camera": policy.future_camera,
         "execute_steps": policy.execute_steps, "backbone": policy.backbone.reference(),
-        "image_weights": policy.backbone.image_weights(), "state_dict": weights,
+        "image_weights": policy.backbone.image_weights(), "state_dict": weights, "info": policy.info,
     }, path, POLICY_KIND)
 
 
@@ -123,6 +123,7 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
         policy = DustPolicy(config, backbone, payload["cameras"], payload["future_camera"],
                             execute_steps or payload["execute_steps"])
         missing, unexpected = policy.load_state_dict(payload["state_dict"], strict=False)
+        policy.info = dict(payload.get("info", {}))
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{path}: policy does not load ({type(err).__name__}: {err})") from err
     missing = [k for k in missing if not k.startswith("backbone.")]

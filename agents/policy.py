@@ -74,6 +74,10 @@ class DustPolicy(VLAWrapperBase):
         future_camera: the camera whose t+H frame is the world-model target (default: the first).
         execute_steps: actions executed per chunk by the receding-horizon wrapper (kept with the
             checkpoint); default H // 2.
+
+    Attributes:
+        info: JSON-like provenance saved with the policy (training env id and kwargs, tasks, dataset,
+            steps), so evaluation can default to the setting the policy was trained in.
     """
 
     def __init__(self, config: DustConfig, backbone: FrozenBackbone, cameras: Sequence[str],
@@ -98,6 +102,7 @@ class DustPolicy(VLAWrapperBase):
         self.normalizer = Normalizer(config.state_dim, config.action_dim)
         self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
         self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
+        self.info: dict = {}
 
     @property
     def config(self) -> DustConfig:

@@ -140,9 +140,33 @@ def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
     imp.set_defaults(func=_dataset_import)
 
 
+# Commands configured by a dataclass, parsed by tyro: name -> (module, config class, runner, help).
+TYRO_COMMANDS = {
+    "train": ("dust_rl.train", "TrainConfig", "train_command",
+              "train DUST (or a baseline) by imitation on a dataset (dust-rl train --help)"),
+    "eval": ("dust_rl.evaluate", "EvalConfig", "evaluate_command",
+             "evaluate a policy in closed loop and write a report (dust-rl eval --help)"),
+    "quickstart": ("dust_rl.quickstart", "QuickstartConfig", "quickstart",
+                   "collect, train, evaluate and report on a small default: the README's main job"),
+}
+
+
+def _run_tyro_command(argv: list[str], command_line: str) -> None:
+    import importlib
+
+    import tyro
+
+    module, config_class, runner, _ = TYRO_COMMANDS[argv[0]]
+    module = importlib.import_module(module)
+    config = tyro.cli(getattr(module, config_class), args=argv[1:], prog=f"dust-rl {argv[0]}")
+    getattr(module, runner)(config, command_line)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dust-rl", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
+    for name, (*_, text) in TYRO_COMMANDS.items():  # listed here; their arguments are parsed by tyro
+        commands.add_parser(name, help=text, add_help=False)
 
     demo = commands.add_parser("demo", help=_demo.__doc__)
     demo.add_argument("--env", default="DustFranka-v0")
@@ -196,12 +220,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> None:
     from dust_rl.data.errors import DatasetError
 
+    from dust_rl.agents.checkpoint_io import CheckpointError
+
     argv = sys.argv[1:] if argv is None else argv
-    args = build_parser().parse_args(argv)
-    args.command_line = shlex.join(["dust-rl", *argv])  # provenance for files a command writes
+    command_line = shlex.join(["dust-rl", *argv])  # provenance for files a command writes
     try:
+        if argv and argv[0] in TYRO_COMMANDS:
+            _run_tyro_command(argv, command_line)
+            return
+        args = build_parser().parse_args(argv)
+        args.command_line = command_line
         args.func(args)
-    except (DatasetError, FileExistsError) as err:
+    except (DatasetError, CheckpointError, FileExistsError, FileNotFoundError) as err:
         raise SystemExit(f"dust-rl: error: {err}") from err
 
 

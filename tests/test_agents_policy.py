@@ -90,9 +90,11 @@ def test_checkpoint_round_trip_gives_identical_outputs(tiny_encoder, minilm, tmp
         inner.normalizer.set_stats({"state": {"mean": [1.0] * 5, "std": [2.0] * 5},
                                     "action": {"mean": [0.5, 0, 0], "std": [3.0, 1, 1]}})
     inner.set_sampler("async", 2, 2)
+    inner.info = {"env_id": "DustFranka-v0", "tasks": ["pick_place"]}
     path = save_policy(policy, tmp_path / "policy.pt")
     loaded = load_policy(path)
     assert loaded.replan_interval == 3 and unwrap(loaded).config == inner.config
+    assert unwrap(loaded).info == inner.info
     obs = observation()
     expected = inner.plan(obs, torch.Generator().manual_seed(0))
     got = unwrap(loaded).plan(obs, torch.Generator().manual_seed(0))

@@ -1,4 +1,4 @@
-"""Read a demonstration dataset: its metadata, its rows as a memmap TensorDict, a replay buffer.
+"""Read a demonstration dataset: its metadata and its rows as a memmap TensorDict.
 
 Loading checks what a training run would otherwise trip over later: the metadata
 format, that every data file is whole, that row counts agree with the episode
@@ -13,8 +13,6 @@ import pathlib
 import gymnasium as gym
 import torch
 from tensordict import NonTensorStack, TensorDict
-from torchrl.data import RandomSampler, TensorDictReplayBuffer, TensorStorage
-from torchrl.data.replay_buffers.samplers import Sampler
 
 from .errors import DatasetError
 from .layout import META_FILE
@@ -100,8 +98,3 @@ class DemoDataset:
         problems = spec_mismatches(self.meta["spec"], env_spec(env))
         if problems:
             raise DatasetError(f"{self.root} does not match the requested env:\n  " + "\n  ".join(problems))
-
-    def replay_buffer(self, batch_size: int, sampler: Sampler | None = None) -> TensorDictReplayBuffer:
-        """A torchrl replay buffer over the memmap rows (random rows unless ``sampler`` says otherwise)."""
-        return TensorDictReplayBuffer(storage=TensorStorage(self.data), sampler=sampler or RandomSampler(),
-                                      batch_size=batch_size)

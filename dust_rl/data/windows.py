@@ -30,6 +30,7 @@ from collections.abc import Iterator
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torchrl.data import TensorDictReplayBuffer, TensorStorage
 from torchrl.data.replay_buffers.samplers import RandomSampler, SamplerWithoutReplacement
 
 from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
@@ -39,6 +40,7 @@ from .dataset import DemoDataset
 CHUNK_KEY = ("vla_action", "chunk")
 PAD_KEY = "action_is_pad"
 FUTURE_KEY = "future"
+IMAGE_KEY = ("observation", "image")
 
 
 class DemoWindows:
@@ -53,17 +55,21 @@ class DemoWindows:
         action_key: the per-row action to chunk; ``"expert_action"`` (the expert's label,
             which differs from the executed ``"action"`` only under DART noise).
         replacement: sample rows with replacement (True) or as epochs without (False).
+        images: read the camera images; False leaves them out and keeps the remaining (small)
+            columns in memory, for training on cached image features.
     """
 
     def __init__(self, dataset: DemoDataset, horizon: int = 16, future_offset: int | None = None,
-                 batch_size: int = 64, action_key: str = EXPERT_ACTION_KEY, replacement: bool = True) -> None:
+                 batch_size: int = 64, action_key: str = EXPERT_ACTION_KEY, replacement: bool = True,
+                 images: bool = True) -> None:
         future_offset = horizon if future_offset is None else future_offset
         if horizon < 1 or future_offset < 0:
             raise ValueError(f"need horizon >= 1 and future_offset >= 0, got {horizon} and {future_offset}")
         self.dataset, self.horizon, self.future_offset, self.action_key = dataset, horizon, future_offset, action_key
         self.batch_size = batch_size
+        self.data = dataset.data if images else dataset.data.exclude(IMAGE_KEY).to_tensordict()
         sampler = RandomSampler() if replacement else SamplerWithoutReplacement()
-        self.buffer = dataset.replay_buffer(batch_size, sampler)
+        self.buffer = TensorDictReplayBuffer(storage=TensorStorage(self.data), sampler=sampler, batch_size=batch_size)
 
     def sample(self) -> TensorDict:
         """``batch_size`` windows at random rows."""
@@ -75,10 +81,10 @@ class DemoWindows:
         step = batch_size or self.batch_size
         for start in range(0, len(self.dataset), step):
             rows = torch.arange(start, min(start + step, len(self.dataset)))
-            yield self._windows(self.dataset.data[rows], rows)
+            yield self._windows(self.data[rows], rows)
 
     def _windows(self, current: TensorDictBase, rows: torch.Tensor) -> TensorDict:
-        data = self.dataset.data
+        data = self.data
         last = self.dataset.row_episode_end[rows] - 1
         chunk_rows = rows[:, None] + torch.arange(self.horizon)
         future_rows = rows + self.future_offset

@@ -1,0 +1,382 @@
+"""Closed-loop evaluation of a trained policy (``dust-rl eval``).
+
+Each task runs in its own torchrl ``Collector`` (``num_collectors=workers`` env
+processes when ``workers > 1``, each building the policy from the checkpoint
+file), which yields one whole episode at a time. Episode ``k`` of every task
+resets from seed ``seed + k`` (workers share the seeds through
+:class:`~dust_rl.data.seeding.SeedSchedule`), and the policy's sampling noise
+is seeded by the episode seed too (:func:`~dust_rl.rollout_video.episode_generator`),
+so an episode's outcome depends on its seed only: the same config gives the
+same episodes, bit for bit, with any number of workers. Exactly ``episodes``
+seeds count per task; episodes the workers start past them are dropped.
+
+Everything that can be wrong with the inputs (missing or corrupt checkpoint, a
+policy that does not fit the env, unknown tasks, sampler settings) is checked
+in this process before any worker starts. The report (JSON, markdown, success
+plot, loss curves of the training run) is written by :mod:`dust_rl.report`;
+videos of the first episodes of each task by :mod:`dust_rl.rollout_video`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import math
+import pathlib
+import time
+import warnings
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import gymnasium as gym
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.collectors import BaseCollector, Collector
+from torchrl.data.vla.schema import STATE_KEY
+from torchrl.envs import InitTracker, TransformedEnv
+from tqdm import tqdm
+
+import dust_rl  # noqa: F401  (registers the env ids)
+from dust_rl.agents import ChunkExecutor, DustConfig, DustPolicy, load_policy, unwrap
+from dust_rl.agents.factory import check_fits_env
+from dust_rl.data.seeding import SEED_KEY, SUCCESS_KEY, EpisodeSeedWrapper, SeedSchedule
+from dust_rl.envs import make_task
+from dust_rl.envs.torchrl_env import make_torchrl_env
+from dust_rl.report import plot_loss_curves, write_report
+from dust_rl.rollout_video import episode_digest, episode_generator, record_videos
+
+
+@dataclass
+class EvalConfig:
+    """Closed-loop evaluation of a trained policy: success per task with 95% intervals, videos, a report."""
+
+    policy: pathlib.Path
+    """Policy file written by training (save_policy)."""
+    out: pathlib.Path = pathlib.Path("runs/eval")
+    """Folder for report.json, report.md, success.png, loss.png and videos/."""
+    env_id: str | None = None
+    """Gymnasium env id; default: the one the policy was trained in (policy.info["env_id"])."""
+    tasks: tuple[str, ...] = ()
+    """Tasks to evaluate; default: the policy's training tasks (policy.info["tasks"])."""
+    episodes: int = 20
+    """Episodes per task."""
+    workers: int = 2
+    """Env processes per task (1 runs in this process)."""
+    seed: int = 10_000
+    """Episode k of a task resets from seed + k (training data uses seeds from 0 on)."""
+    sampler: Literal["default", "sync", "async", "action_only"] = "default"
+    """Joint sampler: the policy's own (default), synchronous, asynchronous, or actions only."""
+    n_action_steps: int | None = None
+    """N_A, action denoising steps per chunk; default: the policy's."""
+    vision_steps: int | None = None
+    """N_o, vision denoising steps per chunk (async sampler only; a multiple of N_A)."""
+    max_steps: int | None = None
+    """Time limit per episode in env steps; default: the task's."""
+    videos: int = 1
+    """Episodes per task recorded as MP4 (camera views beside the decoded predicted future)."""
+    train_dir: pathlib.Path | None = None
+    """Training run folder whose CSV logs give the loss curves; default: the policy file's folder."""
+    threads: int = 1
+    """Torch threads per process."""
+    progress: bool = True
+    """Show progress bars."""
+
+
+@dataclass(frozen=True)
+class SamplerChoice:
+    """A joint sampler with its step counts; picklable, so workers set up the same one."""
+
+    name: Literal["sync", "async", "action_only"]
+    n_action_steps: int
+    vision_step_ratio: int
+
+    def apply(self, policy: DustPolicy) -> None:
+        policy.set_sampler(self.name, self.n_action_steps, self.vision_step_ratio)
+
+    def describe(self) -> dict:
+        """Name, N_A and N_o (vision Euler steps: q * N_A async, N_A sync, none action-only)."""
+        vision = {"async": self.n_action_steps * self.vision_step_ratio, "sync": self.n_action_steps}
+        return {"name": self.name, "n_action_steps": self.n_action_steps, "vision_steps": vision.get(self.name, 0)}
+
+
+@dataclass(frozen=True)
+class EvalSetup:
+    """What every worker needs to rebuild the evaluated env and policy; picklable."""
+
+    policy_path: pathlib.Path
+    env_id: str
+    env_kwargs: dict
+    tasks: tuple[str, ...]
+    sampler: SamplerChoice
+
+
+class Episode(NamedTuple):
+    """One evaluated episode; equal ``digest`` (:func:`~dust_rl.rollout_video.episode_digest`): same episode."""
+
+    seed: int
+    success: bool
+    length: int
+    digest: str
+
+
+class EpisodeSeededPolicy(TensorDictModuleBase):
+    """A chunk executor whose sampling noise restarts from the episode seed at every reset.
+
+    The executor samples from torch's global generator; it runs here inside ``fork_rng`` on the
+    state of a per-episode generator, so nothing else in the process shares (or disturbs) it.
+    """
+
+    def __init__(self, executor: ChunkExecutor) -> None:
+        super().__init__()
+        self.executor = executor
+        self.in_keys = [*executor.in_keys, SEED_KEY]
+        self.out_keys = executor.out_keys
+        self.generator = torch.Generator()
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if tensordict.get("is_init").any():
+            self.generator = episode_generator(int(tensordict.get(SEED_KEY)))
+        with torch.random.fork_rng(devices=[]):
+            torch.set_rng_state(self.generator.get_state())
+            out = self.executor(tensordict)
+            self.generator.set_state(torch.get_rng_state())
+        return out
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a success rate (z = 1.96: 95%); (0, 1) when n = 0.
+
+    Unlike the normal approximation it stays inside [0, 1] and is not empty at 0/n or n/n,
+    which matters for the small episode counts of robot evaluations.
+    """
+    if n == 0:
+        return 0.0, 1.0
+    p, z2 = successes / n, z * z
+    center = (p + z2 / (2 * n)) / (1 + z2 / n)
+    half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+    return max(0.0, center - half), min(1.0, center + half)
+
+
+def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> TransformedEnv:
+    """A torchrl env (VLA keys) resetting from ``schedule``, with ``episode_seed``, ``is_success`` and ``is_init``."""
+    env = make_torchrl_env(EpisodeSeedWrapper(gym.make(env_id, **env_kwargs), schedule))
+    env.append_transform(InitTracker())
+    return env
+
+
+def make_eval_policy(setup: EvalSetup) -> EpisodeSeededPolicy:
+    """The policy of one worker process, built from the checkpoint file (a live policy is not pickled)."""
+    executor = load_policy(setup.policy_path)
+    setup.sampler.apply(unwrap(executor))
+    return EpisodeSeededPolicy(executor)
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run with ``n`` torch threads, then restore the caller's count."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+def resolve_sampler(policy_config: DustConfig, config: EvalConfig) -> SamplerChoice:
+    """The sampler the config asks for, defaulting to the policy's; checks N_o against N_A."""
+    name = policy_config.sampler_name if config.sampler == "default" else config.sampler
+    n_action_steps = config.n_action_steps or policy_config.n_action_steps
+    if config.vision_steps is None:
+        return SamplerChoice(name, n_action_steps, policy_config.vision_step_ratio if name == "async" else 1)
+    if name != "async":
+        raise ValueError(f"vision_steps (N_o) applies to the async sampler only; the sampler is {name!r}")
+    if config.vision_steps < n_action_steps or config.vision_steps % n_action_steps:
+        raise ValueError(f"vision_steps (N_o) must be a positive multiple of n_action_steps (N_A = "
+                         f"{n_action_steps}), got {config.vision_steps}")
+    return SamplerChoice(name, n_action_steps, config.vision_steps // n_action_steps)
+
+
+def check_tasks(env_id: str, env_kwargs: dict, tasks: Sequence[str]) -> None:
+    """Raise the env's own ``ValueError`` (listing the suite) for an unknown task, without building envs."""
+    robot = {**gym.spec(env_id).kwargs, **env_kwargs}.get("robot", "franka")
+    for task in tasks:
+        make_task(task, robot)
+
+
+def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
+    """Load the policy and resolve env, tasks and sampler, raising every input error before workers start.
+
+    Raises:
+        CheckpointError: missing or corrupt policy file, or a policy that does not fit the env.
+        ValueError: bad counts, no env id or tasks to evaluate, unknown task, bad sampler settings.
+    """
+    for name in ("episodes", "workers", "threads"):
+        if getattr(config, name) < 1:
+            raise ValueError(f"{name} must be >= 1, got {getattr(config, name)}")
+    if config.videos < 0 or (config.max_steps is not None and config.max_steps < 1):
+        raise ValueError(f"videos must be >= 0 and max_steps >= 1, got {config.videos} and {config.max_steps}")
+    policy = unwrap(load_policy(config.policy))
+    env_id = config.env_id or policy.info.get("env_id")
+    tasks = tuple(config.tasks or policy.info.get("tasks", ()))
+    if not env_id or not tasks:
+        raise ValueError(f"{config.policy} does not record its env id and tasks: give env_id and tasks")
+    env_kwargs = {k: v for k, v in policy.info.get("env_kwargs", {}).items() if k != "task"}
+    if config.max_steps is not None:
+        env_kwargs["max_episode_steps"] = config.max_steps
+    check_tasks(env_id, env_kwargs, tasks)
+    probe = make_eval_env(env_id, {**env_kwargs, "task": tasks[0]}, SeedSchedule(config.seed))
+    try:
+        check_fits_env(policy, probe, config.policy)
+    finally:
+        probe.close()
+    sampler = resolve_sampler(policy.config, config)
+    sampler.apply(policy)
+    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler)
+
+
+def make_eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: int, seed: int,
+                        threads: int) -> BaseCollector:
+    """A collector yielding one whole episode of ``task`` at a time, seeds from ``seed`` on.
+
+    One worker runs in this process with ``policy``; more build theirs from the checkpoint and run
+    with ``threads`` torch threads each.
+    """
+    env_fns = [functools.partial(make_eval_env, setup.env_id, {**setup.env_kwargs, "task": task},
+                                 SeedSchedule(seed, worker=worker, num_workers=workers)) for worker in range(workers)]
+    if workers == 1:
+        executor = ChunkExecutor(policy, policy.execute_steps)
+        source = {"create_env_fn": env_fns[0], "policy": EpisodeSeededPolicy(executor)}
+    else:
+        source = {"create_env_fn": env_fns, "policy_factory": functools.partial(make_eval_policy, setup),
+                  "num_collectors": workers, "sync": False, "num_threads": threads, "num_sub_threads": threads}
+    with warnings.catch_warnings():  # workers build their own policy: there are no weights to send them
+        warnings.filterwarnings("ignore", message="weight_updater is None")
+        return Collector(**source, frames_per_batch=32 * workers, total_frames=-1, trajs_per_batch=1,
+                         traj_format="cat", trust_policy=True, auto_register_policy_transforms=False)
+
+
+def episode_of(trajectory: TensorDictBase) -> Episode:
+    """Seed, success, length and digest of one collected trajectory ``[T]``; raises if it is not one whole episode."""
+    seeds = trajectory.get(SEED_KEY).reshape(-1)
+    done = trajectory.get(("next", "done")).reshape(-1)
+    if (seeds != seeds[0]).any() or not done[-1] or done[:-1].any():
+        raise RuntimeError(f"collector returned a trajectory that is not one whole episode (seeds {seeds.unique()})")
+    success = bool(trajectory.get(("next", SUCCESS_KEY))[-1].any())
+    digest = episode_digest(trajectory.get("action"), trajectory.get(("next", *STATE_KEY))[-1])
+    return Episode(int(seeds[0]), success, len(done), digest)
+
+
+def run_task(collector: BaseCollector, seeds: range, bar: tqdm) -> list[Episode]:
+    """The episodes of exactly ``seeds``, in seed order, from a collector (shut down afterwards)."""
+    episodes: dict[int, Episode] = {}
+    try:
+        for trajectory in collector:
+            episode = episode_of(trajectory)
+            if episode.seed in seeds and episode.seed not in episodes:
+                episodes[episode.seed] = episode
+                bar.update(1)
+                bar.set_postfix(success=sum(e.success for e in episodes.values()))
+                if len(episodes) == len(seeds):
+                    break
+    finally:
+        collector.shutdown()
+    return [episodes[seed] for seed in seeds]
+
+
+def summary_row(name: str, episodes: Sequence[Episode]) -> dict:
+    """Episode count, successes, success rate with its 95% Wilson interval, mean lengths."""
+    successes = sum(e.success for e in episodes)
+    low, high = wilson_interval(successes, len(episodes))
+    success_lengths = [e.length for e in episodes if e.success]
+    return {"task": name, "episodes": len(episodes), "successes": successes,
+            "success_rate": successes / len(episodes), "ci95_low": low, "ci95_high": high,
+            "mean_length": sum(e.length for e in episodes) / len(episodes),
+            "mean_length_success": sum(success_lengths) / len(success_lengths) if success_lengths else None}
+
+
+def task_row(task: str, episodes: Sequence[Episode], videos: list[dict]) -> dict:
+    """:func:`summary_row` plus the seeds, each episode as ``[seed, success, length, digest]``, and the videos."""
+    return {**summary_row(task, episodes), "seeds": [e.seed for e in episodes],
+            "per_episode": [list(e) for e in episodes], "videos": videos}
+
+
+def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy,
+                  config: EvalConfig) -> tuple[list[Episode], float, float]:
+    """The episodes of ``task``, the collector's start-up seconds and the seconds spent running episodes."""
+    start = time.perf_counter()
+    collector = make_eval_collector(setup, task, policy, config.workers, config.seed, config.threads)
+    started = time.perf_counter()
+    with tqdm(total=config.episodes, desc=f"eval {task}", disable=not config.progress) as bar:
+        episodes = run_task(collector, range(config.seed, config.seed + config.episodes), bar)
+    # A multi-process collector's shutdown raises this process's thread count; more threads than
+    # cores next to the renderer's own threads slow torch down many times over.
+    torch.set_num_threads(config.threads)
+    return episodes, started - start, time.perf_counter() - started
+
+
+def task_videos(setup: EvalSetup, task: str, policy: DustPolicy, config: EvalConfig) -> list[dict]:
+    """Videos of the first ``config.videos`` evaluated episodes of ``task`` (same seeds, same episodes)."""
+    env = make_eval_env(setup.env_id, {**setup.env_kwargs, "task": task}, SeedSchedule(config.seed))
+    try:
+        return record_videos(env, policy, min(config.videos, config.episodes), config.out / "videos", task,
+                             env.base_env.metadata["render_fps"], config.progress)
+    finally:
+        env.close()
+
+
+def evaluate(config: EvalConfig, command: str | None = None) -> dict:
+    """Evaluate a policy in closed loop and write the report, plots and videos to ``config.out``.
+
+    Args:
+        config: what to evaluate and how.
+        command: the command line that produced this run, quoted in the markdown report.
+
+    Returns:
+        The report (also ``config.out / "report.json"``). ``env_steps_per_s`` counts the time spent
+        running episodes; the collectors' start-up (worker processes loading the policy) is ``startup_s``.
+
+    Raises:
+        CheckpointError: missing or corrupt policy file, or a policy that does not fit the env.
+        ValueError: bad settings (see :func:`prepare`).
+    """
+    start = time.perf_counter()
+    rows, startup, running = [], 0.0, 0.0
+    with torch_threads(config.threads):
+        policy, setup = prepare(config)
+        for task in setup.tasks:
+            episodes, task_startup, task_running = evaluate_task(setup, task, policy, config)
+            rows.append(task_row(task, episodes, task_videos(setup, task, policy, config)))
+            startup, running = startup + task_startup, running + task_running
+    steps = sum(e[2] for row in rows for e in row["per_episode"])
+    loss_plot = plot_loss_curves(config.train_dir or config.policy.parent, config.out / "loss.png")
+    report = {
+        "policy": str(config.policy), "variant": policy.config.variant, "env_id": setup.env_id,
+        "env_kwargs": setup.env_kwargs, "sampler": setup.sampler.describe(), "command": command,
+        "config": json_config(config), "seeds": [config.seed, config.seed + config.episodes - 1],
+        "noise_seeding": "the policy's sampling noise restarts from the episode seed at every reset",
+        "tasks": rows, "overall": summary_row("overall", [Episode(*e) for row in rows for e in row["per_episode"]]),
+        "env_steps": steps, "startup_s": startup, "episodes_time_s": running, "env_steps_per_s": steps / running,
+        "wall_time_s": time.perf_counter() - start, "loss_plot": str(loss_plot) if loss_plot else None,
+    }
+    write_report(report, config.out)
+    return report
+
+
+def evaluate_command(config: EvalConfig, command: str | None = None) -> dict:
+    """``dust-rl eval``: evaluate, print the success table, say where the report is."""
+    report = evaluate(config, command)
+    for row in [*report["tasks"], report["overall"]]:
+        print(f"{row['task']}: {row['successes']}/{row['episodes']} successful ({100 * row['success_rate']:.0f}%, "
+              f"95% CI {100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}%), mean length "
+              f"{row['mean_length']:.1f}")
+    print(f"report: {config.out / 'report.md'} (also report.json, success.png, loss.png, videos/)")
+    return report
+
+
+def json_config(config: EvalConfig) -> dict:
+    """The config as JSON values (paths as strings, tuples as lists)."""
+    return {k: str(v) if isinstance(v, pathlib.Path) else list(v) if isinstance(v, tuple) else v
+            for k, v in dataclasses.asdict(config).items()}

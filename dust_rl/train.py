@@ -1,0 +1,314 @@
+"""Imitation training of DUST (or a baseline) on a demonstration dataset: ``dust-rl train``.
+
+Read top to bottom, CleanRL style: arguments, run folder, policy and cached
+features, optimiser / schedule / EMA, resume, the loop, the saved policy.
+
+A run folder holds
+
+* ``config.json``: the full :class:`TrainConfig`, the command and package versions;
+* ``checkpoints/checkpoint-<step>/``: torchrl ``Checkpoint`` directories (trainable
+  weights, EMA, optimiser, schedule, global RNG state), published atomically, the
+  last two kept; ``--resume`` continues from the newest one, and a run killed at any
+  point and resumed ends with the same weights as one never interrupted;
+* ``logs/``: torchrl ``CSVLogger`` (``logs/train/scalars/*.csv``) and
+  ``TensorboardLogger`` (``logs/tensorboard``) scalars;
+* ``policy.pt``: the EMA policy (:func:`dust_rl.agents.save_policy`), whose ``info``
+  names the env, tasks and dataset it was trained for; ``loss.png``.
+
+The frozen backbone's features are cached once per dataset (:class:`~dust_rl.features.FeatureCache`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+import platform
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import gymnasium as gym
+import torch
+from torch import nn
+from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
+from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
+from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger
+from tqdm.auto import tqdm
+
+import dust_rl  # noqa: F401  (registers the env ids)
+from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
+from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.data import DemoDataset, DemoWindows
+from dust_rl.ema import EMA
+from dust_rl.features import FeatureCache, dataset_policy_kwargs
+
+Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
+# Fields that may differ between a run and its resumption.
+RESUMABLE_FIELDS = ("resume", "progress", "threads", "eval_every", "eval_episodes", "eval_workers")
+
+
+@dataclass
+class TrainConfig:
+    """Imitation training of a DUST policy on a demonstration dataset."""
+
+    dataset: pathlib.Path
+    """Dataset folder written by ``dust-rl collect`` (or ``dust-rl dataset import``)."""
+    out: pathlib.Path = pathlib.Path("runs/train")
+    """Run folder: config, checkpoints, logs, ``policy.pt``."""
+    variant: Variant = "dust"
+    """Model: DUST or one of the paper's baselines (same size)."""
+    steps: int = 3000
+    """Optimiser steps."""
+    batch_size: int = 64
+    """Training windows per step."""
+    lr: float = 1e-4
+    """Peak learning rate (paper: 1e-4)."""
+    betas: tuple[float, float] = (0.95, 0.999)
+    """AdamW betas (paper)."""
+    weight_decay: float = 1e-5
+    """AdamW weight decay (paper)."""
+    warmup: float = 0.05
+    """Fraction of the steps with a linear learning-rate warm-up; a cosine decay to 0 follows."""
+    grad_clip: float = 1.0
+    """Gradient-norm clipping threshold."""
+    ema_decay: float = 0.999
+    """Decay of the exponential moving average of the weights (the saved policy uses the average)."""
+    horizon: int = 16
+    """Action chunk length H (paper: 16); the world-model target is the frame at t+H."""
+    execute_steps: int = 8
+    """Actions executed per chunk before re-planning (receding horizon)."""
+    d_model: int = 128
+    """Trunk width."""
+    n_heads: int = 4
+    """Attention heads."""
+    n_mmdit: int = 4
+    """Dual-stream MMDiT blocks."""
+    n_dit: int = 2
+    """Per-stream DiT blocks after the MMDiT blocks."""
+    lambda_wm: float = 1.0
+    """Weight of the world-model (future vision) loss (paper: 1.0)."""
+    image_encoder: pathlib.Path | None = None
+    """Frozen image encoder file (``dust-rl pretrain-encoder``); default: the committed Franka encoder."""
+    seed: int = 0
+    """Seed of the initial weights, batch sampling and flow-matching noise."""
+    log_every: int = 50
+    """Steps between logged scalars."""
+    checkpoint_every: int = 500
+    """Steps between checkpoints (one is always written at the end)."""
+    eval_every: int = 0
+    """Steps between closed-loop evaluations of the EMA policy (0: none)."""
+    eval_episodes: int = 10
+    """Episodes per task of each periodic evaluation."""
+    eval_workers: int = 2
+    """Env processes of each periodic evaluation."""
+    threads: int | None = None
+    """torch threads (default: torch's choice)."""
+    resume: bool = False
+    """Continue the run in ``out`` from its newest checkpoint."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+@dataclass
+class TrainResult:
+    """Where a finished run put things, and how it went."""
+
+    policy: pathlib.Path
+    out: pathlib.Path
+    steps: int
+    final_loss: float
+    seconds: float
+    samples_per_second: float
+
+
+def train(config: TrainConfig, command: str | None = None) -> TrainResult:
+    """Train (or resume training) a policy as described by ``config``; returns where it went."""
+    _check_config(config)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    out = config.out
+    _prepare_run_folder(config, command)
+
+    # Data, env check, policy, cached frozen features.
+    dataset = DemoDataset(config.dataset)
+    env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
+    probe = gym.make(env_id, task=dataset.tasks[0], **env_kwargs)
+    dataset.check_env(probe)
+    probe.close()
+    torch.manual_seed(config.seed)
+    policy = _build_policy(config, dataset)
+    policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
+                   "dataset": str(config.dataset), "variant": config.variant, "steps": config.steps}
+    features = FeatureCache(dataset, policy, progress=config.progress, store=True)
+    windows = DemoWindows(dataset, horizon=config.horizon, batch_size=config.batch_size, images=False)
+
+    # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
+    trained = nn.ModuleDict({"condition": policy.condition, "agent": policy.agent})
+    optimizer = torch.optim.AdamW(trained.parameters(), lr=config.lr, betas=config.betas,
+                                  weight_decay=config.weight_decay)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(config.steps, config.warmup))
+    ema = EMA(trained, config.ema_decay)
+    checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
+    rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
+    start = _restore(checkpoint, rotation) if config.resume else 0
+    loggers = _loggers(out)
+
+    # The loop.
+    policy.train()
+    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc="training",
+               disable=not config.progress)
+    tick, samples, losses = time.perf_counter(), 0, None
+    began = tick
+    for step in bar:
+        losses = policy.compute_loss(features.batch(windows.sample()))
+        optimizer.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.grad_clip)
+        optimizer.step()
+        schedule.step()
+        ema.update()
+        samples += config.batch_size
+        done = step + 1
+        if done % config.log_every == 0 or done == config.steps:
+            speed = samples / (time.perf_counter() - tick)
+            scalars = {f"train/{k}": v.item() for k, v in losses.items()}
+            scalars |= {"train/lr": schedule.get_last_lr()[0], "train/grad_norm": grad_norm.item(),
+                        "train/samples_per_second": speed}
+            _log(loggers, scalars, done)
+            bar.set_postfix(loss=f"{scalars['train/loss']:.4f}", samples_s=f"{speed:.0f}")
+            tick, samples = time.perf_counter(), 0
+        if done % config.checkpoint_every == 0 or done == config.steps:
+            rotation.save(checkpoint, step=done, metadata={"step": done})
+        if config.eval_every and (done % config.eval_every == 0 or done == config.steps):
+            _log(loggers, _periodic_eval(config, policy, ema, done), done)
+    bar.close()
+    seconds = time.perf_counter() - began
+
+    with ema.applied():
+        path = save_policy(policy, out / "policy.pt")
+    _plot_losses(out)
+    final = losses["loss"].item() if losses is not None else float("nan")
+    trained_steps = config.steps - start
+    return TrainResult(path, out, config.steps, final, seconds,
+                       trained_steps * config.batch_size / seconds if seconds and trained_steps else 0.0)
+
+
+def train_command(config: TrainConfig, command: str | None = None) -> None:
+    """``dust-rl train``: train, then say where the policy and logs are."""
+    result = train(config, command)
+    print(f"trained {result.steps} steps in {result.seconds:.0f} s ({result.samples_per_second:.0f} samples/s); "
+          f"final loss {result.final_loss:.4f}")
+    print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} (CSV, TensorBoard); loss curve: {result.out / 'loss.png'}")
+
+
+def warmup_cosine(total_steps: int, warmup_fraction: float):
+    """Learning-rate factor: linear warm-up over the first ``warmup_fraction`` of the steps, then cosine to 0."""
+    warmup = max(1, round(warmup_fraction * total_steps))
+
+    def factor(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        progress = (step - warmup) / max(1, total_steps - warmup)
+        return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+    return factor
+
+
+def _check_config(config: TrainConfig) -> None:
+    positive = {k: getattr(config, k) for k in ("steps", "batch_size", "horizon", "log_every", "checkpoint_every")}
+    bad = [f"{k}={v}" for k, v in positive.items() if v < 1]
+    if not 1 <= config.execute_steps <= config.horizon:
+        bad.append(f"execute_steps={config.execute_steps} (must be in [1, horizon={config.horizon}])")
+    if config.eval_every < 0 or not 0 <= config.warmup < 1 or config.lr <= 0:
+        bad.append("eval_every >= 0, 0 <= warmup < 1 and lr > 0 are required")
+    if bad:
+        raise ValueError("invalid training config: " + ", ".join(bad))
+
+
+def _prepare_run_folder(config: TrainConfig, command: str | None) -> None:
+    """Write ``config.json`` for a new run; for ``--resume``, check the stored one agrees."""
+    saved = config.out / "config.json"
+    record = {"config": _jsonable(config), "command": command, "versions": _versions()}
+    if config.resume:
+        if not saved.is_file():
+            raise FileNotFoundError(f"{config.out}: nothing to resume (no config.json); drop --resume to start a run")
+        stored = json.loads(saved.read_text())["config"]
+        changed = [k for k, v in record["config"].items()
+                   if k not in RESUMABLE_FIELDS and stored.get(k) != v]
+        if changed:
+            raise ValueError(f"{config.out} was started with other settings ({', '.join(changed)}); "
+                             "resume with the same arguments or use a new --out")
+        return
+    if (config.out / "checkpoints").exists() or saved.exists():
+        raise FileExistsError(f"{config.out} already holds a run; pass --resume to continue it or choose another --out")
+    config.out.mkdir(parents=True, exist_ok=True)
+    tmp = saved.with_suffix(".tmp")
+    tmp.write_text(json.dumps(record, indent=2))
+    tmp.replace(saved)
+
+
+def _jsonable(config: TrainConfig) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(config), default=str))
+
+
+def _versions() -> dict[str, str]:
+    import mujoco
+    import torchrl
+
+    return {"python": platform.python_version(), "torch": torch.__version__, "torchrl": torchrl.__version__,
+            "mujoco": mujoco.__version__}
+
+
+def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
+    return unwrap(make_policy(
+        config.variant, image_encoder=config.image_encoder, execute_steps=config.execute_steps,
+        horizon=config.horizon, d_model=config.d_model, n_heads=config.n_heads, n_mmdit=config.n_mmdit,
+        n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
+
+
+def _restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> int:
+    """Load the newest checkpoint (if any) into the run's objects; returns its step."""
+    latest = rotation.latest()
+    if latest is None:
+        return 0
+    try:
+        checkpoint.load(latest)
+    except (TorchrlCheckpointError, KeyError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"{latest}: cannot resume from this checkpoint ({err})") from err
+    return int(Checkpoint.manifest(latest)["metadata"]["step"])
+
+
+def _loggers(out: pathlib.Path) -> list[Logger]:
+    return [CSVLogger("train", log_dir=str(out / "logs")),
+            TensorboardLogger("tensorboard", log_dir=str(out / "logs"))]
+
+
+def _log(loggers: list[Logger], scalars: dict[str, float], step: int) -> None:
+    for logger in loggers:
+        for name, value in scalars.items():
+            logger.log_scalar(name, value, step=step)
+
+
+def _periodic_eval(config: TrainConfig, policy: DustPolicy, ema: EMA, step: int) -> dict[str, float]:
+    """Closed-loop success of the EMA policy, without touching the training RNG streams."""
+    from dust_rl.evaluate import EvalConfig, evaluate
+
+    folder = config.out / "eval" / f"step-{step:07d}"
+    with ema.applied():
+        path = save_policy(policy, folder / "policy.pt")
+    threads = torch.get_num_threads()
+    with torch.random.fork_rng():
+        report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.eval_episodes,
+                                     workers=config.eval_workers, videos=0, progress=False))
+    torch.set_num_threads(threads)
+    return {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
+        "eval/success_rate": report["overall"]["success_rate"]}
+
+
+def _plot_losses(out: pathlib.Path) -> None:
+    from dust_rl.report import plot_loss_curves
+
+    plot_loss_curves(out, out / "loss.png")
+

@@ -1,0 +1,178 @@
+"""Closed-loop evaluation: Wilson intervals, report files, videos, determinism across runs and workers, bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+
+import pytest
+
+from dust_rl.agents import (
+    AutoencoderConfig,
+    CheckpointError,
+    ConvAutoencoder,
+    DustConfig,
+    load_policy,
+    make_policy,
+    save_policy,
+    unwrap,
+)
+from dust_rl.data.video import read_mp4
+from dust_rl.evaluate import EvalConfig, evaluate, resolve_sampler, wilson_interval
+from dust_rl.report import plot_loss_curves, read_scalar_csv
+from dust_rl.rollout_video import LABEL_HEIGHT, future_decoder
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+IMAGE = 32
+SIZES = dict(horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=1, state_dim=17)
+INFO = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": IMAGE}, "tasks": ["press_button"]}
+
+
+def tiny_policy_file(path: pathlib.Path, text_encoder, info: dict | None = None, **sizes) -> pathlib.Path:
+    """An untrained tiny policy for 32 px front + wrist cameras (the conftest ``tiny_encoder`` shape)."""
+    encoder = ConvAutoencoder(AutoencoderConfig(image_size=IMAGE, dim=16, width=8, max_width=16))
+    policy = make_policy("dust", image_encoder=encoder, text_encoder=text_encoder, cameras=["front", "wrist"],
+                         **{**SIZES, "action_dim": 7, **sizes})
+    unwrap(policy).info = INFO if info is None else info
+    return save_policy(policy, path)
+
+
+def write_loss_logs(train_dir: pathlib.Path) -> None:
+    """CSVLogger files of a training run that was resumed: steps 2 and 3 are logged twice."""
+    scalars = train_dir / "logs" / "run" / "scalars" / "train"
+    scalars.mkdir(parents=True)
+    (scalars / "loss.csv").write_text("0,2.0\n1,1.5\n2,1.2\n3,1.1\n2,1.0\n3,0.9\n4,0.8\n")
+    (scalars / "loss_action.csv").write_text("0,1.0\n2,0.5\n4,0.3\n")
+    (scalars / "lr.csv").write_text("0,0.001\n")
+
+
+@pytest.fixture(scope="module")
+def policy_path(tmp_path_factory, minilm) -> pathlib.Path:
+    root = tmp_path_factory.mktemp("trained")
+    write_loss_logs(root)
+    return tiny_policy_file(root / "policy.pt", minilm)
+
+
+@pytest.fixture(scope="module")
+def eval_config(policy_path, tmp_path_factory) -> EvalConfig:
+    return EvalConfig(policy=policy_path, out=tmp_path_factory.mktemp("eval"), episodes=2, workers=1, max_steps=10,
+                      videos=1, progress=False)
+
+
+@pytest.fixture(scope="module")
+def report(eval_config) -> dict:
+    return evaluate(eval_config, command="dust-rl eval --policy policy.pt")
+
+
+def test_wilson_interval_known_values():
+    assert wilson_interval(0, 20) == pytest.approx((0.0, 0.1611), abs=1e-4)
+    assert wilson_interval(20, 20) == pytest.approx((0.8389, 1.0), abs=1e-4)
+    assert wilson_interval(10, 20) == pytest.approx((0.2993, 0.7007), abs=1e-4)
+    assert wilson_interval(1, 1, z=0.0) == (1.0, 1.0)
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+
+
+def test_report_rows_count_each_seed_once(report, eval_config):
+    assert json.loads((eval_config.out / "report.json").read_text()) == report
+    (row,) = report["tasks"]
+    seeds = [eval_config.seed, eval_config.seed + 1]
+    assert row["task"] == "press_button" and row["episodes"] == 2 and row["seeds"] == seeds
+    assert [e[0] for e in row["per_episode"]] == seeds
+    assert all(1 <= e[2] <= 10 for e in row["per_episode"])  # max_steps
+    assert row["successes"] == sum(e[1] for e in row["per_episode"])
+    assert (row["ci95_low"], row["ci95_high"]) == wilson_interval(row["successes"], 2)
+    assert row["mean_length"] == sum(e[2] for e in row["per_episode"]) / 2
+    assert report["overall"]["episodes"] == 2 and report["overall"]["successes"] == row["successes"]
+    assert report["env_steps"] == sum(e[2] for e in row["per_episode"]) and report["env_steps_per_s"] > 0
+    assert report["sampler"] == {"name": "async", "n_action_steps": 4, "vision_steps": 4}
+    assert report["variant"] == "dust" and report["env_id"] == "DustFranka-v0"
+    assert report["env_kwargs"] == {"image_size": IMAGE, "max_episode_steps": 10}
+
+
+def test_report_files(report, eval_config):
+    markdown = (eval_config.out / "report.md").read_text()
+    assert "| task | episodes | success | 95% CI | mean length |" in markdown
+    assert "| press_button | 2 |" in markdown and "**overall**" in markdown
+    assert "dust-rl eval --policy policy.pt" in markdown and "N_A = 4, N_o = 4" in markdown
+    for png in ("success.png", "loss.png"):
+        assert (eval_config.out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert pathlib.Path(report["loss_plot"]) == eval_config.out / "loss.png"
+
+
+def test_video_is_the_evaluated_episode_with_its_predicted_future(report, eval_config):
+    (row,) = report["tasks"]
+    (video,) = row["videos"]
+    assert video["seed"] == eval_config.seed
+    # Same seed, same re-planning and sampling noise: the recorded episode is the evaluated one, bit for bit.
+    assert [video["seed"], video["success"], video["length"], video["digest"]] == row["per_episode"][0]
+    frames = list(read_mp4(pathlib.Path(video["path"])))
+    assert len(frames) == video["length"] + 1  # every observation, the last one included
+    assert frames[0].shape == (LABEL_HEIGHT + IMAGE, 3 * IMAGE, 3)  # front | wrist | decoded prediction
+
+
+def test_same_config_same_episodes_with_any_worker_count(report, eval_config, tmp_path):
+    again = evaluate(dataclasses.replace(eval_config, out=tmp_path / "again", videos=0))
+    assert again["tasks"][0]["per_episode"] == report["tasks"][0]["per_episode"]
+    two_workers = evaluate(dataclasses.replace(eval_config, out=tmp_path / "two", videos=0, workers=2))
+    assert two_workers["tasks"][0]["per_episode"] == report["tasks"][0]["per_episode"]
+    assert not list((tmp_path / "two").glob("videos/*"))
+
+
+def test_missing_or_corrupt_policy_file(tmp_path):
+    with pytest.raises(CheckpointError, match="no such checkpoint file"):
+        evaluate(EvalConfig(policy=tmp_path / "missing.pt", out=tmp_path))
+    (tmp_path / "garbage.pt").write_bytes(b"\x00not a checkpoint" * 64)
+    with pytest.raises(CheckpointError, match="corrupt"):
+        evaluate(EvalConfig(policy=tmp_path / "garbage.pt", out=tmp_path))
+
+
+def test_policy_for_another_action_space(tmp_path, minilm):
+    path = tiny_policy_file(tmp_path / "policy.pt", minilm, action_dim=3)
+    with pytest.raises(CheckpointError, match="action_dim: policy has 3, env has 7"):
+        evaluate(EvalConfig(policy=path, out=tmp_path / "eval"))
+
+
+def test_bad_tasks_and_sampler_settings_fail_before_any_episode(policy_path, tmp_path, minilm):
+    config = EvalConfig(policy=policy_path, out=tmp_path / "eval")
+    with pytest.raises(ValueError, match="unknown franka task 'fly'.*press_button"):
+        evaluate(dataclasses.replace(config, tasks=("press_button", "fly")))
+    with pytest.raises(ValueError, match="multiple of n_action_steps"):
+        evaluate(dataclasses.replace(config, sampler="async", vision_steps=6))
+    with pytest.raises(ValueError, match="async sampler only"):
+        evaluate(dataclasses.replace(config, sampler="sync", vision_steps=8))
+    with pytest.raises(ValueError, match="episodes must be >= 1"):
+        evaluate(dataclasses.replace(config, episodes=0))
+    bare = tiny_policy_file(tmp_path / "bare.pt", minilm, info={})
+    with pytest.raises(ValueError, match="give env_id and tasks"):
+        evaluate(EvalConfig(policy=bare, out=tmp_path / "eval"))
+    assert not (tmp_path / "eval").exists()
+
+
+def test_sampler_choice():
+    policy = DustConfig(n_action_steps=4, vision_step_ratio=2)
+    base = EvalConfig(policy=pathlib.Path("p.pt"))
+    assert resolve_sampler(policy, base).describe() == {"name": "async", "n_action_steps": 4, "vision_steps": 8}
+    scaled = dataclasses.replace(base, n_action_steps=2, vision_steps=16)
+    assert resolve_sampler(policy, scaled).vision_step_ratio == 8
+    assert resolve_sampler(policy, dataclasses.replace(base, sampler="sync")).describe()["vision_steps"] == 4
+    assert resolve_sampler(policy, dataclasses.replace(base, sampler="action_only")).describe()["vision_steps"] == 0
+
+
+def test_no_predicted_future_without_a_prediction_or_a_decoder(policy_path):
+    policy = unwrap(load_policy(policy_path))
+    assert future_decoder(policy) is not None
+    policy.set_sampler("action_only")
+    assert future_decoder(policy) is None
+
+
+def test_loss_curves_keep_the_last_value_of_a_repeated_step(tmp_path):
+    write_loss_logs(tmp_path / "run")
+    scalars = tmp_path / "run" / "logs" / "run" / "scalars"
+    assert read_scalar_csv(scalars / "train" / "loss.csv") == ([0, 1, 2, 3, 4], [2.0, 1.5, 1.0, 0.9, 0.8])
+    for source in (tmp_path / "run", scalars):
+        out = plot_loss_curves(source, tmp_path / f"{source.name}.png")
+        assert out is not None and out.read_bytes()[:4] == b"\x89PNG"
+    assert plot_loss_curves(tmp_path / "empty", tmp_path / "none.png") is None
+    assert not (tmp_path / "none.png").exists()

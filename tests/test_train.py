@@ -1,0 +1,135 @@
+"""Imitation training: schedule, EMA, run folder rules, bad input, and resume after kill -9."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from dust_rl.agents import load_policy, save_image_encoder, unwrap
+from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.data import DatasetError
+from dust_rl.ema import EMA
+from dust_rl.train import TrainConfig, train, warmup_cosine
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+TINY_MODEL = {"horizon": 4, "execute_steps": 2, "d_model": 32, "n_heads": 2, "n_mmdit": 1, "n_dit": 1,
+              "batch_size": 8}
+
+
+@pytest.fixture
+def run_inputs(demo_dir, tiny_encoder, tmp_path):
+    """A private copy of the demo dataset (training caches features inside it) and a tiny encoder file."""
+    dataset = shutil.copytree(demo_dir, tmp_path / "data")
+    return dataset, save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
+
+
+def tiny_config(run_inputs, out, **overrides) -> TrainConfig:
+    dataset, encoder = run_inputs
+    fields = {**TINY_MODEL, "steps": 12, "log_every": 3, "checkpoint_every": 4, "threads": 1, "progress": False}
+    return TrainConfig(dataset=dataset, out=out, image_encoder=encoder, **(fields | overrides))
+
+
+def trained_weights(path) -> dict[str, torch.Tensor]:
+    return {k: v for k, v in unwrap(load_policy(path)).state_dict().items() if not k.startswith("backbone.")}
+
+
+def test_warmup_cosine_schedule():
+    factor = warmup_cosine(100, 0.1)
+    assert [factor(s) for s in (0, 4, 9)] == pytest.approx([0.1, 0.5, 1.0])
+    assert factor(10) == pytest.approx(1.0) and factor(55) == pytest.approx(0.5) and factor(99) < 0.01
+    assert factor(10 + 45) == pytest.approx(0.5 * (1 + math.cos(math.pi * 0.5)))
+
+
+def test_ema_tracks_the_average_and_round_trips():
+    module = torch.nn.Linear(3, 2)
+    module.register_buffer("flag", torch.ones(2, dtype=torch.bool))  # non-float buffers are left alone
+    ema = EMA(module, decay=0.9)
+    start = module.weight.detach().clone()
+    with torch.no_grad():
+        module.weight.add_(1.0)
+    ema.update()  # decay min(0.9, 2/11)
+    expected = start + (1 - 2 / 11)
+    with ema.applied():
+        torch.testing.assert_close(module.weight.detach(), expected)
+    torch.testing.assert_close(module.weight.detach(), start + 1)  # own weights back outside
+    copy = EMA(module, decay=0.9)
+    copy.load_state_dict(ema.state_dict())
+    assert copy.updates == 1 and torch.equal(copy.average["weight"], ema.average["weight"])
+
+
+def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
+    out = tmp_path / "run"
+    result = train(tiny_config(run_inputs, out), command="dust-rl train ...")
+    policy = unwrap(load_policy(result.policy))
+    assert policy.config.horizon == 4 and policy.execute_steps == 2
+    assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button", "open_drawer"]
+    stored = json.loads((out / "config.json").read_text())
+    assert stored["command"] == "dust-rl train ..." and stored["config"]["steps"] == 12
+    rows = (out / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text().split()
+    assert [int(r.split(",")[0]) for r in rows] == [3, 6, 9, 12]
+    assert list((out / "logs" / "tensorboard").rglob("events.out.tfevents.*"))
+    assert [p.name for p in sorted((out / "checkpoints").iterdir())] == ["checkpoint-000000000008",
+                                                                        "checkpoint-000000000012"]
+    assert (out / "loss.png").stat().st_size > 0
+    assert list((tmp_path / "data" / "features").glob("*.pt"))  # cached for the next run on this dataset
+
+
+def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
+    steps = 600
+    reference = train(tiny_config(run_inputs, tmp_path / "ref", steps=steps, checkpoint_every=50))
+    out = tmp_path / "killed"
+    dataset, encoder = run_inputs
+    args = ["train", "--dataset", str(dataset), "--out", str(out), "--image-encoder", str(encoder),
+            "--steps", str(steps), "--checkpoint-every", "50", "--log-every", "3", "--threads", "1", "--no-progress"]
+    args += [f"--{k.replace('_', '-')}={v}" for k, v in TINY_MODEL.items()]
+    proc = subprocess.Popen([sys.executable, "-m", "dust_rl.cli", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, env=os.environ | {"OMP_NUM_THREADS": "1"})
+    deadline = time.monotonic() + 120
+    while not list((out / "checkpoints").glob("checkpoint-*")) and proc.poll() is None:
+        assert time.monotonic() < deadline, "no checkpoint within 120 s"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    _, stderr = proc.communicate()
+    assert proc.returncode == -signal.SIGKILL, stderr.decode()[-2000:]
+    assert not (out / "policy.pt").exists()
+
+    with pytest.raises(FileExistsError, match="--resume"):
+        train(tiny_config(run_inputs, out, steps=steps, checkpoint_every=50))
+    resumed = train(tiny_config(run_inputs, out, steps=steps, checkpoint_every=50, resume=True))
+    ref, got = trained_weights(reference.policy), trained_weights(resumed.policy)
+    assert ref.keys() == got.keys() and all(torch.equal(ref[k], got[k]) for k in ref)
+
+
+def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_path):
+    with pytest.raises(FileNotFoundError, match="nothing to resume"):
+        train(tiny_config(run_inputs, tmp_path / "none", resume=True))
+    out = tmp_path / "run"
+    train(tiny_config(run_inputs, out, steps=4))
+    with pytest.raises(ValueError, match="other settings.*lr"):
+        train(tiny_config(run_inputs, out, steps=4, lr=1e-3, resume=True))
+    latest = sorted((out / "checkpoints").iterdir())[-1]
+    for state in latest.rglob("*.memmap"):
+        state.write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="cannot resume"):
+        train(tiny_config(run_inputs, out, steps=4, resume=True))
+
+
+def test_bad_training_input_is_named(run_inputs, tmp_path):
+    with pytest.raises(ValueError, match="execute_steps=9"):
+        train(tiny_config(run_inputs, tmp_path / "a", execute_steps=9))
+    dataset, _ = run_inputs
+    meta = json.loads((dataset / "meta.json").read_text())
+    meta["env_kwargs"]["image_size"] = 48  # the env would render other images than the dataset holds
+    (dataset / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="does not match the requested env"):
+        train(tiny_config(run_inputs, tmp_path / "b"))
