@@ -29,8 +29,8 @@ class QuickstartConfig:
 
     out: pathlib.Path = pathlib.Path("runs/quickstart")
     """Run folder (re-run the command to resume an interrupted run)."""
-    task: str = "press_button"
-    """Franka task (``dust_rl.envs.list_tasks("franka")``)."""
+    task: str = "close_drawer"
+    """Franka task (`dust_rl.envs.list_tasks("franka")`)."""
     demos: int = 200
     """Successful expert demonstrations to collect."""
     variant: Variant = "dust"

@@ -69,7 +69,8 @@ def test_ema_tracks_the_average_and_round_trips():
 
 def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     out = tmp_path / "run"
-    result = train(tiny_config(run_inputs, out), command="dust-rl train ...")
+    result = train(tiny_config(run_inputs, out, eval_every=12, eval_episodes=1, eval_workers=1),
+                   command="dust-rl train ...")
     policy = unwrap(load_policy(result.policy))
     assert policy.config.horizon == 4 and policy.execute_steps == 2
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button", "open_drawer"]
@@ -78,6 +79,11 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     rows = (out / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text().split()
     assert [int(r.split(",")[0]) for r in rows] == [3, 6, 9, 12]
     assert list((out / "logs" / "tensorboard").rglob("events.out.tfevents.*"))
+    # The periodic closed-loop evaluation ran on every training task and logged its success rates.
+    evaluated = json.loads((out / "eval" / "step-0000012" / "report.json").read_text())
+    assert [row["task"] for row in evaluated["tasks"]] == ["press_button", "open_drawer"]
+    success = (out / "logs" / "train" / "scalars" / "eval" / "success_rate.csv").read_text().split(",")
+    assert int(success[0]) == 12 and float(success[1]) == evaluated["overall"]["success_rate"]
     assert [p.name for p in sorted((out / "checkpoints").iterdir())] == ["checkpoint-000000000008",
                                                                         "checkpoint-000000000012"]
     assert (out / "loss.png").stat().st_size > 0

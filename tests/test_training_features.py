@@ -114,3 +114,19 @@ def test_tiny_dust_learns_from_demonstrations(dataset, tiny_encoder, minilm):
     plan = policy.eval().plan(next(windows.iterate(4)))
     assert plan["action_chunk"].shape == (4, 8, 7) and torch.isfinite(plan["action_chunk"]).all()
     assert policy.backbone.image.decode(plan["future_tokens"]).shape == (4, 3, 32, 32)  # predicted future, rendered
+
+
+def test_stored_features_are_reused(demo_dir, tiny_encoder, minilm, tmp_path, monkeypatch):
+    import shutil
+
+    dataset = DemoDataset(shutil.copytree(demo_dir, tmp_path / "data"))
+    policy = small_policy(dataset, tiny_encoder, minilm)
+    first = FeatureCache(dataset, policy, progress=False, store=True)
+    assert first.path.parent == dataset.root / "features" and first.path.is_file()
+    monkeypatch.setattr(tiny_encoder, "feature_map", lambda x: pytest.fail("encoded again"))
+    second = FeatureCache(dataset, policy, progress=False, store=True)
+    assert second.path == first.path and torch.equal(second.image_tokens, first.image_tokens)
+    with torch.no_grad():  # other encoder weights: another key, so stale features are never read
+        next(tiny_encoder.parameters()).add_(1.0)
+    monkeypatch.undo()
+    assert FeatureCache(dataset, policy, progress=False, store=True).path != first.path
