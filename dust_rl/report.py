@@ -65,7 +65,8 @@ def markdown_report(report: dict, out_dir: pathlib.Path) -> str:
         lines.append(f"![training loss]({os.path.relpath(report['loss_plot'], out_dir)})")
     videos = [(row["task"], video) for row in report["tasks"] for video in row["videos"]]
     if videos:
-        lines += ["", "Rollouts (camera views, then the decoded predicted future when the policy has a decoder):", ""]
+        lines += ["", "Rollouts (camera views, then the decoded predicted future beside the real one when the "
+                  "policy has a decoder):", ""]
         lines += [f"- {task} seed {v['seed']}: [{pathlib.Path(v['path']).name}]({os.path.relpath(v['path'], out_dir)}) "
                   f"({'success' if v['success'] else 'failure'}, {v['length']} steps)" for task, v in videos]
     return "\n".join(lines) + "\n"

@@ -2,15 +2,17 @@
 
 Every video frame is one row of panels under a 12-pixel label strip:
 
-    | <camera 1> | <camera 2> | ... | <future camera> +H |
+    | <camera 1> | <camera 2> | ... | <future camera> +H predicted | <future camera> +H real |
 
 The camera panels are the observation at step ``t``, in the policy's camera
-order; the last panel is the frame the policy predicted, at its most recent
+order; the next panel is the frame the policy predicted, at its most recent
 re-plan (step ``t0 <= t``), for its ``future_camera`` at ``t0 + H``: the
 predicted future tokens decoded by the image encoder and resized to the
-camera size. That panel is missing when the policy cannot show a prediction
-(no vision stream, the action-only sampler, or an image encoder without a
-decoder). A video has one frame per observation, the last one included.
+camera size; the last panel is what that camera really showed at ``t0 + H``
+(the episode's last frame when it ended earlier). The two prediction panels
+are missing when the policy cannot show a prediction (no vision stream, the
+action-only sampler, or an image encoder without a decoder). A video has one
+frame per observation, the last one included.
 
 A recorded episode is the evaluated episode of the same seed, bit for bit:
 the env resets from the same seed schedule, the policy re-plans on the same
@@ -86,14 +88,17 @@ def labelled_row(panels: list[tuple[str, np.ndarray]]) -> np.ndarray:
     return np.asarray(canvas)
 
 
-def video_frame(td: TensorDictBase, policy: DustPolicy, predicted: Tensor | None) -> np.ndarray:
-    """The frame of one observation: its cameras, then the decoded prediction [3, h, w] if any."""
+def video_frame(td: TensorDictBase, policy: DustPolicy, predicted: Tensor | None,
+                real_future: TensorDictBase) -> np.ndarray:
+    """The frame of one observation: its cameras, then the decoded prediction [3, h, w] and the real future."""
     views = [td.get((*IMAGE_KEY, cam)) for cam in policy.cameras]
     panels = [(cam, view.permute(1, 2, 0).numpy()) for cam, view in zip(policy.cameras, views)]
     if predicted is not None:
         image = F.interpolate(predicted[None], size=views[0].shape[-2:], mode="bilinear", align_corners=False)[0]
         image = (image.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
-        panels.append((f"{policy.future_camera} +{policy.config.horizon}", image))
+        label = f"{policy.future_camera} +{policy.config.horizon}"
+        real = real_future.get((*IMAGE_KEY, policy.future_camera)).permute(1, 2, 0).numpy()
+        panels += [(f"{label} predicted", image), (f"{label} real", real)]
     return labelled_row(panels)
 
 
@@ -118,16 +123,24 @@ def record_episode(env: EnvBase, policy: DustPolicy) -> RecordedEpisode:
     td = env.reset()
     seed = int(td.get(SEED_KEY))
     generator = episode_generator(seed)
-    frames, actions, t = [], [], 0
+    observations, predictions, plan_steps, actions, t = [], [], [], [], 0
     while True:
         if t % policy.execute_steps == 0:  # when MultiStepActorWrapper re-plans; it plans on a batch of one
             plan = policy.plan(td.unsqueeze(0), generator)[0]
             predicted = decoder(plan.get("future_tokens")[None])[0] if decoder is not None else None
-        frames.append(video_frame(td, policy, predicted))
+            planned_at = t
+        observations.append(td.exclude("next"))
+        predictions.append(predicted)
+        plan_steps.append(planned_at)
         actions.append(plan.get("action_chunk")[t % policy.execute_steps])
         td = env.step(td.set("action", actions[-1]))
         if td.get(("next", "done")).any():
-            frames.append(video_frame(td.get("next"), policy, predicted))
+            observations.append(td.get("next"))
+            predictions.append(predicted)
+            plan_steps.append(planned_at)
+            last, horizon = len(observations) - 1, policy.config.horizon
+            frames = [video_frame(obs, policy, prediction, observations[min(t0 + horizon, last)])
+                      for obs, prediction, t0 in zip(observations, predictions, plan_steps)]
             success = bool(td.get(("next", SUCCESS_KEY)).any())
             digest = episode_digest(torch.stack(actions), td.get(("next", *STATE_KEY)))
             return RecordedEpisode(seed, success, t + 1, digest, frames)

@@ -109,7 +109,7 @@ def test_video_is_the_evaluated_episode_with_its_predicted_future(report, eval_c
     assert [video["seed"], video["success"], video["length"], video["digest"]] == row["per_episode"][0]
     frames = list(read_mp4(pathlib.Path(video["path"])))
     assert len(frames) == video["length"] + 1  # every observation, the last one included
-    assert frames[0].shape == (LABEL_HEIGHT + IMAGE, 3 * IMAGE, 3)  # front | wrist | decoded prediction
+    assert frames[0].shape == (LABEL_HEIGHT + IMAGE, 4 * IMAGE, 3)  # front | wrist | prediction | real future
 
 
 def test_same_config_same_episodes_with_any_worker_count(report, eval_config, tmp_path):
