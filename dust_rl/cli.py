@@ -218,9 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from dust_rl.data.errors import DatasetError
-
     from dust_rl.agents.checkpoint_io import CheckpointError
+    from dust_rl.data.errors import DatasetError
 
     argv = sys.argv[1:] if argv is None else argv
     command_line = shlex.join(["dust-rl", *argv])  # provenance for files a command writes
