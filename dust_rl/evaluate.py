@@ -20,7 +20,6 @@ videos of the first episodes of each task by :mod:`dust_rl.rollout_video`.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
 import math
 import pathlib
@@ -42,6 +41,7 @@ from tqdm import tqdm
 import dust_rl  # noqa: F401  (registers the env ids)
 from dust_rl.agents import ChunkExecutor, DustConfig, DustPolicy, load_policy, unwrap
 from dust_rl.agents.factory import check_fits_env
+from dust_rl.config_json import config_json
 from dust_rl.data.seeding import SEED_KEY, SUCCESS_KEY, EpisodeSeedWrapper, SeedSchedule
 from dust_rl.envs import make_task
 from dust_rl.envs.torchrl_env import make_torchrl_env
@@ -355,7 +355,7 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
     report = {
         "policy": str(config.policy), "variant": policy.config.variant, "env_id": setup.env_id,
         "env_kwargs": setup.env_kwargs, "sampler": setup.sampler.describe(), "command": command,
-        "config": json_config(config), "seeds": [config.seed, config.seed + config.episodes - 1],
+        "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],
         "noise_seeding": "the policy's sampling noise restarts from the episode seed at every reset",
         "tasks": rows, "overall": summary_row("overall", [Episode(*e) for row in rows for e in row["per_episode"]]),
         "env_steps": steps, "startup_s": startup, "episodes_time_s": running, "env_steps_per_s": steps / running,
@@ -374,9 +374,3 @@ def evaluate_command(config: EvalConfig, command: str | None = None) -> dict:
               f"{row['mean_length']:.1f}")
     print(f"report: {config.out / 'report.md'} (also report.json, success.png, loss.png, videos/)")
     return report
-
-
-def json_config(config: EvalConfig) -> dict:
-    """The config as JSON values (paths as strings, tuples as lists)."""
-    return {k: str(v) if isinstance(v, pathlib.Path) else list(v) if isinstance(v, tuple) else v
-            for k, v in dataclasses.asdict(config).items()}

@@ -12,12 +12,12 @@ checkpoint, and re-runs only the evaluation. The run folder ends up with
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import pathlib
 import time
 from dataclasses import dataclass
 
+from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, collect_demos
 from dust_rl.evaluate import EvalConfig, evaluate
 from dust_rl.train import TrainConfig, Variant, train
@@ -89,7 +89,7 @@ def quickstart(config: QuickstartConfig, command: str | None = None) -> dict:
     print("time: " + ", ".join(f"{name} {seconds / 60:.1f} min" for name, seconds in stages.items()))
     print(f"run folder: {config.out}\n  report: {eval_dir / 'report.md'}\n  plots: {eval_dir / 'success.png'}, "
           f"{eval_dir / 'loss.png'}\n  videos: {eval_dir / 'videos'}\n  policy: {result.policy}")
-    summary = {"quickstart": json.loads(json.dumps(dataclasses.asdict(config), default=str)), "command": command,
+    summary = {"quickstart": config_json(config), "command": command,
                "stages_seconds": stages, "overall": overall, "report": str(eval_dir / "report.json")}
     (config.out / "quickstart.json").write_text(json.dumps(summary, indent=2) + "\n")
     return report

@@ -20,7 +20,6 @@ The frozen backbone's features are cached once per dataset (:class:`~dust_rl.fea
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import pathlib
@@ -40,6 +39,7 @@ from tqdm.auto import tqdm
 import dust_rl  # noqa: F401  (registers the env ids)
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.ema import EMA
 from dust_rl.features import FeatureCache, dataset_policy_kwargs
@@ -230,7 +230,7 @@ def _check_config(config: TrainConfig) -> None:
 def _prepare_run_folder(config: TrainConfig, command: str | None) -> None:
     """Write ``config.json`` for a new run; for ``--resume``, check the stored one agrees."""
     saved = config.out / "config.json"
-    record = {"config": _jsonable(config), "command": command, "versions": _versions()}
+    record = {"config": config_json(config), "command": command, "versions": _versions()}
     if config.resume:
         if not saved.is_file():
             raise FileNotFoundError(f"{config.out}: nothing to resume (no config.json); drop --resume to start a run")
@@ -247,10 +247,6 @@ def _prepare_run_folder(config: TrainConfig, command: str | None) -> None:
     tmp = saved.with_suffix(".tmp")
     tmp.write_text(json.dumps(record, indent=2))
     tmp.replace(saved)
-
-
-def _jsonable(config: TrainConfig) -> dict:
-    return json.loads(json.dumps(dataclasses.asdict(config), default=str))
 
 
 def _versions() -> dict[str, str]:
@@ -298,11 +294,9 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, ema: EMA, step: int)
     folder = config.out / "eval" / f"step-{step:07d}"
     with ema.applied():
         path = save_policy(policy, folder / "policy.pt")
-    threads = torch.get_num_threads()
-    with torch.random.fork_rng():
+    with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
         report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.eval_episodes,
                                      workers=config.eval_workers, videos=0, progress=False))
-    torch.set_num_threads(threads)
     return {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
         "eval/success_rate": report["overall"]["success_rate"]}
 
