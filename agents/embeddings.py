@@ -10,6 +10,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .adaln import modulate
+from .config import TIME_FREQ_DIM
 from .stream_linear import StreamLinear
 
 
@@ -64,7 +65,7 @@ class TimestepEmbedder(nn.Module):
         scale: factor applied to tau before the sinusoid.
     """
 
-    def __init__(self, n_streams: int, d_model: int, freq_dim: int = 256, scale: float = 1000.0) -> None:
+    def __init__(self, n_streams: int, d_model: int, freq_dim: int = TIME_FREQ_DIM, scale: float = 1000.0) -> None:
         super().__init__()
         self.register_buffer("freqs", frequencies(freq_dim) * scale, persistent=False)
         self.fc1 = StreamLinear(n_streams, freq_dim, d_model)

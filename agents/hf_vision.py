@@ -15,17 +15,46 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from .config import MAX_ENCODER_LAYERS, MAX_IMAGE_SIZE, MAX_PARAMETERS, MAX_WIDTH, check_size
 from .image_encoder import ImageEncoder
+from .text_encoder import local_model_folder
 
 PROCESSOR_FILE = "preprocessor_config.json"
+# ViT-shaped vision models (patch embedding, ``image_size``, ``patch_size``) that a stored config may build.
+VISION_MODEL_TYPES = ("vit", "dinov2", "dinov2_with_registers", "siglip_vision_model", "clip_vision_model")
 
 
 def build_transformers_config(config: dict):
-    """A ``transformers`` config from its ``to_dict()`` form (no download)."""
+    """A ``transformers`` config from its ``to_dict()`` form (no download), checked by :func:`check_vision_config`."""
     from transformers import AutoConfig
 
     config = dict(config)
-    return AutoConfig.for_model(config.pop("model_type"), **config)
+    model_type = config.pop("model_type", None)
+    if model_type not in VISION_MODEL_TYPES:
+        raise ValueError(f"vision model type {model_type!r} cannot be built from a stored config; "
+                         f"expected one of {VISION_MODEL_TYPES}")
+    built = AutoConfig.for_model(model_type, **config)
+    check_vision_config(built)
+    return built
+
+
+def check_vision_config(config) -> None:
+    """Raise ``ValueError`` if a ViT config's sizes exceed the caps of :mod:`.config` (before any weight exists)."""
+    hidden, layers = config.hidden_size, config.num_hidden_layers
+    check_size("hidden_size", hidden, MAX_WIDTH)
+    check_size("num_hidden_layers", layers, MAX_ENCODER_LAYERS)
+    check_size("num_attention_heads", config.num_attention_heads, hidden)
+    check_size("image_size", config.image_size, MAX_IMAGE_SIZE)
+    check_size("patch_size", config.patch_size, config.image_size)
+    # DINOv2 sizes its MLP by mlp_ratio, the others by intermediate_size; a stored config may carry both.
+    mlp = int(max(getattr(config, "intermediate_size", None) or 0, hidden * (getattr(config, "mlp_ratio", None) or 0)))
+    check_size("MLP width", mlp, 4 * MAX_WIDTH)
+    patches = (config.image_size // config.patch_size) ** 2
+    # Dominant weights: attention and MLP per layer, position and patch embeddings.
+    parameters = layers * (4 * hidden**2 + 2 * hidden * mlp) + (patches + 3 * config.patch_size**2) * hidden
+    if parameters > MAX_PARAMETERS:
+        raise ValueError(f"the vision model would have about {parameters:.3g} parameters, more than the cap of "
+                         f"{MAX_PARAMETERS:.3g}")
 
 
 class TransformersImageEncoder(ImageEncoder):
@@ -37,6 +66,10 @@ class TransformersImageEncoder(ImageEncoder):
             initialised model instead, e.g. for tests; exactly one of ``path`` and ``config``.
         mean: per-channel pixel mean, overriding the processor's (default 0.5).
         std: per-channel pixel std, overriding the processor's (default 0.5).
+
+    Raises:
+        ValueError: ``path`` is not a local folder (nothing is downloaded), or a config in
+            ``to_dict()`` form (as stored in a policy file) of another model type or beyond the size caps.
     """
 
     def __init__(self, path: str | pathlib.Path | None = None, config=None,
@@ -48,7 +81,7 @@ class TransformersImageEncoder(ImageEncoder):
             raise ValueError("give exactly one of path (pretrained weights) and config (random init)")
         processor = {}
         if path is not None:
-            model = AutoModel.from_pretrained(path)
+            model = AutoModel.from_pretrained(local_model_folder(path), local_files_only=True)
             if (pathlib.Path(path) / PROCESSOR_FILE).is_file():
                 processor = json.loads((pathlib.Path(path) / PROCESSOR_FILE).read_text())
         else:

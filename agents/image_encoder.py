@@ -31,6 +31,12 @@ class ImageEncoder(nn.Module, ABC):
     def feature_map(self, images: Tensor) -> Tensor:
         """Map float images [B, 3, S, S] in [0, 1] (S = ``image_size``) to features [B, dim, h, w]."""
 
+    @torch.no_grad()
+    def native_grid(self) -> tuple[int, int]:
+        """(rows, cols) of the feature map at ``image_size``: the finest token grid the encoder gives."""
+        probe = torch.zeros(1, 3, self.image_size, self.image_size, device=next(self.parameters()).device)
+        return tuple(self.feature_map(probe).shape[-2:])
+
     @abstractmethod
     def reference(self) -> dict:
         """JSON-able description that :func:`dust_rl.agents.backbone.build_image_encoder` rebuilds the module from.

@@ -1,8 +1,12 @@
-"""Standardisation of state and actions with dataset statistics, stored with the policy.
+"""Standardisation of state, actions and image tokens with dataset statistics, stored with the policy.
 
-Flow matching starts from unit Gaussian noise, so the trunk sees state and
-actions standardised per dimension; the chunk it samples is mapped back to
-env units. The statistics are buffers, so they travel in the policy's
+Flow matching starts from unit Gaussian noise, so the trunk sees state,
+actions and frozen image tokens (condition and world-model target)
+standardised per dimension; the chunk it samples is mapped back to env units
+and the future it predicts back to the encoder's units. Image-token
+statistics matter for pretrained encoders: EfficientNet-Lite features have
+per-channel means up to +-10 and standard deviations of 4-12 on our frames.
+The statistics are buffers, so they travel in the policy's
 checkpoint and a policy never runs with stats other than those it was trained with.
 """
 
@@ -22,10 +26,16 @@ class Normalizer(nn.Module):
     Args:
         state_dim: size of the state vector.
         action_dim: size of one action.
+        vision_dim: size of one image token (identity statistics until :meth:`set_vision_stats`).
     """
 
-    def __init__(self, state_dim: int, action_dim: int) -> None:
+    # Buffers that policy files written before image-token statistics existed lack (identity then).
+    OPTIONAL_BUFFERS = ("vision_mean", "vision_std")
+
+    def __init__(self, state_dim: int, action_dim: int, vision_dim: int) -> None:
         super().__init__()
+        self.register_buffer("vision_mean", torch.zeros(vision_dim))
+        self.register_buffer("vision_std", torch.ones(vision_dim))
         self.register_buffer("state_mean", torch.zeros(state_dim))
         self.register_buffer("state_std", torch.ones(state_dim))
         self.register_buffer("action_mean", torch.zeros(action_dim))
@@ -46,6 +56,29 @@ class Normalizer(nn.Module):
         """The statistics in :meth:`set_stats` form."""
         return {name: {field: getattr(self, f"{name}_{field}").tolist() for field in ("mean", "std")}
                 for name in ("state", "action")}
+
+    @torch.no_grad()
+    def set_vision_stats(self, tokens: Tensor) -> None:
+        """Per-channel statistics of image tokens [..., vision_dim] (e.g. every cached token of the dataset)."""
+        flat = tokens.reshape(-1, tokens.shape[-1])
+        if flat.shape[-1] != self.vision_mean.shape[0] or flat.shape[0] < 2:
+            raise ValueError(f"need >= 2 tokens of size {self.vision_mean.shape[0]}, got shape {tuple(tokens.shape)}")
+        mean = torch.zeros_like(self.vision_mean, dtype=torch.float64)
+        square = torch.zeros_like(mean)
+        for chunk in flat.split(1 << 16):  # float64 sums in chunks: the cache may be float16 and large
+            mean += chunk.double().sum(0)
+            square += chunk.double().square().sum(0)
+        n = flat.shape[0]
+        mean /= n
+        var = (square / n - mean.square()).clamp_min(0.0) * n / (n - 1)
+        self.vision_mean.copy_(mean)
+        self.vision_std.copy_(var.sqrt().clamp_min(MIN_STD))
+
+    def normalize_vision(self, tokens: Tensor) -> Tensor:
+        return (tokens.float() - self.vision_mean) / self.vision_std
+
+    def denormalize_vision(self, tokens: Tensor) -> Tensor:
+        return tokens * self.vision_std + self.vision_mean
 
     def normalize_state(self, state: Tensor) -> Tensor:
         return (state - self.state_mean) / self.state_std

@@ -3,7 +3,9 @@
 :class:`DustPolicy` reads torchrl's canonical VLA keys (``("observation",
 "image", cam)`` uint8 ``[C, H, W]`` per camera, ``("observation", "state")``,
 ``language_instruction``) and writes ``("vla_action", "chunk")`` (env units)
-and ``action`` (the chunk's first step). Receding-horizon execution is
+and ``action`` (the chunk's first step). It also reads the flat gymnasium
+names that a plain torchrl ``GymEnv`` keeps (``"observation.image.front"`` as
+``[H, W, 3]``, ``"observation.state"``). Receding-horizon execution is
 torchrl's :class:`~torchrl.modules.MultiStepActorWrapper` (see
 :mod:`.execution`).
 
@@ -13,14 +15,20 @@ Feature batches (B = batch size) hold:
 ==================  =======================  ==========================================
 key                 shape                    meaning
 ==================  =======================  ==========================================
-``image_tokens``    [B, C, N, Dv] float      frozen tokens of each camera (``cameras`` order)
+``image_tokens``    [B, C, N, Dv] float      frozen tokens of each camera (``cameras`` order) on the
+                                             condition grid (N = ``config.n_cond_image_tokens``)
 ``text_tokens``     [B, L, Dt] float         frozen instruction tokens
 ``text_mask``       [B, L] bool              True for real instruction tokens
 ``state``           [B, Ds] float            normalised state
 ``action_chunk``    [B, H, Da] float         normalised chunk (training)
 ``action_is_pad``   [B, H] bool              optional; chunk entries past the episode end
-``future_tokens``   [B, N_o, Dv] float       frozen tokens of ``future_camera`` at t+H (training)
+``future_tokens``   [B, N_o, Dv] float       frozen tokens of ``future_camera`` at t+H, pooled to the
+                                             vision grid (:meth:`DustPolicy.future_targets`; training)
 ==================  =======================  ==========================================
+
+Image tokens arrive in the encoder's units; :meth:`DustPolicy.compute_loss`
+and :meth:`DustPolicy.plan` standardise them (condition and target alike)
+with the statistics in ``normalizer``.
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.data.vla.schema import ACTION_KEY, IMAGE_KEY
 from torchrl.modules.vla import VLAWrapperBase
@@ -38,10 +47,16 @@ from .backbone import FrozenBackbone
 from .condition import ConditionProjector
 from .config import DustConfig, SamplerName
 from .dust_agent import DustAgent
+from .image_encoder import pool_tokens
 from .normalizer import Normalizer
 from .samplers import schedule_for
 
 FEATURE_KEYS = ("image_tokens", "text_tokens", "text_mask")
+
+
+def flat_name(key: NestedKey) -> str:
+    """The gymnasium/LeRobot name of a canonical key: ``("observation", "state")`` -> ``"observation.state"``."""
+    return key if isinstance(key, str) else ".".join(key)
 
 
 def instruction_list(value: object, n: int) -> list[str]:
@@ -96,10 +111,10 @@ class DustPolicy(VLAWrapperBase):
         super().__init__(action_dim=config.action_dim, chunk_size=config.horizon, image_key=IMAGE_KEY)
         self.future_camera, self.execute_steps = future_camera, execute_steps
         self.backbone = backbone
-        self.condition = ConditionProjector(len(cameras), config.n_vision_tokens, backbone.image_dim,
+        self.condition = ConditionProjector(len(cameras), config.n_cond_image_tokens, backbone.image_dim,
                                             backbone.text_dim, config.cond_dim)
         self.agent = DustAgent(config)
-        self.normalizer = Normalizer(config.state_dim, config.action_dim)
+        self.normalizer = Normalizer(config.state_dim, config.action_dim, config.vision_dim)
         self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
         self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
         self.info: dict = {}
@@ -132,14 +147,46 @@ class DustPolicy(VLAWrapperBase):
         return [p for p in self.parameters() if p.requires_grad]
 
     # -- features ----------------------------------------------------------
+    def canonical_view(self, td: TensorDictBase) -> TensorDictBase:
+        """``td`` with the canonical keys this policy reads, taken from the flat gymnasium names where absent.
+
+        The view nests ``"observation.state"`` and moves the channels of ``"observation.image.<cam>"``
+        first, as the env side's ``make_torchrl_env`` does, so a plain ``GymEnv`` rollout works as is.
+        ``td`` itself is not changed.
+        """
+        images = [(*self.tensor_keys.image, cam) for cam in self.cameras]
+        present = td.keys(include_nested=True)
+        missing = [key for key in (*images, self.tensor_keys.state) if key not in present and flat_name(key) in present]
+        if not missing:
+            return td
+        view = td.copy()
+        for key in missing:
+            value = td.get(flat_name(key))
+            view.set(key, value.movedim(-1, -3) if key in images else value)
+        return view
+
     def image_features(self, td: TensorDictBase) -> Tensor:
         """Frozen tokens [*B, C, N, Dv] of every camera in ``td`` (canonical keys, any batch shape)."""
         frames = torch.stack([td.get((*self.tensor_keys.image, cam)) for cam in self.cameras], dim=-4)
-        tokens = self.backbone.image_tokens(frames.reshape(-1, *frames.shape[-3:]), self.config.vision_grid)
+        tokens = self.backbone.image_tokens(frames.reshape(-1, *frames.shape[-3:]), self.config.condition_grid)
         return tokens.view(*frames.shape[:-3], *tokens.shape[1:])
+
+    def future_targets(self, image_tokens: Tensor) -> Tensor:
+        """World-model targets [*B, N_o, Dv]: the future camera's tokens [*B, C, N, Dv] pooled to the vision grid.
+
+        One definition for training targets and for anything that compares a predicted future with a real one.
+        """
+        tokens = image_tokens[..., self.cameras.index(self.future_camera), :, :]
+        if self.config.condition_grid == tuple(self.config.vision_grid):
+            return tokens
+        batch, grid = tokens.shape[:-2], self.config.condition_grid
+        feature_map = tokens.reshape(-1, *grid, tokens.shape[-1]).permute(0, 3, 1, 2).float()
+        pooled = pool_tokens(feature_map, tuple(self.config.vision_grid))
+        return pooled.reshape(*batch, *pooled.shape[1:])
 
     def observation_features(self, td: TensorDictBase) -> TensorDict:
         """Feature batch (flat [B], no training targets) of raw observations of any batch shape."""
+        td = self.canonical_view(td)
         image = self.image_features(td)
         image = image.reshape(-1, *image.shape[-3:])
         n = image.shape[0]
@@ -149,8 +196,12 @@ class DustPolicy(VLAWrapperBase):
                           batch_size=[n])
 
     def _agent_batch(self, features: TensorDictBase) -> TensorDictBase:
-        cond, mask = self.condition(*(features.get(k) for k in FEATURE_KEYS))
-        return features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
+        image = self.normalizer.normalize_vision(features.get("image_tokens"))
+        cond, mask = self.condition(image, features.get("text_tokens"), features.get("text_mask"))
+        batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
+        if "future_tokens" in features.keys():
+            batch.set("future_tokens", self.normalizer.normalize_vision(features.get("future_tokens")))
+        return batch
 
     # -- training and inference ---------------------------------------------
     def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
@@ -164,11 +215,14 @@ class DustPolicy(VLAWrapperBase):
         Returns:
             TensorDict shaped like ``td`` with ``action_chunk`` [*B, H, Da] in env units (clamped to the
             action bounds) and, with a vision stream, ``future_tokens`` [*B, N_o, Dv]: the predicted
-            frozen embedding of the frame after the chunk (left as noise by the action-only sampler).
+            frozen embedding of the frame after the chunk in the encoder's units (left as noise by the
+            action-only sampler).
         """
         out = self.agent.predict_action(self._agent_batch(self.observation_features(td)), generator)
         chunk = self.normalizer.denormalize_action(out.get("action_chunk"))
         out.set("action_chunk", chunk.clamp(self.action_low, self.action_high))
+        if "future_tokens" in out.keys():
+            out.set("future_tokens", self.normalizer.denormalize_vision(out.get("future_tokens")))
         return out.reshape(td.batch_size)
 
     def _predict_chunk(self, tensordict: TensorDictBase) -> Tensor:

@@ -14,6 +14,8 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor, nn
 
+from .config import MAX_TEXT_TOKENS, check_size
+
 
 class TextEncoder(nn.Module, ABC):
     """Instruction strings to a fixed number of token embeddings, used frozen.
@@ -45,12 +47,30 @@ def minilm_path() -> pathlib.Path:
     return pathlib.Path(get_model_path())
 
 
+def local_model_folder(path: str | pathlib.Path) -> pathlib.Path:
+    """``path`` if it is an existing folder; ``transformers`` would read anything else as a hub id and download it.
+
+    Policy files name their encoders, and loading one must never reach the network.
+
+    Raises:
+        ValueError: not a local folder.
+    """
+    folder = pathlib.Path(path)
+    if not folder.is_dir():
+        raise ValueError(f"model {str(path)!r} is not a local folder; dust-rl loads models offline only "
+                         "(download it yourself and give its folder)")
+    return folder
+
+
 class TransformersTextEncoder(TextEncoder):
     """Last hidden states of a ``transformers`` text model (BERT family) loaded from a local folder.
 
     Args:
         path: model folder (weights, config and tokenizer); None for the bundled MiniLM.
         max_tokens: tokens kept per instruction, [CLS] and [SEP] included.
+
+    Raises:
+        ValueError: ``path`` is not a local folder, or ``max_tokens`` is out of range.
     """
 
     def __init__(self, path: str | pathlib.Path | None = None, max_tokens: int = 16) -> None:
@@ -58,13 +78,14 @@ class TransformersTextEncoder(TextEncoder):
         from transformers import AutoModel, AutoTokenizer
         from transformers.utils import logging
 
+        check_size("max_tokens", max_tokens, MAX_TEXT_TOKENS)
         self.path = None if path is None else str(path)
-        folder = minilm_path() if path is None else pathlib.Path(path)
+        folder = minilm_path() if path is None else local_model_folder(path)
         bar = logging.is_progress_bar_enabled()
         logging.disable_progress_bar()  # no weight-loading bar on every policy load
         try:
-            self.tokenizer = AutoTokenizer.from_pretrained(folder)
-            self.model = AutoModel.from_pretrained(folder).eval()
+            self.tokenizer = AutoTokenizer.from_pretrained(folder, local_files_only=True)
+            self.model = AutoModel.from_pretrained(folder, local_files_only=True).eval()
         finally:
             if bar:
                 logging.enable_progress_bar()

@@ -1,27 +1,53 @@
-"""``dust-rl`` command line."""
+"""``dust-rl`` command line.
+
+Bad input ends in one line, ``dust-rl: error: <what is wrong and what to do>`` (exit code 1;
+argument syntax errors: 2): a :class:`~dust_rl.errors.UserError` (bad settings, unusable datasets,
+a busy dataset folder, a diverged training run), a corrupt or unfitting checkpoint, or a file
+system error. Any other exception is a bug and keeps its traceback.
+"""
 
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import shlex
 import sys
 
-from dust_rl.envs import list_tasks
+from dust_rl.errors import ConfigError, UserError
+
+
+def _names(text: str) -> list[str]:
+    """A comma-separated list of names (``--task``, ``--cameras``)."""
+    return [name.strip() for name in text.split(",")]
+
+
+def _tasks(robot: str, task: str) -> list[str]:
+    """``--task``: ``all`` (the robot's suite), one name, or comma-separated names."""
+    from dust_rl.envs import list_tasks
+
+    if task == "all":
+        try:
+            return list_tasks(robot)
+        except ValueError as err:  # unknown robot
+            raise ConfigError(str(err)) from err
+    return _names(task)
 
 
 def _demo(args: argparse.Namespace) -> None:
     """Run the scripted expert in closed loop with cameras and save an MP4 per task."""
-    import gymnasium as gym
-
+    from dust_rl.atomic_files import write_json_atomic
+    from dust_rl.env_factory import check_tasks, make_env
+    from dust_rl.errors import check_at_least
     from dust_rl.expert_rollouts import run_expert_episode, write_video
 
     out = pathlib.Path(args.out)
-    tasks = list_tasks(args.robot) if args.task == "all" else [args.task]
+    tasks = _tasks(args.robot, args.task)
+    check_at_least(args, 1, "episodes")
+    check_at_least(args, 0, "seed")
+    check_tasks(args.env, {}, tasks)
     summary = []
     for task in tasks:
-        env = gym.make(args.env, task=task, image_size=args.image_size).unwrapped
+        env = make_env(args.env, {"task": task, "image_size": args.image_size}).unwrapped
         frames, results = [], []
         for seed in range(args.seed, args.seed + args.episodes):
             result = run_expert_episode(env, seed, record=True)
@@ -34,7 +60,7 @@ def _demo(args: argparse.Namespace) -> None:
         env.close()
         summary.append({"task": task, "episodes": len(results),
                         "successes": sum(r.success for r in results), "video": str(video)})
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_json_atomic(out / "summary.json", summary, indent=2)
     for row in summary:
         print(f"{row['task']}: {row['successes']}/{row['episodes']} successful; video: {row['video']}")
     print(f"summary: {out / 'summary.json'}")
@@ -42,15 +68,15 @@ def _demo(args: argparse.Namespace) -> None:
 
 def _expert_table(args: argparse.Namespace) -> None:
     """Measure every task's scripted expert over many seeds and print a markdown table."""
+    from dust_rl.atomic_files import write_json_atomic, write_text_atomic
     from dust_rl.expert_rollouts import expert_success_table, format_table
 
-    tasks = list_tasks(args.robot) if args.task == "all" else [args.task]
-    rows = expert_success_table(args.env, tasks, args.seeds)
+    rows = expert_success_table(args.env, _tasks(args.robot, args.task), args.seeds)
     table = format_table(rows)
     print(table)
     if args.out:
-        pathlib.Path(args.out).write_text(table + "\n")
-        pathlib.Path(args.out).with_suffix(".json").write_text(json.dumps(rows, indent=2))
+        write_text_atomic(args.out, table + "\n")
+        write_json_atomic(pathlib.Path(args.out).with_suffix(".json"), rows, indent=2)
 
 
 def _collect(args: argparse.Namespace) -> None:
@@ -58,10 +84,10 @@ def _collect(args: argparse.Namespace) -> None:
     from dust_rl.data import DemoDataset, collect_demos
     from dust_rl.data.tools import dataset_summary
 
-    tasks = list_tasks(args.robot) if args.task == "all" else args.task.split(",")
+    tasks = _tasks(args.robot, args.task)
     env_kwargs = {"image_size": args.image_size}
     if args.cameras:
-        env_kwargs["cameras"] = args.cameras.split(",")
+        env_kwargs["cameras"] = _names(args.cameras)
     collect_demos(args.out, args.env, tasks, args.episodes, env_kwargs=env_kwargs, workers=args.workers,
                   start_seed=args.seed, noise_std=args.noise_std, keep_failed=args.keep_failed)
     print(dataset_summary(DemoDataset(args.out)))
@@ -79,7 +105,9 @@ def _dataset_video(args: argparse.Namespace) -> None:
     """Write an MP4 grid of a dataset's episodes."""
     from dust_rl.data import DemoDataset
     from dust_rl.data.tools import write_episode_grid
+    from dust_rl.errors import check_at_least
 
+    check_at_least(args, 1, "episodes", "columns")
     dataset = DemoDataset(args.dir)
     episodes = range(min(args.episodes, dataset.num_episodes))
     print(write_episode_grid(dataset, args.out, episodes, columns=args.columns))
@@ -90,6 +118,8 @@ def _dataset_export(args: argparse.Namespace) -> None:
     from dust_rl.data import DemoDataset
     from dust_rl.data.lerobot_export import export_lerobot
 
+    if not 0 <= args.crf <= 51:
+        raise ConfigError(f"crf must be in [0, 51] (H.264 quality), got {args.crf}")
     print(export_lerobot(DemoDataset(args.dir), args.out, crf=args.crf))
 
 
@@ -97,7 +127,10 @@ def _dataset_import(args: argparse.Namespace) -> None:
     """Import a LeRobotDataset v3.0 folder as a new dataset."""
     from dust_rl.data.lerobot_import import import_lerobot
 
-    import_lerobot(args.source, args.out)
+    env_kwargs = {} if args.image_size is None else {"image_size": args.image_size}
+    if args.cameras:
+        env_kwargs["cameras"] = _names(args.cameras)
+    import_lerobot(args.source, args.out, env_id=args.env, task=args.task, env_kwargs=env_kwargs)
     print(args.out)
 
 
@@ -114,6 +147,25 @@ def _pretrain_encoder(args: argparse.Namespace) -> None:
     heldout = "n/a" if report.heldout_loss is None else f"{report.heldout_loss:.5f}"
     print(f"{report.path}: {report.steps} steps in {report.seconds:.0f} s on {report.train_frames} frames; "
           f"pixel MSE train {report.train_loss:.5f}, held-out {heldout}")
+
+
+def _encoder_check(args: argparse.Namespace) -> None:
+    """Linear probes: how well each camera's frozen tokens give the objects' positions (probe.json, probe.png)."""
+    from dust_rl.agents.backbone import resolve_image_encoder
+    from dust_rl.data import DemoDataset
+    from dust_rl.encoder_check import probe_dataset, write_encoder_check
+    from dust_rl.errors import check_at_least
+
+    check_at_least(args, 1, "every")
+    dataset, encoder = DemoDataset(args.dataset), resolve_image_encoder(args.image_encoder)
+    grid = tuple(args.grid) if args.grid else encoder.native_grid()
+    results = probe_dataset(dataset, encoder, grid, every=args.every)
+    title = f"{args.image_encoder or 'default encoder'}, {grid[0]}x{grid[1]} tokens, {dataset.root.name}"
+    paths = write_encoder_check(results, pathlib.Path(args.out), title)
+    for camera, result in results.items():
+        values = " ".join(f"{v:.2f}" for v in result.r2.tolist())
+        print(f"{camera}: held-out R^2 per environment-state column [{values}] (mean {result.r2.mean():.2f})")
+    print(f"{paths['plot']}\n{paths['json']}")
 
 
 def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
@@ -137,6 +189,10 @@ def _add_dataset_commands(commands: argparse._SubParsersAction) -> None:
     imp = actions.add_parser("import", help=_dataset_import.__doc__)
     imp.add_argument("source", help="LeRobotDataset v3.0 folder")
     imp.add_argument("--out", required=True, help="new dataset folder")
+    imp.add_argument("--env", default=None, help="env the data was recorded in (needed without meta/dust_rl.json)")
+    imp.add_argument("--task", default=None, help="the env task of every episode (with --env)")
+    imp.add_argument("--image-size", type=int, default=None, help="env image size matching the videos (with --env)")
+    imp.add_argument("--cameras", default=None, help="comma-separated env cameras matching the videos (with --env)")
     imp.set_defaults(func=_dataset_import)
 
 
@@ -214,12 +270,21 @@ def build_parser() -> argparse.ArgumentParser:
     pretrain.add_argument("--dim", type=int, default=64, help="token size")
     pretrain.add_argument("--width", type=int, default=16, help="channels of the first conv stage")
     pretrain.set_defaults(func=_pretrain_encoder)
+
+    encoder = commands.add_parser("encoder", help="diagnose frozen image encoders")
+    encoder_actions = encoder.add_subparsers(dest="action", required=True)
+    check = encoder_actions.add_parser("check", help=_encoder_check.__doc__)
+    check.add_argument("--dataset", required=True, help="dataset folder (its rows hold the objects' positions)")
+    check.add_argument("--image-encoder", default=None, help="encoder name or file (default: the policies' default)")
+    check.add_argument("--grid", type=int, nargs=2, default=None, help="token grid (default: the encoder's own)")
+    check.add_argument("--every", type=int, default=8, help="probe every n-th row")
+    check.add_argument("--out", default="runs/encoder_check", help="folder for probe.json and probe.png")
+    check.set_defaults(func=_encoder_check)
     return parser
 
 
 def main(argv: list[str] | None = None) -> None:
     from dust_rl.agents.checkpoint_io import CheckpointError
-    from dust_rl.data.errors import DatasetError
 
     argv = sys.argv[1:] if argv is None else argv
     command_line = shlex.join(["dust-rl", *argv])  # provenance for files a command writes
@@ -230,7 +295,7 @@ def main(argv: list[str] | None = None) -> None:
         args = build_parser().parse_args(argv)
         args.command_line = command_line
         args.func(args)
-    except (DatasetError, CheckpointError, FileExistsError, FileNotFoundError) as err:
+    except (UserError, CheckpointError, OSError) as err:
         raise SystemExit(f"dust-rl: error: {err}") from err
 
 

@@ -10,9 +10,11 @@ so an episode's outcome depends on its seed only: the same config gives the
 same episodes, bit for bit, with any number of workers. Exactly ``episodes``
 seeds count per task; episodes the workers start past them are dropped.
 
-Everything that can be wrong with the inputs (missing or corrupt checkpoint, a
-policy that does not fit the env, unknown tasks, sampler settings) is checked
-in this process before any worker starts. The report (JSON, markdown, success
+Everything that can be wrong with the inputs (counts, missing or corrupt
+checkpoint, a policy that does not fit the env, unknown tasks, sampler
+settings) is checked in this process before any worker starts. A
+``max_steps`` reaches the env's own time limit (:func:`~dust_rl.env_factory.make_env`),
+above the task's default as well as below it. The report (JSON, markdown, success
 plot, loss curves of the training run) is written by :mod:`dust_rl.report`;
 videos of the first episodes of each task by :mod:`dust_rl.rollout_video`.
 """
@@ -29,7 +31,6 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
-import gymnasium as gym
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -43,8 +44,9 @@ from dust_rl.agents import ChunkExecutor, DustConfig, DustPolicy, load_policy, u
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.config_json import config_json
 from dust_rl.data.seeding import SEED_KEY, SUCCESS_KEY, EpisodeSeedWrapper, SeedSchedule
-from dust_rl.envs import make_task
+from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
+from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.report import plot_loss_curves, write_report
 from dust_rl.rollout_video import episode_digest, episode_generator, record_videos
 
@@ -73,6 +75,8 @@ class EvalConfig:
     """N_A, action denoising steps per chunk; default: the policy's."""
     vision_steps: int | None = None
     """N_o, vision denoising steps per chunk (async sampler only; a multiple of N_A)."""
+    execute_steps: int | None = None
+    """Actions executed per chunk before re-planning (1..H); default: the policy's (training's)."""
     max_steps: int | None = None
     """Time limit per episode in env steps; default: the task's."""
     videos: int = 1
@@ -83,6 +87,11 @@ class EvalConfig:
     """Torch threads per process."""
     progress: bool = True
     """Show progress bars."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "episodes", "workers", "threads", "max_steps", "n_action_steps", "vision_steps",
+                       "execute_steps")
+        check_at_least(self, 0, "videos", "seed")
 
 
 @dataclass(frozen=True)
@@ -111,6 +120,7 @@ class EvalSetup:
     env_kwargs: dict
     tasks: tuple[str, ...]
     sampler: SamplerChoice
+    execute_steps: int
 
 
 class Episode(NamedTuple):
@@ -162,14 +172,14 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 
 def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> TransformedEnv:
     """A torchrl env (VLA keys) resetting from ``schedule``, with ``episode_seed``, ``is_success`` and ``is_init``."""
-    env = make_torchrl_env(EpisodeSeedWrapper(gym.make(env_id, **env_kwargs), schedule))
+    env = make_torchrl_env(EpisodeSeedWrapper(make_env(env_id, env_kwargs), schedule))
     env.append_transform(InitTracker())
     return env
 
 
 def make_eval_policy(setup: EvalSetup) -> EpisodeSeededPolicy:
     """The policy of one worker process, built from the checkpoint file (a live policy is not pickled)."""
-    executor = load_policy(setup.policy_path)
+    executor = load_policy(setup.policy_path, execute_steps=setup.execute_steps)
     setup.sampler.apply(unwrap(executor))
     return EpisodeSeededPolicy(executor)
 
@@ -192,18 +202,11 @@ def resolve_sampler(policy_config: DustConfig, config: EvalConfig) -> SamplerCho
     if config.vision_steps is None:
         return SamplerChoice(name, n_action_steps, policy_config.vision_step_ratio if name == "async" else 1)
     if name != "async":
-        raise ValueError(f"vision_steps (N_o) applies to the async sampler only; the sampler is {name!r}")
+        raise ConfigError(f"vision_steps (N_o) applies to the async sampler only; the sampler is {name!r}")
     if config.vision_steps < n_action_steps or config.vision_steps % n_action_steps:
-        raise ValueError(f"vision_steps (N_o) must be a positive multiple of n_action_steps (N_A = "
-                         f"{n_action_steps}), got {config.vision_steps}")
+        raise ConfigError(f"vision_steps (N_o) must be a positive multiple of n_action_steps (N_A = "
+                          f"{n_action_steps}), got {config.vision_steps}")
     return SamplerChoice(name, n_action_steps, config.vision_steps // n_action_steps)
-
-
-def check_tasks(env_id: str, env_kwargs: dict, tasks: Sequence[str]) -> None:
-    """Raise the env's own ``ValueError`` (listing the suite) for an unknown task, without building envs."""
-    robot = {**gym.spec(env_id).kwargs, **env_kwargs}.get("robot", "franka")
-    for task in tasks:
-        make_task(task, robot)
 
 
 def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
@@ -211,18 +214,13 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
 
     Raises:
         CheckpointError: missing or corrupt policy file, or a policy that does not fit the env.
-        ValueError: bad counts, no env id or tasks to evaluate, unknown task, bad sampler settings.
+        ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
     """
-    for name in ("episodes", "workers", "threads"):
-        if getattr(config, name) < 1:
-            raise ValueError(f"{name} must be >= 1, got {getattr(config, name)}")
-    if config.videos < 0 or (config.max_steps is not None and config.max_steps < 1):
-        raise ValueError(f"videos must be >= 0 and max_steps >= 1, got {config.videos} and {config.max_steps}")
     policy = unwrap(load_policy(config.policy))
     env_id = config.env_id or policy.info.get("env_id")
     tasks = tuple(config.tasks or policy.info.get("tasks", ()))
     if not env_id or not tasks:
-        raise ValueError(f"{config.policy} does not record its env id and tasks: give env_id and tasks")
+        raise ConfigError(f"{config.policy} does not record its env id and tasks: give env_id and tasks")
     env_kwargs = {k: v for k, v in policy.info.get("env_kwargs", {}).items() if k != "task"}
     if config.max_steps is not None:
         env_kwargs["max_episode_steps"] = config.max_steps
@@ -233,8 +231,16 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
     finally:
         probe.close()
     sampler = resolve_sampler(policy.config, config)
-    sampler.apply(policy)
-    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler)
+    try:
+        sampler.apply(policy)
+    except ValueError as err:  # the policy's own config check (e.g. async sampling of a shared-timestep variant)
+        raise ConfigError(f"{config.policy}: sampler {sampler.describe()} does not apply: {err}") from err
+    if config.execute_steps is not None:
+        if config.execute_steps > policy.config.horizon:
+            raise ConfigError(f"execute_steps must be in [1, {policy.config.horizon}] (the policy's chunk length), "
+                              f"got {config.execute_steps}")
+        policy.execute_steps = config.execute_steps
+    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps)
 
 
 def make_eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: int, seed: int,
@@ -340,7 +346,7 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
 
     Raises:
         CheckpointError: missing or corrupt policy file, or a policy that does not fit the env.
-        ValueError: bad settings (see :func:`prepare`).
+        ConfigError: bad settings (see :func:`prepare`).
     """
     start = time.perf_counter()
     rows, startup, running = [], 0.0, 0.0
@@ -354,7 +360,8 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
     loss_plot = plot_loss_curves(config.train_dir or config.policy.parent, config.out / "loss.png")
     report = {
         "policy": str(config.policy), "variant": policy.config.variant, "env_id": setup.env_id,
-        "env_kwargs": setup.env_kwargs, "sampler": setup.sampler.describe(), "command": command,
+        "env_kwargs": setup.env_kwargs, "sampler": setup.sampler.describe(),
+        "execute_steps": setup.execute_steps, "command": command,
         "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],
         "noise_seeding": "the policy's sampling noise restarts from the episode seed at every reset",
         "tasks": rows, "overall": summary_row("overall", [Episode(*e) for row in rows for e in row["per_episode"]]),

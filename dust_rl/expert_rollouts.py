@@ -11,13 +11,13 @@ import dataclasses
 import pathlib
 from collections.abc import Iterable
 
-import gymnasium as gym
 import imageio.v3 as iio
 import numpy as np
 from tqdm import tqdm
 
-import dust_rl  # noqa: F401  (registers the envs)
+from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs import DustEnv
+from dust_rl.errors import ConfigError
 
 
 @dataclasses.dataclass
@@ -52,10 +52,18 @@ def camera_strip(obs: dict) -> np.ndarray:
 
 
 def expert_success_table(env_id: str, tasks: Iterable[str], seeds: int) -> list[dict]:
-    """Per-task expert success over seeds ``0..seeds-1`` (state mode: no rendering needed)."""
+    """Per-task expert success over seeds ``0..seeds-1`` (state mode: no rendering needed).
+
+    Raises:
+        ConfigError: ``seeds < 1``, an unknown env id or task.
+    """
+    if seeds < 1:
+        raise ConfigError(f"seeds must be >= 1, got {seeds}")
+    tasks = list(tasks)
+    check_tasks(env_id, {}, tasks)
     rows = []
     for task in tasks:
-        env = gym.make(env_id, task=task, obs_mode="state").unwrapped
+        env = make_env(env_id, {"task": task, "obs_mode": "state"}).unwrapped
         results = [run_expert_episode(env, seed) for seed in tqdm(range(seeds), desc=task, leave=False)]
         env.close()
         successes = [r.success for r in results]

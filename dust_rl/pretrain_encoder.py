@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, save_image_encoder
 from dust_rl.agents.image_encoder import to_unit_float
 from dust_rl.data import DemoDataset
+from dust_rl.errors import ConfigError
 
 IMAGE_KEY = ("observation", "image")
 
@@ -128,7 +129,17 @@ def pretrain_encoder(datasets: Sequence[DemoDataset], out: str | pathlib.Path,
         holdout_every: hold out every n-th episode for the held-out loss (0: none).
         progress: show a progress bar.
         command: the command line, kept in the file for provenance.
+
+    Raises:
+        ConfigError: a count or rate out of range, or an image size the latent grid does not divide.
     """
+    if steps < 1 or batch_size < 1 or warmup < 0 or not (math.isfinite(lr) and lr > 0):
+        raise ConfigError(f"steps and batch_size must be >= 1, warmup >= 0 and lr a finite number > 0, "
+                          f"got {steps}, {batch_size}, {warmup} and {lr}")
+    try:
+        config.stage_channels()
+    except ValueError as err:
+        raise ConfigError(f"encoder shape: {err}") from err
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     pool = FramePool(datasets, holdout_every)

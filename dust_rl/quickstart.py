@@ -8,17 +8,21 @@ checkpoint, and re-runs only the evaluation. The run folder ends up with
 * ``train/``: the training run (config, checkpoints, CSV/TensorBoard logs, ``policy.pt``, ``loss.png``);
 * ``eval/``: ``report.md``, ``report.json``, ``success.png``, ``loss.png`` and rollout videos;
 * ``quickstart.json``: the settings, the time each stage took, the overall success.
+
+Every setting (and the image encoder file) is checked before the first demonstration is collected.
 """
 
 from __future__ import annotations
 
-import json
 import pathlib
 import time
 from dataclasses import dataclass
 
+from dust_rl.agents.backbone import check_image_encoder
+from dust_rl.atomic_files import write_json_atomic
 from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, collect_demos
+from dust_rl.errors import check_at_least, check_finite
 from dust_rl.evaluate import EvalConfig, evaluate
 from dust_rl.train import TrainConfig, Variant, train
 
@@ -47,8 +51,8 @@ class QuickstartConfig:
     """Env processes for collection and evaluation (on 2 cores one is fastest: rendering uses both)."""
     image_size: int = 128
     """Camera resolution (the default image encoder was pretrained at 128 px)."""
-    image_encoder: pathlib.Path | None = None
-    """Frozen image encoder file; default: the committed Franka encoder."""
+    image_encoder: str | None = None
+    """Frozen image encoder: a name (``efficientnet-lite0``, ``conv-ae``) or a file (see ``dust-rl train --help``)."""
     seed: int = 0
     """Training seed."""
     threads: int | None = None
@@ -56,11 +60,22 @@ class QuickstartConfig:
     progress: bool = True
     """Show progress bars."""
 
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "demos", "steps", "batch_size", "eval_episodes", "workers", "image_size", "threads")
+        check_finite(self, "lr", positive=True)
+
 
 def quickstart(config: QuickstartConfig, command: str | None = None) -> dict:
     """Run the whole pipeline; returns the evaluation report."""
     began = time.perf_counter()
     data, train_dir, eval_dir = config.out / "data", config.out / "train", config.out / "eval"
+    check_image_encoder(config.image_encoder)
+    train_config = TrainConfig(
+        dataset=data, out=train_dir, variant=config.variant, steps=config.steps, batch_size=config.batch_size,
+        lr=config.lr, image_encoder=config.image_encoder, seed=config.seed, threads=config.threads,
+        resume=(train_dir / "config.json").is_file(), progress=config.progress)
+    eval_config = EvalConfig(policy=train_dir / "policy.pt", out=eval_dir, episodes=config.eval_episodes,
+                             workers=config.workers, train_dir=train_dir, progress=config.progress)
     stages = {}
 
     tick = time.perf_counter()
@@ -69,15 +84,11 @@ def quickstart(config: QuickstartConfig, command: str | None = None) -> dict:
     stages["collect"] = time.perf_counter() - tick
 
     tick = time.perf_counter()
-    result = train(TrainConfig(
-        dataset=data, out=train_dir, variant=config.variant, steps=config.steps, batch_size=config.batch_size,
-        lr=config.lr, image_encoder=config.image_encoder, seed=config.seed, threads=config.threads,
-        resume=(train_dir / "config.json").is_file(), progress=config.progress), command)
+    result = train(train_config, command)
     stages["train"] = time.perf_counter() - tick
 
     tick = time.perf_counter()
-    report = evaluate(EvalConfig(policy=result.policy, out=eval_dir, episodes=config.eval_episodes,
-                                 workers=config.workers, train_dir=train_dir, progress=config.progress), command)
+    report = evaluate(eval_config, command)
     stages["eval"] = time.perf_counter() - tick
     stages["total"] = time.perf_counter() - began
 
@@ -91,5 +102,5 @@ def quickstart(config: QuickstartConfig, command: str | None = None) -> dict:
           f"{eval_dir / 'loss.png'}\n  videos: {eval_dir / 'videos'}\n  policy: {result.policy}")
     summary = {"quickstart": config_json(config), "command": command,
                "stages_seconds": stages, "overall": overall, "report": str(eval_dir / "report.json")}
-    (config.out / "quickstart.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_json_atomic(config.out / "quickstart.json", summary, indent=2)
     return report

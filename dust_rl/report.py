@@ -1,18 +1,19 @@
 """Evaluation report files: JSON, markdown, a success-rate bar plot, and training loss curves.
 
 Every function takes plain data (the report dict of :func:`dust_rl.evaluate.evaluate`, or a folder of
-CSV logs) and writes files; nothing here runs a policy. Plots draw on a bare matplotlib ``Figure``
-(Agg canvas), so they never touch pyplot's global state or need a display.
+CSV logs) and writes files, each atomically; nothing here runs a policy. Plots draw on a bare matplotlib
+``Figure`` (Agg canvas), so they never touch pyplot's global state or need a display.
 """
 
 from __future__ import annotations
 
 import csv
-import json
 import os
 import pathlib
 
 from matplotlib.figure import Figure
+
+from dust_rl.atomic_files import atomic_write, write_json_atomic, write_text_atomic
 
 REPORT_JSON = "report.json"
 REPORT_MD = "report.md"
@@ -23,8 +24,8 @@ def write_report(report: dict, out_dir: pathlib.Path) -> dict[str, pathlib.Path]
     """Write ``report.json``, ``report.md`` and ``success.png`` into ``out_dir``; returns their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / REPORT_JSON, "markdown": out_dir / REPORT_MD, "success_plot": out_dir / SUCCESS_PNG}
-    paths["json"].write_text(json.dumps(report, indent=2) + "\n")
-    paths["markdown"].write_text(markdown_report(report, out_dir))
+    write_json_atomic(paths["json"], report, indent=2)
+    write_text_atomic(paths["markdown"], markdown_report(report, out_dir))
     plot_success(report["tasks"], paths["success_plot"])
     return paths
 
@@ -50,7 +51,8 @@ def markdown_report(report: dict, out_dir: pathlib.Path) -> str:
         "",
         f"- policy: `{report['policy']}` (variant `{report['variant']}`)",
         f"- env: `{report['env_id']}` {report['env_kwargs']}",
-        f"- sampler: {sampler['name']}, N_A = {sampler['n_action_steps']}, N_o = {sampler['vision_steps']}",
+        f"- sampler: {sampler['name']}, N_A = {sampler['n_action_steps']}, N_o = {sampler['vision_steps']}; "
+        f"{report.get('execute_steps', '?')} actions executed per chunk",
         f"- seeds {report['seeds'][0]}..{report['seeds'][1]} per task; {report['noise_seeding']}",
         f"- {report['env_steps']} env steps in {report['episodes_time_s']:.1f} s "
         f"({report['env_steps_per_s']:.1f} steps/s with {report['config']['workers']} env processes) "
@@ -83,7 +85,7 @@ def plot_success(rows: list[dict], out_png: pathlib.Path) -> pathlib.Path:
     ax.set_xticks(range(len(rows)), [f"{row['task']}\n(n={row['episodes']})" for row in rows], rotation=30, ha="right")
     ax.set_ylim(0, 1)
     ax.set_ylabel("success rate (95% CI)")
-    fig.savefig(out_png, dpi=100)
+    save_png(fig, out_png)
     return out_png
 
 
@@ -141,5 +143,11 @@ def plot_loss_curves(source: pathlib.Path, out_png: pathlib.Path) -> pathlib.Pat
     ax.set_ylabel("loss")
     ax.legend()
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=100)
+    save_png(fig, out_png)
     return out_png
+
+
+def save_png(fig: Figure, out_png: pathlib.Path) -> None:
+    """Write ``fig`` as a PNG, atomically."""
+    with atomic_write(out_png, "wb") as f:
+        fig.savefig(f, format="png", dpi=100)

@@ -16,6 +16,9 @@ A run folder holds
   names the env, tasks and dataset it was trained for; ``loss.png``.
 
 The frozen backbone's features are cached once per dataset (:class:`~dust_rl.features.FeatureCache`).
+Every setting is checked when the config is built, and the dataset, env and model before the run
+folder is touched; a loss or gradient that stops being finite ends the run before it reaches the
+weights, so no checkpoint or ``policy.pt`` holds NaN weights.
 """
 
 from __future__ import annotations
@@ -28,7 +31,6 @@ import time
 from dataclasses import dataclass
 from typing import Literal
 
-import gymnasium as gym
 import torch
 from torch import nn
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
@@ -39,9 +41,12 @@ from tqdm.auto import tqdm
 import dust_rl  # noqa: F401  (registers the env ids)
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.atomic_files import write_json_atomic
 from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.ema import EMA
+from dust_rl.env_factory import make_env
+from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
 from dust_rl.features import FeatureCache, dataset_policy_kwargs
 
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
@@ -89,8 +94,14 @@ class TrainConfig:
     """Per-stream DiT blocks after the MMDiT blocks."""
     lambda_wm: float = 1.0
     """Weight of the world-model (future vision) loss (paper: 1.0)."""
-    image_encoder: pathlib.Path | None = None
-    """Frozen image encoder file (``dust-rl pretrain-encoder``); default: the committed Franka encoder."""
+    image_encoder: str | None = None
+    """Frozen image encoder: a name (``efficientnet-lite0``: ImageNet EfficientNet-Lite0 to stride 16,
+    ``-s8``/``-s32`` variants, ``lite1``/``lite2``; ``conv-ae``: the committed Franka autoencoder, the
+    default) or a file from ``dust-rl pretrain-encoder``."""
+    augment_views: int = 1
+    """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
+    (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
+    more, once per dataset."""
     seed: int = 0
     """Seed of the initial weights, batch sampling and flow-matching noise."""
     log_every: int = 50
@@ -110,6 +121,22 @@ class TrainConfig:
     progress: bool = True
     """Show a progress bar."""
 
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "steps", "batch_size", "horizon", "execute_steps", "d_model", "n_heads",
+                       "augment_views", "log_every", "checkpoint_every", "eval_episodes", "eval_workers", "threads")
+        check_at_least(self, 0, "n_mmdit", "n_dit", "eval_every")
+        check_finite(self, "lr", "grad_clip", positive=True)
+        check_finite(self, "weight_decay", "lambda_wm")
+        check_fraction(self, "warmup", "ema_decay")
+        if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
+            raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
+        if self.execute_steps > self.horizon:
+            raise ConfigError(f"execute_steps must be in [1, horizon={self.horizon}], got {self.execute_steps}")
+
+
+class NonFiniteLossError(UserError):
+    """Training diverged: the loss or the gradient norm is no longer a finite number."""
+
 
 @dataclass
 class TrainResult:
@@ -124,24 +151,33 @@ class TrainResult:
 
 
 def train(config: TrainConfig, command: str | None = None) -> TrainResult:
-    """Train (or resume training) a policy as described by ``config``; returns where it went."""
-    _check_config(config)
+    """Train (or resume training) a policy as described by ``config``; returns where it went.
+
+    Raises:
+        DatasetError, CheckpointError, ConfigError: unusable dataset, encoder file or model settings.
+        FileExistsError, FileNotFoundError: ``out`` holds a run (without ``resume``), or none (with it).
+        ConfigError: ``resume`` with settings other than the stored run's.
+        NonFiniteLossError: training diverged (the message names the step).
+    """
     if config.threads:
         torch.set_num_threads(config.threads)
     out = config.out
-    _prepare_run_folder(config, command)
+    _check_run_folder(config)
 
-    # Data, env check, policy, cached frozen features.
+    # Data, env check, policy (all checked before the run folder is written), cached frozen features.
     dataset = DemoDataset(config.dataset)
     env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
-    probe = gym.make(env_id, task=dataset.tasks[0], **env_kwargs)
+    probe = make_env(env_id, {**env_kwargs, "task": dataset.tasks[0]})
     dataset.check_env(probe)
     probe.close()
     torch.manual_seed(config.seed)
     policy = _build_policy(config, dataset)
+    if not config.resume:
+        _write_run_config(config, command)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
                    "dataset": str(config.dataset), "variant": config.variant, "steps": config.steps}
-    features = FeatureCache(dataset, policy, progress=config.progress, store=True)
+    features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
+    policy.normalizer.set_vision_stats(features.image_tokens)
     windows = DemoWindows(dataset, horizon=config.horizon, batch_size=config.batch_size, images=False)
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
@@ -166,11 +202,12 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.grad_clip)
+        done = step + 1
+        _check_finite(losses["loss"], grad_norm, done, rotation)
         optimizer.step()
         schedule.step()
         ema.update()
         samples += config.batch_size
-        done = step + 1
         if done % config.log_every == 0 or done == config.steps:
             speed = samples / (time.perf_counter() - tick)
             scalars = {f"train/{k}": v.item() for k, v in losses.items()}
@@ -200,7 +237,8 @@ def train_command(config: TrainConfig, command: str | None = None) -> None:
     result = train(config, command)
     print(f"trained {result.steps} steps in {result.seconds:.0f} s ({result.samples_per_second:.0f} samples/s); "
           f"final loss {result.final_loss:.4f}")
-    print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} (CSV, TensorBoard); loss curve: {result.out / 'loss.png'}")
+    print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} (CSV, TensorBoard); "
+          f"loss curve: {result.out / 'loss.png'}")
 
 
 def warmup_cosine(total_steps: int, warmup_fraction: float):
@@ -216,37 +254,39 @@ def warmup_cosine(total_steps: int, warmup_fraction: float):
     return factor
 
 
-def _check_config(config: TrainConfig) -> None:
-    positive = {k: getattr(config, k) for k in ("steps", "batch_size", "horizon", "log_every", "checkpoint_every")}
-    bad = [f"{k}={v}" for k, v in positive.items() if v < 1]
-    if not 1 <= config.execute_steps <= config.horizon:
-        bad.append(f"execute_steps={config.execute_steps} (must be in [1, horizon={config.horizon}])")
-    if config.eval_every < 0 or not 0 <= config.warmup < 1 or config.lr <= 0:
-        bad.append("eval_every >= 0, 0 <= warmup < 1 and lr > 0 are required")
-    if bad:
-        raise ValueError("invalid training config: " + ", ".join(bad))
+def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkpoints: CheckpointRotation) -> None:
+    """Stop before a non-finite loss or gradient reaches the weights, so no saved state holds NaN."""
+    if torch.isfinite(torch.stack([loss.detach(), grad_norm])).all():
+        return
+    latest = checkpoints.latest()
+    kept = f"the newest checkpoint, {latest.name}, is intact" if latest else "no checkpoint was written"
+    raise NonFiniteLossError(f"training diverged at step {step}: loss {loss.item()}, gradient norm {grad_norm.item()}; "
+                             f"no policy.pt was written and {kept}; lower lr or check the dataset for non-finite values")
 
 
-def _prepare_run_folder(config: TrainConfig, command: str | None) -> None:
-    """Write ``config.json`` for a new run; for ``--resume``, check the stored one agrees."""
+def _check_run_folder(config: TrainConfig) -> None:
+    """A new run needs an unused ``out``; ``resume`` needs a run there started with the same settings."""
     saved = config.out / "config.json"
-    record = {"config": config_json(config), "command": command, "versions": _versions()}
     if config.resume:
         if not saved.is_file():
             raise FileNotFoundError(f"{config.out}: nothing to resume (no config.json); drop --resume to start a run")
-        stored = json.loads(saved.read_text())["config"]
-        changed = [k for k, v in record["config"].items()
-                   if k not in RESUMABLE_FIELDS and stored.get(k) != v]
+        try:
+            stored = json.loads(saved.read_text())["config"]
+        except (ValueError, KeyError, TypeError) as err:
+            raise ConfigError(f"{saved}: unreadable run config ({err!r}); start a new run with another --out") from err
+        changed = [k for k, v in config_json(config).items() if k not in RESUMABLE_FIELDS and stored.get(k) != v]
         if changed:
-            raise ValueError(f"{config.out} was started with other settings ({', '.join(changed)}); "
-                             "resume with the same arguments or use a new --out")
-        return
-    if (config.out / "checkpoints").exists() or saved.exists():
+            raise ConfigError(f"{config.out} was started with other settings ({', '.join(changed)}); "
+                              "resume with the same arguments or use a new --out")
+    elif (config.out / "checkpoints").exists() or saved.exists():
         raise FileExistsError(f"{config.out} already holds a run; pass --resume to continue it or choose another --out")
+
+
+def _write_run_config(config: TrainConfig, command: str | None) -> None:
+    """``config.json`` of a new run: the full config, the command and package versions."""
     config.out.mkdir(parents=True, exist_ok=True)
-    tmp = saved.with_suffix(".tmp")
-    tmp.write_text(json.dumps(record, indent=2))
-    tmp.replace(saved)
+    write_json_atomic(config.out / "config.json",
+                      {"config": config_json(config), "command": command, "versions": _versions()}, indent=2)
 
 
 def _versions() -> dict[str, str]:
@@ -258,10 +298,13 @@ def _versions() -> dict[str, str]:
 
 
 def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
-    return unwrap(make_policy(
-        config.variant, image_encoder=config.image_encoder, execute_steps=config.execute_steps,
-        horizon=config.horizon, d_model=config.d_model, n_heads=config.n_heads, n_mmdit=config.n_mmdit,
-        n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
+    try:
+        return unwrap(make_policy(
+            config.variant, image_encoder=config.image_encoder, execute_steps=config.execute_steps,
+            horizon=config.horizon, d_model=config.d_model, n_heads=config.n_heads, n_mmdit=config.n_mmdit,
+            n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
+    except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)
+        raise ConfigError(f"invalid model settings: {err}") from err
 
 
 def _restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> int:

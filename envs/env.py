@@ -6,7 +6,9 @@ targets for the robot's position actuators at the control rate while
 MuJoCo steps physics at the physics rate. Observations use the flat
 LeRobot-style names of the torchrl VLA schema (``observation.image.<cam>``,
 ``observation.state``, ``language_instruction``); ``dust_rl.envs.torchrl_env``
-nests them into the canonical TensorDict keys.
+nests them into the canonical TensorDict keys. The numeric-only state mode
+names its arrays without dots (:data:`STATE_MODE_KEYS`), because RL
+libraries key torch modules by observation name and torch rejects dots there.
 """
 
 from __future__ import annotations
@@ -17,10 +19,12 @@ from collections.abc import Sequence
 import gymnasium as gym
 import mink
 import numpy as np
+import qpsolvers
 
 from .rendering import CameraRenderer, RENDER_QUALITIES  # sets MUJOCO_GL before mujoco loads
 import mujoco  # noqa: E402  (after rendering)
 
+from . import arguments
 from .controller import OperationalSpaceController
 from .experts import WaypointExpert
 from .robot import RobotConfig
@@ -33,6 +37,12 @@ CONTROL_MODES = ("delta", "absolute")
 REWARD_TYPES = ("sparse", "dense")
 INSTRUCTION_CHARSET = string.ascii_letters + string.digits + " ,.'-"
 MAX_INSTRUCTION_LENGTH = 256
+# Flat VLA names of the numeric observations (torchrl_env nests them at the dots).
+STATE_KEY = "observation.state"
+ENV_STATE_KEY = "observation.environment_state"
+# obs_mode="state" names: SB3's MultiInputPolicy keys an nn.ModuleDict by them, which rejects dots.
+# They are LeRobot's gym-env names (gym_aloha, gym_pusht); torchrl's GymEnv would rename a plain "state".
+STATE_MODE_KEYS = {STATE_KEY: "agent_pos", ENV_STATE_KEY: "environment_state"}
 
 MAX_TRANSLATION = 0.02  # metres per control step at |action| = 1 (delta mode)
 MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
@@ -49,20 +59,23 @@ class DustEnv(gym.Env):
         task: task name; see :func:`dust_rl.envs.list_tasks`.
         robot: robot suite (``"franka"``, ``"humanoid"``).
         obs_mode: ``"rgb"`` (camera images, state, instruction) or ``"state"`` (numeric
-            arrays only, no rendering: what RL baselines such as SB3 accept; the
-            instruction is then in ``info["language_instruction"]``).
+            arrays only, no rendering, keys ``"agent_pos"`` and ``"environment_state"``: what RL
+            baselines such as SB3 accept; the instruction is then in ``info["language_instruction"]``).
         control_mode: ``"delta"`` (default; per step at most 2 cm and 0.1 rad) or
             ``"absolute"`` (pose in the robot's workspace box, axis-angle / pi).
-        image_size: image height and width in pixels (an int or ``(height, width)``).
+        image_size: image height and width in pixels (a positive int or ``(height, width)``).
         cameras: cameras to render; defaults to the robot's (Franka: ``front``, ``wrist``;
             humanoid: ``head``, with ``left_wrist``, ``right_wrist`` and ``front`` on request).
         reward_type: ``"sparse"`` (1 on success) or ``"dense"`` (staged shaping, 1 on success).
         render_mode: ``"rgb_array"`` or None.
         render_quality: ``"fast"`` (no shadows/MSAA, low-poly robot) or ``"visual"``.
-        max_episode_steps: overrides the task's default time limit.
+        max_episode_steps: overrides the task's default time limit (a positive int).
         control_hz: control rate; physics runs at ``1 / physics_dt``.
-        physics_dt: MuJoCo timestep (s).
-        ik_solver: QP solver for mink (``"daqp"`` or ``"quadprog"``).
+        physics_dt: MuJoCo timestep (s); must divide the control period into whole substeps.
+        ik_solver: QP solver for mink, one of ``qpsolvers.available_solvers`` (``"daqp"``, ``"quadprog"``).
+
+    Raises:
+        ValueError: an argument is out of its domain; the message names it and what is allowed.
 
     The action has 7 numbers per end effector, in the robot's end-effector order
     (humanoid: left hand, then right hand): translation (3), rotation as a
@@ -91,17 +104,20 @@ class DustEnv(gym.Env):
         physics_dt: float = 0.002,
         ik_solver: str = "daqp",
     ) -> None:
-        _check_choice("obs_mode", obs_mode, OBS_MODES)
-        _check_choice("control_mode", control_mode, CONTROL_MODES)
-        _check_choice("reward_type", reward_type, REWARD_TYPES)
-        _check_choice("render_mode", render_mode, (None, *self.metadata["render_modes"]))
-        _check_choice("render_quality", render_quality, RENDER_QUALITIES)
-        _check_choice("robot", robot, tuple(ROBOT_BUILDERS))
+        arguments.check_choice("obs_mode", obs_mode, OBS_MODES)
+        arguments.check_choice("control_mode", control_mode, CONTROL_MODES)
+        arguments.check_choice("reward_type", reward_type, REWARD_TYPES)
+        arguments.check_choice("render_mode", render_mode, (None, *self.metadata["render_modes"]))
+        arguments.check_choice("render_quality", render_quality, RENDER_QUALITIES)
+        arguments.check_choice("robot", robot, tuple(ROBOT_BUILDERS))
+        arguments.check_choice("ik_solver", ik_solver, qpsolvers.available_solvers)
+        self.image_shape = arguments.image_shape(image_size)
+        self.n_substeps = arguments.substeps(control_hz, physics_dt)
+        max_episode_steps = arguments.max_episode_steps(max_episode_steps)
         self.task = make_task(task, robot)
         self.obs_mode, self.control_mode, self.reward_type = obs_mode, control_mode, reward_type
         self.render_mode = render_mode
-        self.max_episode_steps = max_episode_steps or self.task.max_episode_steps
-        self.n_substeps = int(round(1.0 / (control_hz * physics_dt)))
+        self.max_episode_steps = self.task.max_episode_steps if max_episode_steps is None else max_episode_steps
         self.control_dt = self.n_substeps * physics_dt
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.control_dt))}
 
@@ -115,12 +131,8 @@ class DustEnv(gym.Env):
             joint_posture_costs=self.robot.posture_costs, collision_pairs=self.robot.collision_pairs)
         self._index_robot(ik_model)
 
-        self.cameras = tuple(cameras) if cameras is not None else self.robot.default_cameras
-        for camera in self.cameras:
-            if mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera) < 0:
-                raise ValueError(f"unknown camera {camera!r}; this scene has {self._camera_names()}")
-        height, width = (image_size, image_size) if isinstance(image_size, int) else tuple(image_size)
-        self.image_shape = (int(height), int(width), 3)
+        self.cameras = (self.robot.default_cameras if cameras is None
+                        else arguments.camera_names(cameras, self._camera_names()))
         self._renderer: CameraRenderer | None = None
         self._render_quality = render_quality
 
@@ -169,13 +181,12 @@ class DustEnv(gym.Env):
         if self.obs_mode == "rgb":
             for camera in self.cameras:
                 spaces[f"observation.image.{camera}"] = gym.spaces.Box(0, 255, self.image_shape, np.uint8)
-        spaces["observation.state"] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
-        spaces["observation.environment_state"] = gym.spaces.Box(
-            -np.inf, np.inf, (self.task.environment_state_dim,), np.float32)
+        spaces[STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
+        spaces[ENV_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (self.task.environment_state_dim,), np.float32)
         if self.obs_mode == "rgb":
             spaces["language_instruction"] = gym.spaces.Text(MAX_INSTRUCTION_LENGTH, min_length=1,
                                                              charset=INSTRUCTION_CHARSET)
-        return gym.spaces.Dict(spaces)
+        return gym.spaces.Dict(self._mode_keys(spaces))
 
     # -- gymnasium API ---------------------------------------------------------------------------
 
@@ -276,11 +287,15 @@ class DustEnv(gym.Env):
         if self.obs_mode == "rgb":
             for camera in self.cameras:
                 obs[f"observation.image.{camera}"] = self._render_camera(camera)
-        obs["observation.state"] = self._state()
-        obs["observation.environment_state"] = self.task.environment_state(self.data).astype(np.float32)
+        obs[STATE_KEY] = self._state()
+        obs[ENV_STATE_KEY] = self.task.environment_state(self.data).astype(np.float32)
         if self.obs_mode == "rgb":
             obs["language_instruction"] = self._instruction
-        return obs
+        return self._mode_keys(obs)
+
+    def _mode_keys(self, entries: dict) -> dict:
+        """State mode's dot-free names (:data:`STATE_MODE_KEYS`); rgb mode keeps the flat VLA names."""
+        return {STATE_MODE_KEYS[k]: v for k, v in entries.items()} if self.obs_mode == "state" else entries
 
     def _state(self) -> np.ndarray:
         """Joint positions, then per end effector: position, quaternion (wxyz), opening."""
@@ -325,8 +340,3 @@ def _axis_angle_to_quat(axis_angle: np.ndarray) -> np.ndarray:
     quat = np.array([1.0, 0.0, 0.0, 0.0])
     mujoco.mju_quatIntegrate(quat, axis_angle, 1.0)
     return quat
-
-
-def _check_choice(name: str, value: object, choices: tuple) -> None:
-    if value not in choices:
-        raise ValueError(f"unknown {name} {value!r}; expected one of {list(choices)}")

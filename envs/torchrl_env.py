@@ -3,9 +3,10 @@
 Gymnasium observations use flat LeRobot-style names
 (``observation.image.front``); torchrl's VLA schema nests them
 (``("observation", "image", "front")`` as uint8 ``[C, H, W]``,
-``("observation", "state")``, root ``language_instruction``). This module
-only renames and permutes: the env itself is the gymnasium one, so both
-worlds see identical episodes.
+``("observation", "state")``, root ``language_instruction``); state mode's
+dot-free ``agent_pos`` / ``environment_state`` land on the same nested keys. This
+module only renames and permutes: the env itself is the gymnasium one, so
+both worlds see identical episodes.
 """
 
 from __future__ import annotations
@@ -13,15 +14,23 @@ from __future__ import annotations
 import gymnasium as gym
 from torchrl.envs import Compose, EnvBase, GymEnv, GymWrapper, PermuteTransform, RenameTransform, TransformedEnv
 
+from .env import STATE_MODE_KEYS
 
-def canonical_key(flat_key: str) -> str | tuple[str, ...]:
-    """``"observation.image.front"`` -> ``("observation", "image", "front")``."""
+_FLAT_NAMES = {short: flat for flat, short in STATE_MODE_KEYS.items()}
+
+
+def canonical_key(key: str) -> str | tuple[str, ...]:
+    """The VLA key of a gymnasium key: ``"observation.image.front"`` -> ``("observation", "image", "front")``.
+
+    State mode's dot-free names go through their flat names: ``"agent_pos"`` -> ``("observation", "state")``.
+    """
+    flat_key = _FLAT_NAMES.get(key, key)
     return tuple(flat_key.split(".")) if "." in flat_key else flat_key
 
 
 def canonical_transforms(base: EnvBase) -> Compose:
-    """Transforms that nest ``base``'s flat observation keys into the VLA schema."""
-    flat_keys = [key for key in base.observation_spec.keys() if isinstance(key, str) and "." in key]
+    """Transforms that nest ``base``'s flat (or state-mode) observation keys into the VLA schema."""
+    flat_keys = [key for key in base.observation_spec.keys() if isinstance(key, str) and canonical_key(key) != key]
     image_keys = [canonical_key(k) for k in flat_keys if k.startswith("observation.image.")]
     transforms = [RenameTransform(in_keys=flat_keys, out_keys=[canonical_key(k) for k in flat_keys])]
     if image_keys:

@@ -2,9 +2,9 @@
 
 Inputs are random stand-ins for cached backbone features (no backbone runs), so
 the trunk rows measure the flow-matching trunk and sampler alone; the policy
-rows add the frozen backbone (two 128 px cameras through the conv encoder, the
-instruction's MiniLM tokens from the per-string cache) and normalisation, as a
-torchrl policy sees them. Latency is the
+rows add the frozen backbone (two 128 px cameras through each ``--image-encoders``
+entry, the instruction's MiniLM tokens from the per-string cache) and
+normalisation, as a torchrl policy sees them. Latency is the
 wall time of one ``predict_action`` call (context encoding plus all denoising
 steps); the table gives the median and the best of ``--repeats`` calls, the
 best being the better estimate on a machine shared with other jobs, and the
@@ -12,6 +12,7 @@ median process CPU time per call, which with ``--threads 1`` estimates the
 latency on an idle core even while other jobs share the machine.
 
 Usage: python scripts/bench_agent.py [--threads 2] [--repeats 30] [--train-steps 8] [--compile]
+       [--image-encoders conv-ae,efficientnet-lite0]
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDict
 
-from dust_rl.agents import ConvAutoencoder, DustAgent, DustConfig, make_policy, random_batch, unwrap
+from dust_rl.agents import DustAgent, DustConfig, make_policy, random_batch, unwrap
 
 N_COND_TOKENS = 40
 CAMERAS = ("front", "wrist")
@@ -54,24 +55,25 @@ def chunk_latency_ms(config: DustConfig, repeats: int, compile_model: bool) -> t
     return 1e3 * statistics.median(wall), 1e3 * min(wall), 1e3 * statistics.median(cpu)
 
 
-def policy_latency_ms(repeats: int) -> list[tuple[str, float, float, float]]:
+def policy_latency_ms(repeats: int, image_encoder: str) -> list[tuple[str, float, float, float]]:
     """Median and best wall time and median CPU time (ms) of a default policy on raw observations at batch 1.
 
     Rows: the frozen backbone alone, then one ``plan`` call per sampler.
     """
-    policy = unwrap(make_policy("dust", image_encoder=ConvAutoencoder(), cameras=CAMERAS, action_dim=7, state_dim=17))
+    policy = unwrap(make_policy("dust", image_encoder=image_encoder, cameras=CAMERAS, action_dim=7, state_dim=17))
     images = {cam: torch.randint(0, 256, (1, 3, 128, 128), dtype=torch.uint8) for cam in CAMERAS}
     obs = TensorDict({"observation": {"image": images, "state": torch.randn(1, 17)}}, batch_size=[1])
     obs["language_instruction"] = "press the red button"
     generator = torch.Generator().manual_seed(0)
     rows = []
     wall, cpu = timed(lambda: policy.observation_features(obs), repeats)
-    rows.append(("backbone: 2 cameras 128 px + cached text", wall, cpu))
+    grid = "x".join(map(str, policy.config.condition_grid))
+    rows.append((f"{image_encoder} ({grid}/camera): 2 cameras 128 px", wall, cpu))
     for name, sampler, ratio in [("N_A=4, N_o=4", "async", 1), ("N_A=4, N_o=16", "async", 4),
                                  ("sync 4 steps", "sync", 1), ("action-only 4 steps", "action_only", 1)]:
         policy.set_sampler(sampler, 4, ratio)
         wall, cpu = timed(lambda: policy.plan(obs, generator), repeats)
-        rows.append((f"policy {name} (ms/chunk)", wall, cpu))
+        rows.append((f"  policy {name} (ms/chunk)", wall, cpu))
     return [(name, 1e3 * statistics.median(w), 1e3 * min(w), 1e3 * statistics.median(c)) for name, w, c in rows]
 
 
@@ -102,6 +104,8 @@ def main() -> None:
     parser.add_argument("--train-steps", type=int, default=8)
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--compile", action="store_true", help="torch.compile the trunk (latency rows only)")
+    parser.add_argument("--image-encoders", default="conv-ae,efficientnet-lite0",
+                        help="comma-separated encoders of the policy rows")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -124,8 +128,10 @@ def main() -> None:
     for name, config, target in rows:
         median, best, cpu = chunk_latency_ms(config, args.repeats, args.compile)
         print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {target:>8} |", flush=True)
-    for name, median, best, cpu in policy_latency_ms(args.repeats):
-        print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {'':>8} |", flush=True)
+    for encoder in args.image_encoders.split(","):
+        for name, median, best, cpu in policy_latency_ms(args.repeats, encoder):
+            target = "<= 25" if "N_A=4, N_o=4" in name else ""
+            print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {target:>8} |", flush=True)
     median, best, cpu = train_samples_per_s(base, args.batch_size, args.train_steps)
     name = f"DUST training (samples/s, batch {args.batch_size})"
     print(f"| {name:<44} | {median:8.1f} | {best:8.1f} | {cpu:8.1f} | {'>= 300':>8} |")

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+
 import numpy as np
 import pytest
 import torch
@@ -14,6 +17,45 @@ HUMANOID_TASKS = list_tasks("humanoid")
 # Every (robot suite, task) pair, for tests that hold for all tasks of all suites.
 SUITE_TASKS = [pytest.param(robot, task, id=f"{robot}-{task}") for robot in ("franka", "humanoid")
                for task in list_tasks(robot)]
+
+
+def rounding_tolerance(dtype: torch.dtype, n_terms: int, depth: int = 1, scale: float = 1.0) -> float:
+    """Bound on the difference rounding alone makes between two computations of one value in ``dtype``.
+
+    Why: CPU kernels (AVX-512, AVX2, scalar), thread counts and tensor shapes change the order of
+    floating-point sums, so two correct code paths for the same function differ in their last bits, by
+    amounts that vary between machines. A sum of n terms of magnitude ``scale`` is off by about
+    sqrt(n) * eps * scale (probabilistic bound of Higham & Mary 2019; worst case n * eps), and ``depth``
+    such sums in sequence (layers) add up their errors. The factor 10 covers cancellation and the growth
+    of errors through weights larger than 1. Compare in float64 where the code allows it: the tolerance
+    is then ~1e-12 of the scale, far below any real bug and out of reach of any kernel.
+
+    Args:
+        dtype: floating dtype of the computation.
+        n_terms: length of the longest sum (dot product, reduction) behind one value.
+        depth: number of such sums in sequence behind one value.
+        scale: magnitude of the values summed (for a layer output: of the outputs).
+    """
+    return 10 * depth * math.sqrt(n_terms) * torch.finfo(dtype).eps * scale
+
+
+def assert_close_up_to_rounding(actual: torch.Tensor | Sequence[torch.Tensor],
+                                expected: torch.Tensor | Sequence[torch.Tensor], n_terms: int,
+                                depth: int = 1) -> None:
+    """Assert two results of different code paths for one function differ by no more than rounding.
+
+    The tolerance is :func:`rounding_tolerance` at the scale of the largest expected value.
+
+    Args:
+        actual: tensor(s) from the code path under test.
+        expected: tensor(s) of the same dtype from the reference path.
+        n_terms: see :func:`rounding_tolerance`.
+        depth: see :func:`rounding_tolerance`.
+    """
+    expected_list = [expected] if isinstance(expected, torch.Tensor) else list(expected)
+    scale = max(e.abs().max().item() for e in expected_list)
+    atol = rounding_tolerance(expected_list[0].dtype, n_terms, depth, scale)
+    torch.testing.assert_close(actual, expected, rtol=0, atol=atol)
 
 
 @pytest.fixture(scope="module")
@@ -74,6 +116,16 @@ def demo_dir(tmp_path_factory):
     collect_demos(root, tasks=["press_button"], episodes=3, env_kwargs=DEMO_ENV_KWARGS, progress=False)
     collect_demos(root, tasks=list(DEMO_TASKS), episodes=3, env_kwargs=DEMO_ENV_KWARGS, progress=False)
     return root
+
+
+@pytest.fixture(scope="session")
+def export_dir(demo_dir, tmp_path_factory):
+    """``demo_dir`` exported by ``dust-rl dataset export`` as LeRobotDataset v3.0 (tests that change it copy it)."""
+    from dust_rl.cli import main
+
+    out = tmp_path_factory.mktemp("lerobot") / "export"
+    main(["dataset", "export", str(demo_dir), "--format", "lerobot", "--out", str(out)])
+    return out
 
 
 def seeded_rollout(env: DustEnv, seed: int, steps: int = 50) -> tuple[list[dict], list[float]]:

@@ -6,13 +6,14 @@ import pytest
 import torch
 from tensordict import NonTensorData, NonTensorStack, TensorDict
 from torchrl.collectors import Collector
-from torchrl.envs import InitTracker
+from torchrl.envs import GymEnv, InitTracker, TransformedEnv
 
 from dust_rl.agents import (
     VARIANTS,
     CheckpointError,
     ChunkExecutor,
     DustPolicy,
+    env_spec,
     load_policy,
     make_policy,
     save_policy,
@@ -43,6 +44,14 @@ def observation(batch: tuple[int, ...] = (2,), state_dim: int = 5, seed: int = 0
 def tiny_policy(variant: str, encoder, text, **overrides) -> ChunkExecutor:
     sizes = {**TINY, "action_dim": 3, "state_dim": 5, **overrides}
     return make_policy(variant, image_encoder=encoder, text_encoder=text, cameras=CAMERAS, **sizes)
+
+
+def perturb(policy: DustPolicy) -> None:
+    """Move every trainable weight away from its initialisation (zero-initialised outputs ignore the inputs)."""
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for p in policy.trainable_parameters():
+            p.add_(0.1 * torch.randn(p.shape, generator=g))
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
@@ -84,9 +93,8 @@ def test_sampler_options(sampler, n_action_steps, ratio, evaluations, tiny_encod
 def test_checkpoint_round_trip_gives_identical_outputs(tiny_encoder, minilm, tmp_path):
     policy = tiny_policy("dust", tiny_encoder, minilm, execute_steps=3)
     inner = unwrap(policy)
-    with torch.no_grad():  # move every weight away from its initialisation (zero-initialised outputs included)
-        for p in inner.trainable_parameters():
-            p.add_(0.1 * torch.randn_like(p))
+    perturb(inner)
+    with torch.no_grad():
         inner.normalizer.set_stats({"state": {"mean": [1.0] * 5, "std": [2.0] * 5},
                                     "action": {"mean": [0.5, 0, 0], "std": [3.0, 1, 1]}})
     inner.set_sampler("async", 2, 2)
@@ -148,3 +156,34 @@ def test_receding_horizon_in_a_collector(tiny_encoder, minilm):
     chunk = batch["vla_action", "chunk"]
     torch.testing.assert_close(batch["action"], chunk[torch.arange(10), batch["counter"].squeeze(-1) - 1])
     assert len(plans) <= 4  # 3 chunks for 10 steps (+ the collector's spec probe)
+
+
+def test_a_plain_gym_env_works_as_is(tiny_encoder, minilm):
+    """make_policy and the policy read a plain GymEnv's flat keys exactly as the canonical ones."""
+    flat = TransformedEnv(GymEnv("DustFranka-v0", task="press_button", image_size=32), InitTracker())
+    canonical = make_torchrl_env(task="press_button", image_size=32)
+    try:
+        policy = make_policy("dust", flat, image_encoder=tiny_encoder, text_encoder=minilm, **TINY)
+        inner = unwrap(policy)
+        assert inner.config.action_dim == 7 and inner.config.state_dim == 17 and inner.cameras == CAMERAS
+        assert torch.equal(inner.action_low, torch.as_tensor(env_spec(canonical)["action_low"]))
+        rollout = flat.rollout(3, policy)
+        assert rollout["action"].shape == (3, 7) and flat.action_spec.is_in(rollout["action"])
+        # One observation seen through both key layouts gives the same chunk (images are not transposed).
+        perturb(inner)
+        flat.set_seed(7)
+        canonical.set_seed(7)
+        plans = [inner.plan(env.reset(), torch.Generator().manual_seed(0))["action_chunk"] for env in (flat, canonical)]
+        assert torch.equal(*plans)
+    finally:
+        flat.close()
+        canonical.close()
+
+
+def test_an_env_without_robot_state_gets_a_clear_error(tiny_encoder, minilm):
+    env = GymEnv("Pendulum-v1")
+    try:
+        with pytest.raises(ValueError, match="make_torchrl_env"):
+            make_policy("dust", env, image_encoder=tiny_encoder, text_encoder=minilm, **TINY)
+    finally:
+        env.close()

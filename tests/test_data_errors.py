@@ -54,9 +54,18 @@ def test_newer_format_version(copy):
 
 def test_row_count_disagrees_with_episode_table(copy):
     meta = json.loads((copy / "meta.json").read_text())
-    meta["episodes"][0]["length"] += 1
+    meta["episodes"][-1]["length"] += 1
     (copy / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match="rows on disk"):
+        DemoDataset(copy)
+
+
+@pytest.mark.parametrize("field,value", [("length", -3), ("length", 0), ("row_start", 5), ("instruction_index", 99)])
+def test_garbled_episode_table(copy, field, value):
+    meta = json.loads((copy / "meta.json").read_text())
+    meta["episodes"][1][field] = value
+    (copy / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"meta\.json: episode 1 is garbled"):
         DemoDataset(copy)
 
 

@@ -1,25 +1,31 @@
-"""LeRobot v3 export read back by torchrl's own LeRobot reader, and the export/import round trip."""
+"""LeRobot v3 export read back by torchrl's own LeRobot reader, the export/import round trip, and the import
+of LeRobot datasets written by others (no dust-rl metadata) for an env given on the command line."""
 
 from __future__ import annotations
 
+import json
 import shutil
 
+import gymnasium as gym
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 import torch
+from test_train import TINY_MODEL
 
+from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
-from dust_rl.data import DatasetError, DemoDataset
+from dust_rl.data import DatasetError, DemoDataset, DemoWindows
+from dust_rl.data.lerobot_export import DATA_FILE, EPISODES_FILE
+from dust_rl.data.lerobot_import import import_lerobot
 from dust_rl.data.video import read_mp4
+from dust_rl.errors import ConfigError
+from dust_rl.train import TrainConfig, train
 
 IMAGE = ("observation", "image", "front")
-
-
-@pytest.fixture(scope="module")
-def export_dir(demo_dir, tmp_path_factory):
-    out = tmp_path_factory.mktemp("lerobot") / "export"
-    main(["dataset", "export", str(demo_dir), "--format", "lerobot", "--out", str(out)])
-    return out
+# The per-frame features any LeRobot v3 dataset has (besides its videos); no dust-rl extras.
+PLAIN_FEATURES = ("observation.state", "action", "timestamp", "frame_index", "episode_index", "index", "task_index")
+PLAIN_IMPORT = ["--env", "DustFranka-v0", "--task", "press_button", "--image-size", "32"]
 
 
 def _as_offline_hub_snapshot(folder, hub, repo_id: str) -> None:
@@ -80,6 +86,109 @@ def test_export_refuses_an_existing_folder_and_import_a_damaged_one(demo_dir, ex
     shutil.copytree(export_dir, damaged)
     (damaged / "meta" / "info.json").write_text("{not json")
     with pytest.raises(DatasetError, match="info.json"):
-        from dust_rl.data.lerobot_import import import_lerobot
         import_lerobot(damaged, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def as_plain_lerobot(export, out, edit_info=lambda info: None):
+    """A copy of our export as another LeRobot v3 writer leaves it: no dust_rl.json, no dust-rl columns."""
+    shutil.copytree(export, out)
+    (out / "meta" / "dust_rl.json").unlink()
+    info = json.loads((out / "meta" / "info.json").read_text())
+    info["features"] = {name: feature for name, feature in info["features"].items()
+                        if name in PLAIN_FEATURES or feature["dtype"] == "video"}
+    edit_info(info)
+    (out / "meta" / "info.json").write_text(json.dumps(info))
+    data = pq.read_table(out / DATA_FILE)
+    pq.write_table(data.select([name for name in data.column_names if name in PLAIN_FEATURES]), out / DATA_FILE)
+    episodes = pq.read_table(out / EPISODES_FILE)
+    pq.write_table(episodes.select([name for name in episodes.column_names if not name.startswith("dust_rl/")]),
+                   out / EPISODES_FILE)
+    return out
+
+
+@pytest.fixture(scope="module")
+def plain_import(export_dir, tmp_path_factory):
+    """A plain LeRobot copy of the demo export, and its import for DustFranka-v0 press_button at 32 px."""
+    root = tmp_path_factory.mktemp("plain")
+    plain = as_plain_lerobot(export_dir, root / "plain")
+    main(["dataset", "import", str(plain), "--out", str(root / "imported"), *PLAIN_IMPORT])
+    return plain, root / "imported"
+
+
+def test_a_plain_lerobot_dataset_imports_for_the_env_it_fits(demo_dir, plain_import, tmp_path):
+    plain, imported = plain_import
+    with pytest.raises(DatasetError, match="no meta/dust_rl.json .* give the env"):
+        import_lerobot(plain, tmp_path / "out")
+    with pytest.raises(ConfigError, match="--task"):
+        import_lerobot(plain, tmp_path / "out", env_id="DustFranka-v0")
+    assert not (tmp_path / "out").exists()
+
+    original = DemoDataset(demo_dir)
+    back = DemoDataset(imported, env=gym.make("DustFranka-v0", task="press_button", image_size=32))
+    for key in (("observation", "state"), "action", "frame_index", "instruction_index", ("next", "done")):
+        assert torch.equal(back.data[key], original.data[key]), key
+    assert torch.equal(back.data["expert_action"], original.data["action"])  # the demonstrator's action is the label
+    assert back.data["observation", "environment_state"].shape == (len(original), 0)
+    assert torch.equal(back.data["next", "terminated"], back.data["next", "done"])
+    assert not back.data["next", "truncated"].any() and not back.data["next", "reward"].any()
+    assert [e["length"] for e in back.meta["episodes"]] == [e["length"] for e in original.meta["episodes"]]
+    assert back.instructions == original.instructions and back.tasks == ["press_button"]
+    assert (back.meta["env_id"], back.meta["env_kwargs"]) == ("DustFranka-v0", {"image_size": 32})
+    assert (back.data[IMAGE].float() - original.data[IMAGE].float()).abs().mean() < 8  # H.264, as in the round trip
+
+
+def test_training_runs_on_a_plain_lerobot_import(plain_import, tiny_encoder, tmp_path):
+    _, imported = plain_import
+    windows = DemoWindows(DemoDataset(imported), horizon=4, batch_size=8)
+    assert windows.sample()["vla_action", "chunk"].shape == (8, 4, 7)
+    encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
+    result = train(TrainConfig(dataset=imported, out=tmp_path / "run", image_encoder=str(encoder), steps=2,
+                               log_every=1, checkpoint_every=2, threads=1, progress=False, **TINY_MODEL))
+    assert np.isfinite(result.final_loss)
+    policy = unwrap(load_policy(result.policy))
+    assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button"]
+
+
+def test_video_features_may_list_their_channels_first(export_dir, tmp_path):
+    def channels_first(info):
+        for camera in ("front", "wrist"):
+            info["features"][f"observation.images.{camera}"].update(shape=[3, 32, 32],
+                                                                     names=["channels", "height", "width"])
+
+    plain = as_plain_lerobot(export_dir, tmp_path / "plain", channels_first)
+    import_lerobot(plain, tmp_path / "out", env_id="DustFranka-v0", task="press_button", env_kwargs={"image_size": 32},
+                   progress=False)
+    assert DemoDataset(tmp_path / "out").data[IMAGE].shape[1:] == (3, 32, 32)
+
+
+def _drop_wrist(info):
+    del info["features"]["observation.images.wrist"]
+
+
+def _state_of_5(info):
+    info["features"]["observation.state"]["shape"] = [5]
+
+
+def _no_action(info):
+    del info["features"]["action"]
+
+
+def _fps_30(info):
+    info["fps"] = 30
+
+
+@pytest.mark.parametrize("edit_info,args,problem", [
+    (lambda info: None, ["--image-size", "48"],
+     r"observation\.images\.front: shape \[32, 32, 3\], the env renders \[48, 48, 3\] \(set the env's image_size\)"),
+    (_drop_wrist, [], r"observation\.images\.wrist: missing \(the env has cameras \['front', 'wrist'\]"),
+    (_state_of_5, [], r"observation\.state: shape \[5\], the env has \[17\]"),
+    (_no_action, [], r"action: missing"),
+    (_fps_30, [], r"fps: dataset records 30 frames/s, the env has fps 20"),
+], ids=["image-size", "camera", "state", "action", "fps"])
+def test_import_names_the_feature_that_does_not_fit_the_env(export_dir, tmp_path, edit_info, args, problem):
+    plain = as_plain_lerobot(export_dir, tmp_path / "plain", edit_info)
+    with pytest.raises(SystemExit, match=problem) as error:
+        main(["dataset", "import", str(plain), "--out", str(tmp_path / "out"), *PLAIN_IMPORT, *args])
+    assert "\n" not in str(error.value)
     assert not (tmp_path / "out").exists()

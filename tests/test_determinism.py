@@ -28,4 +28,4 @@ def test_same_seed_identical_after_other_episodes(state_env):
 def test_different_seeds_differ(state_env):
     a, _ = seeded_rollout(state_env, seed=0, steps=1)
     b, _ = seeded_rollout(state_env, seed=1, steps=1)
-    assert not np.array_equal(a[0]["observation.environment_state"], b[0]["observation.environment_state"])
+    assert not np.array_equal(a[0]["environment_state"], b[0]["environment_state"])

@@ -45,6 +45,15 @@ def test_torchrl_canonical_keys():
     env.close()
 
 
+def test_torchrl_state_mode_has_the_same_nested_keys():
+    env = make_torchrl_env(task="pick_place", obs_mode="state")
+    check_env_specs(env, seed=0)
+    td = env.rollout(2)
+    assert td["observation", "state"].shape == (2, 17) and td["observation", "environment_state"].shape == (2, 9)
+    assert set(td.keys()).isdisjoint({"agent_pos", "environment_state"})
+    env.close()
+
+
 def test_spaces_and_observation_layout(rgb_env):
     obs, info = rgb_env.reset(seed=3)
     assert rgb_env.action_space.shape == (7,)
@@ -59,7 +68,7 @@ def test_spaces_and_observation_layout(rgb_env):
 
 def test_state_mode_renders_nothing(state_env):
     obs, _ = state_env.reset(seed=0)
-    assert set(obs) == {"observation.state", "observation.environment_state"}
+    assert set(obs) == {"agent_pos", "environment_state"}
     assert state_env._renderer is None
 
 
@@ -72,11 +81,35 @@ def test_list_tasks_and_unknown_task():
         list_tasks("no_such_robot")
 
 
-@pytest.mark.parametrize("kwarg, named", [({"obs_mode": "depth"}, "depth"), ({"control_mode": "joint"}, "joint"),
-                                          ({"reward_type": "shaped"}, "shaped"), ({"cameras": ["nope"]}, "nope")])
-def test_bad_constructor_arguments(kwarg, named):
-    with pytest.raises(ValueError, match=named):
-        DustEnv(task="pick_place", **kwarg)
+BAD_ARGUMENTS = [
+    ("task", "no_such_task"), ("task", None), ("robot", "ur5"), ("obs_mode", "depth"), ("control_mode", "joint"),
+    ("image_size", 0), ("image_size", -8), ("image_size", "64"), ("image_size", True), ("image_size", 64.0),
+    ("image_size", (64,)), ("image_size", (64, 0)), ("image_size", (64, "64")), ("image_size", (32, 32, 3)),
+    ("cameras", []), ("cameras", "front"), ("cameras", ["front", "front"]), ("cameras", ["front", "nope"]),
+    ("reward_type", "shaped"), ("render_mode", "human"), ("render_quality", "ultra"),
+    ("max_episode_steps", 0), ("max_episode_steps", -5), ("max_episode_steps", 10.5), ("max_episode_steps", True),
+    ("control_hz", -20.0), ("control_hz", 0), ("control_hz", float("nan")), ("control_hz", float("inf")),
+    ("control_hz", "20"), ("control_hz", True), ("physics_dt", 0.0), ("physics_dt", -0.002),
+    ("physics_dt", float("nan")), ("physics_dt", 0.1), ("physics_dt", 0.003), ("ik_solver", "no_such_solver"),
+]
+
+
+@pytest.mark.parametrize("name, value", BAD_ARGUMENTS, ids=[f"{n}={v!r}" for n, v in BAD_ARGUMENTS])
+def test_bad_constructor_arguments_name_the_argument_and_value(name, value):
+    with pytest.raises(ValueError) as raised:
+        DustEnv(**{"task": "pick_place", name: value})
+    message = str(raised.value)
+    assert name in message and repr(value) in message
+
+
+def test_valid_constructor_arguments_are_taken_as_given():
+    env = DustEnv(task="pick_place", image_size=(np.int64(24), 40), cameras=["wrist"], max_episode_steps=2,
+                  control_hz=10, physics_dt=0.004, ik_solver="quadprog")
+    obs, _ = env.reset(seed=0)
+    assert obs["observation.image.wrist"].shape == (24, 40, 3) and "observation.image.front" not in obs
+    assert env.n_substeps == 25 and env.control_dt == pytest.approx(0.1) and env.metadata["render_fps"] == 10
+    assert not env.step(np.zeros(7, np.float32))[3] and env.step(np.zeros(7, np.float32))[3]  # 2-step time limit
+    env.close()
 
 
 def test_make_without_import_uses_module_prefix():
@@ -92,7 +125,7 @@ def test_make_vec_async():
                         task="pick_place", obs_mode="state")
     obs, _ = envs.reset(seed=[0, 1])
     obs, reward, terminated, truncated, info = envs.step(np.zeros((2, 7), np.float32))
-    assert obs["observation.state"].shape == (2, 17)
+    assert obs["agent_pos"].shape == (2, 17)
     assert reward.shape == (2,) and info["task"].tolist() == ["pick_place", "pick_place"]
     envs.close()
 

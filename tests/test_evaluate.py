@@ -19,6 +19,7 @@ from dust_rl.agents import (
     unwrap,
 )
 from dust_rl.data.video import read_mp4
+from dust_rl.errors import ConfigError
 from dust_rl.evaluate import EvalConfig, evaluate, resolve_sampler, wilson_interval
 from dust_rl.report import plot_loss_curves, read_scalar_csv
 from dust_rl.rollout_video import LABEL_HEIGHT, future_decoder
@@ -136,16 +137,16 @@ def test_policy_for_another_action_space(tmp_path, minilm):
 
 def test_bad_tasks_and_sampler_settings_fail_before_any_episode(policy_path, tmp_path, minilm):
     config = EvalConfig(policy=policy_path, out=tmp_path / "eval")
-    with pytest.raises(ValueError, match="unknown franka task 'fly'.*press_button"):
+    with pytest.raises(ConfigError, match="unknown franka task 'fly'.*press_button"):
         evaluate(dataclasses.replace(config, tasks=("press_button", "fly")))
-    with pytest.raises(ValueError, match="multiple of n_action_steps"):
+    with pytest.raises(ConfigError, match="multiple of n_action_steps"):
         evaluate(dataclasses.replace(config, sampler="async", vision_steps=6))
-    with pytest.raises(ValueError, match="async sampler only"):
+    with pytest.raises(ConfigError, match="async sampler only"):
         evaluate(dataclasses.replace(config, sampler="sync", vision_steps=8))
-    with pytest.raises(ValueError, match="episodes must be >= 1"):
+    with pytest.raises(ConfigError, match="episodes must be >= 1"):
         evaluate(dataclasses.replace(config, episodes=0))
     bare = tiny_policy_file(tmp_path / "bare.pt", minilm, info={})
-    with pytest.raises(ValueError, match="give env_id and tasks"):
+    with pytest.raises(ConfigError, match="give env_id and tasks"):
         evaluate(EvalConfig(policy=bare, out=tmp_path / "eval"))
     assert not (tmp_path / "eval").exists()
 

@@ -32,7 +32,7 @@ def test_out_of_range_action_is_clipped():
     big = np.array([3.0, -5.0, 2.0, 0.0, 9.0, -2.0, 4.0], np.float32)
     obs_big = envs[0].step(big)[0]
     obs_clipped = envs[1].step(np.clip(big, -1, 1))[0]
-    np.testing.assert_array_equal(obs_big["observation.state"], obs_clipped["observation.state"])
+    np.testing.assert_array_equal(obs_big["agent_pos"], obs_clipped["agent_pos"])
 
 
 def test_ik_failure_truncates_episode():

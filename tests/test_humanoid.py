@@ -74,7 +74,7 @@ def test_observation_layout_and_head_camera():
     assert state.shape == (STATE_DIM,) and state.dtype == np.float32
     for hand, (pos, _) in enumerate(env.end_effector_poses()):  # left hand's block first
         block = state[STATE_DIM - 16 + 8 * hand:][:8]
-        np.testing.assert_allclose(block[:3], pos, atol=1e-6)
+        np.testing.assert_allclose(block[:3], pos, rtol=np.finfo(np.float32).eps, atol=0)  # float32 copy of pos
         assert block[7] == pytest.approx(0.0, abs=0.05)  # open hand
     assert "bottle" in obs["language_instruction"] == info["language_instruction"]
     assert np.array_equal(env.render(), obs["observation.image.head"])
@@ -122,7 +122,7 @@ def test_make_vec_async():
     envs = gym.make_vec("DustHumanoid-v0", num_envs=2, vectorization_mode="async", task="lift_box", obs_mode="state")
     obs, _ = envs.reset(seed=[0, 1])
     obs, reward, terminated, truncated, info = envs.step(np.zeros((2, ACTION_DIM), np.float32))
-    assert obs["observation.state"].shape == (2, STATE_DIM)
+    assert obs["agent_pos"].shape == (2, STATE_DIM)
     assert reward.shape == (2,) and info["task"].tolist() == ["lift_box", "lift_box"]
     envs.close()
 
@@ -141,7 +141,7 @@ def test_action_layout_left_hand_then_right_hand(humanoid_env):
         assert 0.6 * 8 * 0.5 * MAX_TRANSLATION < moved[hand][0] < 1.1 * 8 * 0.5 * MAX_TRANSLATION
         # The waist, shared by both arms, leans in a little and jostles the other hand by millimetres.
         assert np.abs(moved[hand][1:]).max() < 0.01 and np.linalg.norm(moved[1 - hand]) < 0.01
-        openings = obs["observation.state"][[-9, -1]]  # left, right hand's opening (0 open, -1 closed)
+        openings = obs["agent_pos"][[-9, -1]]  # left, right hand's opening (0 open, -1 closed)
         assert openings[hand] < -0.7 and openings[1 - hand] > -0.05
 
 

@@ -18,6 +18,7 @@ from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.data import DatasetError
 from dust_rl.ema import EMA
+from dust_rl.errors import ConfigError
 from dust_rl.train import TrainConfig, train, warmup_cosine
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -121,7 +122,7 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
         train(tiny_config(run_inputs, tmp_path / "none", resume=True))
     out = tmp_path / "run"
     train(tiny_config(run_inputs, out, steps=4))
-    with pytest.raises(ValueError, match="other settings.*lr"):
+    with pytest.raises(ConfigError, match="other settings.*lr"):
         train(tiny_config(run_inputs, out, steps=4, lr=1e-3, resume=True))
     latest = sorted((out / "checkpoints").iterdir())[-1]
     for state in latest.rglob("*.memmap"):
@@ -131,7 +132,7 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
 
 
 def test_bad_training_input_is_named(run_inputs, tmp_path):
-    with pytest.raises(ValueError, match="execute_steps=9"):
+    with pytest.raises(ConfigError, match=r"execute_steps must be in \[1, horizon=4\], got 9"):
         train(tiny_config(run_inputs, tmp_path / "a", execute_steps=9))
     dataset, _ = run_inputs
     meta = json.loads((dataset / "meta.json").read_text())

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import json
+import math
+
 import pytest
 import torch
 
+from conftest import rounding_tolerance
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_image_encoder, make_policy, unwrap
-from dust_rl.agents.factory import DEFAULT_IMAGE_ENCODER
+from dust_rl.agents.backbone import DEFAULT_IMAGE_ENCODER_FILE
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.features import FeatureCache, dataset_policy_kwargs
@@ -44,7 +48,7 @@ def test_pretraining_reconstructs_held_out_frames(dataset, tmp_path):
 
 
 def test_committed_default_encoder_fits_env_frames(dataset):
-    encoder = load_image_encoder(DEFAULT_IMAGE_ENCODER)  # what make_policy uses by default
+    encoder = load_image_encoder(DEFAULT_IMAGE_ENCODER_FILE)  # what make_policy uses by default
     frames = FramePool([dataset], holdout_every=0).sample(64, encoder.image_size, torch.Generator().manual_seed(0))
     with torch.no_grad():
         assert encoder.reconstruction_loss(frames).item() < 0.01  # 32 px frames, upsampled to its 128 px
@@ -76,9 +80,14 @@ def test_feature_cache_encodes_each_row_once(dataset, tiny_encoder, minilm, monk
     assert sum(encoded) == 2 * len(dataset)  # batches are lookups
     assert batch["action_chunk"].shape == (16, 8, 7) and batch["future_tokens"].shape == (16, 16, 16)
     # Lookups equal encoding the window's own frames: current ones as condition, the t+H front frame as target.
-    encoded_now = policy.image_features(windows)
-    torch.testing.assert_close(batch["image_tokens"], encoded_now)
-    torch.testing.assert_close(batch["future_tokens"], policy.image_features(windows["future"])[:, 0])
+    # Up to rounding, as batch sizes differ: the encoder's longest sums are group norms over 16x16 maps, and
+    # ~8 convolutions, norms and the standardisation run in sequence; the cache keeps float16 copies (half
+    # an ulp of float16 more).
+    for cached, encoded_now in [(batch["image_tokens"], policy.image_features(windows)),
+                                (batch["future_tokens"], policy.image_features(windows["future"])[:, 0])]:
+        scale = encoded_now.abs().max().item()
+        atol = rounding_tolerance(torch.float32, 256, 8, scale) + torch.finfo(torch.float16).eps * scale
+        torch.testing.assert_close(cached, encoded_now, rtol=0, atol=atol)
     text, mask = policy.backbone.text_tokens(list(windows["language_instruction"]))
     assert torch.equal(batch["text_tokens"], text) and torch.equal(batch["text_mask"], mask)
     normalizer = policy.normalizer
@@ -130,3 +139,49 @@ def test_stored_features_are_reused(demo_dir, tiny_encoder, minilm, tmp_path, mo
         next(tiny_encoder.parameters()).add_(1.0)
     monkeypatch.undo()
     assert FeatureCache(dataset, policy, progress=False, store=True).path != first.path
+
+
+def test_feature_cache_keeps_augmented_views(dataset, tiny_encoder, minilm):
+    policy = small_policy(dataset, tiny_encoder, minilm)
+    plain = FeatureCache(dataset, policy, batch_size=32, progress=False)
+    augmented = FeatureCache(dataset, policy, batch_size=32, progress=False, views=3)
+    assert augmented.views.shape == (3, *plain.image_tokens.shape)
+    assert torch.equal(augmented.image_tokens, plain.image_tokens)  # view 0: the frames themselves
+    assert not torch.equal(augmented.views[1], augmented.views[0])
+    assert not torch.equal(augmented.views[1], augmented.views[2])
+    again = FeatureCache(dataset, policy, batch_size=32, progress=False, views=3)
+    assert torch.equal(again.views, augmented.views)  # seeded: the same views on every rebuild
+    windows = DemoWindows(dataset, horizon=8, batch_size=64).sample()
+    batch = augmented.batch(windows)
+    # Targets always come from view 0; conditions from a view drawn per window, so both kinds appear.
+    torch.testing.assert_close(batch["future_tokens"], plain.batch(windows)["future_tokens"])
+    from_view0 = (batch["image_tokens"] == plain.image_tokens[windows["index"]].float()).flatten(1).all(1)
+    assert 0 < from_view0.sum() < len(from_view0)
+
+
+def test_augment_frames_shifts_and_jitters_within_bounds():
+    from dust_rl.augment import MAX_SHIFT, augment_frames
+
+    frames = torch.zeros(4, 3, 32, 32, dtype=torch.uint8)
+    frames[:, :, 12:20, 12:20] = 200  # a bright square in the middle
+    out = augment_frames(frames, torch.Generator().manual_seed(0))
+    assert out.shape == frames.shape and out.dtype == torch.uint8
+    assert torch.equal(out, augment_frames(frames, torch.Generator().manual_seed(0)))
+    for image in out:
+        ys, xs = torch.nonzero(image[0] > 100, as_tuple=True)
+        assert abs(ys.float().mean().item() - 15.5) <= MAX_SHIFT and abs(xs.float().mean().item() - 15.5) <= MAX_SHIFT
+
+
+def test_encoder_check_command_writes_probe_per_camera(demo_dir, tmp_path, capsys):
+    main(["encoder", "check", "--dataset", str(demo_dir), "--image-encoder", "efficientnet-lite0", "--every", "3",
+          "--out", str(tmp_path / "check")])
+    report = json.loads((tmp_path / "check" / "probe.json").read_text())
+    state = DemoDataset(demo_dir).data.get(("observation", "environment_state"))[::3]
+    varying = (state.std(0) > 0).nonzero().flatten().tolist()
+    assert set(report["cameras"]) == {"front", "wrist"}
+    for result in report["cameras"].values():
+        assert result["columns"] == varying and len(result["r2"]) == len(varying)
+        assert all(math.isfinite(r) for r in result["r2"])
+        assert result["heldout_rows"] > 0 and result["train_rows"] > result["heldout_rows"]
+    assert (tmp_path / "check" / "probe.png").stat().st_size > 0
+    assert "front: held-out R^2" in capsys.readouterr().out

@@ -5,24 +5,32 @@ One ``Collector`` per task (``num_collectors=workers`` env processes when
 written as soon as it finishes. Re-running the same call resumes: seeds with a
 record are not run again, and the dataset is the first ``episodes`` successful
 seeds of each task whatever the interruptions or the number of workers.
+
+Every argument is checked before anything is written; one collection at a time
+writes into a folder (:func:`~dust_rl.data.lock.dataset_lock`); and a smaller
+``episodes`` than the dataset already holds keeps them all (nothing is deleted
+to honour it).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import pathlib
 from collections.abc import Sequence
 
-import gymnasium as gym
 from torchrl.collectors import BaseCollector, Collector
 from tqdm import tqdm
 
 import dust_rl  # noqa: F401  (registers the env ids)
+from dust_rl.env_factory import check_tasks, make_env
+from dust_rl.errors import ConfigError
 
 from .collection_env import collection_env_fns
 from .episodes import EpisodeRecord, scan_episodes, trajectory_to_episode, write_episode
 from .finalize import finalize_dataset
 from .layout import clear_staging
+from .lock import dataset_lock
 from .metadata import env_spec, open_meta
 from .policy import make_expert_policy
 from .selection import select_episodes
@@ -38,7 +46,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
 
     Args:
         root: dataset folder (created if missing; an existing one must hold the same config).
-        env_id: gymnasium id; ``env_kwargs`` (image size, cameras...) go to ``gym.make`` with ``task``.
+        env_id: gymnasium id; ``env_kwargs`` (image size, cameras...) go to the env constructor with ``task``.
         tasks: task names; their episodes share one dataset, each with its own instructions.
         episodes: successful episodes per task.
         workers: env processes per collector (1 runs in this process).
@@ -48,26 +56,44 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
 
     Returns:
         the dataset metadata (``meta.json``).
+
+    Raises:
+        ConfigError: a bad count, seed or noise, an unknown task, or env kwargs the env refuses.
+        DatasetError: ``root`` holds a collection with other settings.
+        DatasetLockedError: another process is collecting into ``root``.
     """
-    if episodes < 1 or workers < 1:
-        raise ValueError(f"episodes and workers must be >= 1, got {episodes} and {workers}")
-    root = pathlib.Path(root)
-    root.mkdir(parents=True, exist_ok=True)
-    clear_staging(root)
-    env_kwargs = json.loads(json.dumps(env_kwargs or {}))  # as it will read back from meta.json
-    probe = gym.make(env_id, task=tasks[0], **env_kwargs)
+    tasks = list(dict.fromkeys(tasks))
+    if not (isinstance(episodes, int) and episodes >= 1 and isinstance(workers, int) and workers >= 1):
+        raise ConfigError(f"episodes and workers must be ints >= 1, got {episodes!r} and {workers!r}")
+    if not (isinstance(start_seed, int) and start_seed >= 0) or not (math.isfinite(noise_std) and noise_std >= 0):
+        raise ConfigError(f"start_seed must be an int >= 0 and noise_std a finite number >= 0, "
+                          f"got {start_seed!r} and {noise_std!r}")
+    try:
+        env_kwargs = json.loads(json.dumps(env_kwargs or {}))  # as it will read back from meta.json
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"env_kwargs must be JSON values (they are stored in meta.json): {err}") from err
+    check_tasks(env_id, env_kwargs, tasks)
+    probe = make_env(env_id, {**env_kwargs, "task": tasks[0]})
     spec = env_spec(probe)
     probe.close()
     if not spec["cameras"]:
-        raise ValueError("demonstrations need camera images and instructions: use obs_mode='rgb'")
+        raise ConfigError("demonstrations need camera images and instructions: use obs_mode='rgb'")
     config = {"env_id": env_id, "env_kwargs": env_kwargs, "start_seed": start_seed,
               "noise_std": float(noise_std), "keep_failed": keep_failed}
-    open_meta(root, config, list(tasks), episodes, spec)
-    for task in tasks:
-        _collect_task(root, env_id, {**env_kwargs, "task": task}, task, episodes, workers, start_seed,
-                      noise_std, keep_failed, progress)
-    meta = finalize_dataset(root, progress)
-    clear_staging(root)
+    root = pathlib.Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    with dataset_lock(root):
+        clear_staging(root)
+        meta = open_meta(root, config, tasks, episodes, spec)
+        for task in tasks:
+            target = meta["episodes_per_task"][task]
+            if target > episodes:
+                print(f"{root}: {task} already holds {target} episodes, more than the {episodes} asked; "
+                      "keeping them all, nothing new to collect")
+            _collect_task(root, env_id, {**env_kwargs, "task": task}, task, target, workers, start_seed,
+                          noise_std, keep_failed, progress)
+        meta = finalize_dataset(root, progress)
+        clear_staging(root)
     return meta
 
 

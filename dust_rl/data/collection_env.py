@@ -9,10 +9,9 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 
-import gymnasium as gym
 from torchrl.envs import StepCounter, TransformedEnv
 
-import dust_rl  # noqa: F401  (registers the env ids)
+from dust_rl.env_factory import make_env
 from dust_rl.envs.expert_wrapper import ExpertActionWrapper
 from dust_rl.envs.torchrl_env import make_torchrl_env
 
@@ -25,7 +24,7 @@ def make_collection_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -
     Observations use the canonical VLA keys (``("observation", "image", cam)`` uint8 ``[C, H, W]``,
     ``("observation", "state")``, ``language_instruction``), like ``make_torchrl_env``.
     """
-    env = make_torchrl_env(EpisodeSeedWrapper(ExpertActionWrapper(gym.make(env_id, **env_kwargs)), schedule))
+    env = make_torchrl_env(EpisodeSeedWrapper(ExpertActionWrapper(make_env(env_id, env_kwargs)), schedule))
     env.append_transform(StepCounter())
     return env
 

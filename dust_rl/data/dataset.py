@@ -22,6 +22,10 @@ from .metadata import env_spec, read_meta, spec_mismatches
 INSTRUCTION_KEY = "language_instruction"
 
 
+def _is_int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 class DemoDataset:
     """A finalised dataset folder (see :mod:`dust_rl.data.layout`).
 
@@ -41,12 +45,25 @@ class DemoDataset:
         if not self.meta.get("data"):
             raise DatasetError(f"{self.root}: collection was not finished (no consolidated data in {META_FILE}); "
                                "re-run the collect command to resume it")
+        self._check_episode_table()
         self.data = load_memmap_checked(self.root / self.meta["data"])
         if self.data.shape[0] != self.meta["num_rows"] or self.meta["num_rows"] != sum(self.lengths.tolist()):
             raise DatasetError(f"{self.root}: {self.data.shape[0]} rows on disk, but {META_FILE} expects "
                                f"{self.meta['num_rows']} (episode lengths sum to {sum(self.lengths.tolist())})")
         if env is not None:
             self.check_env(env)
+
+    def _check_episode_table(self) -> None:
+        """Episodes must lie back to back from row 0, each at least one row long, with a known instruction."""
+        row = 0
+        for i, episode in enumerate(self.meta.get("episodes") or []):
+            episode = episode if isinstance(episode, dict) else {}
+            length, start, index = episode.get("length"), episode.get("row_start"), episode.get("instruction_index")
+            if not (_is_int(length) and length >= 1 and start == row and _is_int(index)
+                    and 0 <= index < len(self.meta.get("instructions", []))):
+                raise DatasetError(f"{self.root / META_FILE}: episode {i} is garbled (length {length!r} at row "
+                                   f"{start!r}, expected row {row}; instruction {index!r})")
+            row += length
 
     def __len__(self) -> int:
         return self.data.shape[0]

@@ -7,13 +7,16 @@ env, image size, noise...) and refuse the latter instead of mixing data.
 
 from __future__ import annotations
 
+import collections
 import importlib.metadata
 import pathlib
 
 import gymnasium as gym
 
+from dust_rl.envs.env import STATE_KEY, STATE_MODE_KEYS
+
 from .errors import DatasetError
-from .layout import FORMAT_VERSION, META_FILE, read_json, write_json_atomic
+from .layout import FORMAT_VERSION, META_FILE, inside, read_json, write_json_atomic
 
 # Config entries that must be equal to append to an existing dataset.
 FIXED_CONFIG = ("env_id", "env_kwargs", "start_seed", "noise_std", "keep_failed")
@@ -29,7 +32,7 @@ def env_spec(env: gym.Env) -> dict:
     return {
         "cameras": cameras,
         "image_shape": list(spaces[_IMAGE_PREFIX + cameras[0]].shape) if cameras else None,
-        "state_dim": int(spaces["observation.state"].shape[0]),
+        "state_dim": int(spaces.get(STATE_KEY, spaces.get(STATE_MODE_KEYS[STATE_KEY])).shape[0]),
         "action_dim": int(env.action_space.shape[0]),
         "control_hz": round(1.0 / unwrapped.control_dt, 6),
         "fps": int(unwrapped.metadata["render_fps"]),
@@ -53,7 +56,8 @@ def package_versions() -> dict[str, str | None]:
 
 
 def read_meta(root: pathlib.Path) -> dict:
-    """``meta.json`` of the dataset at ``root``, with its format version checked."""
+    """``meta.json`` of the dataset at ``root``, with its format version checked and its data folder
+    confined to ``root`` (see :func:`~dust_rl.data.layout.inside`)."""
     path = root / META_FILE
     if not path.is_file():
         raise DatasetError(f"{root}: not a dust-rl dataset (no {META_FILE})")
@@ -61,9 +65,13 @@ def read_meta(root: pathlib.Path) -> dict:
         meta = read_json(path)
     except (OSError, ValueError) as err:
         raise DatasetError(f"{path}: unreadable ({err})") from err
+    if not isinstance(meta, dict):
+        raise DatasetError(f"{path}: unreadable (a JSON {type(meta).__name__}, not an object)")
     if meta.get("format_version") != FORMAT_VERSION:
         raise DatasetError(f"{path}: dataset format version {meta.get('format_version')!r}; "
                            f"this dust-rl reads version {FORMAT_VERSION}")
+    if meta.get("data") is not None:
+        inside(root, meta["data"], path)
     return meta
 
 
@@ -72,7 +80,8 @@ def open_meta(root: pathlib.Path, config: dict, tasks: list[str], episodes: int,
 
     Args:
         config: the :data:`FIXED_CONFIG` entries of this collection.
-        tasks: tasks requested now; they join the dataset with ``episodes`` each.
+        tasks: tasks requested now; they join the dataset with ``episodes`` each, or with as many
+            as its consolidated copy already holds if that is more (finalising fewer would delete rows).
         spec: :func:`env_spec` of the env about to be collected.
     """
     if (root / META_FILE).exists():
@@ -87,7 +96,8 @@ def open_meta(root: pathlib.Path, config: dict, tasks: list[str], episodes: int,
                                + "\n  ".join(problems))
     else:
         meta = {"format_version": FORMAT_VERSION, **config, "spec": spec, "episodes_per_task": {}, "data": None}
-    meta["episodes_per_task"] = {**meta["episodes_per_task"], **{task: episodes for task in tasks}}
+    held = collections.Counter(e["task"] for e in meta.get("episodes", []) if e["success"])
+    meta["episodes_per_task"] = {**meta["episodes_per_task"], **{task: max(episodes, held[task]) for task in tasks}}
     meta["versions"] = package_versions()
     write_json_atomic(root / META_FILE, meta)
     return meta

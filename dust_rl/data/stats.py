@@ -22,6 +22,8 @@ def compute_stats(rows: TensorDictBase) -> dict[str, dict[str, list[float]]]:
         if key not in rows.keys(include_nested=True):
             continue
         values = rows.get(key).to(torch.float64).reshape(rows.shape[0], -1)
+        if not values.shape[1]:  # e.g. no privileged state in an imported dataset
+            continue
         stats[stat_name(key)] = {
             "mean": values.mean(0).tolist(), "std": values.std(0, correction=0).tolist(),
             "min": values.min(0).values.tolist(), "max": values.max(0).values.tolist(),

@@ -41,11 +41,23 @@ def write_mp4(path: pathlib.Path, frames: Iterable[np.ndarray], fps: int, crf: i
     return count
 
 
-def read_mp4(path: pathlib.Path) -> Iterator[np.ndarray]:
-    """Decoded RGB uint8 frames ``[H, W, 3]`` of the first video stream, in order."""
+def read_mp4(path: pathlib.Path, size: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
+    """Decoded RGB uint8 frames ``[H, W, 3]`` of the first video stream, in order.
+
+    Args:
+        path: the file.
+        size: the ``(H, W)`` every frame must have; checked before a frame is converted, so a
+            video from elsewhere cannot make the reader allocate frames of any size it likes.
+
+    Raises:
+        DatasetError: an undecodable file, or a frame of another size.
+    """
     try:
         with av.open(str(path)) as container:
             for frame in container.decode(video=0):
+                if size is not None and (frame.height, frame.width) != tuple(size):
+                    raise DatasetError(f"{path}: frames are {frame.height}x{frame.width}, expected "
+                                       f"{size[0]}x{size[1]}")
                 yield frame.to_ndarray(format="rgb24")
     except (av.FFmpegError, OSError) as err:
         raise DatasetError(f"{path}: cannot decode video ({err})") from err

@@ -1,0 +1,50 @@
+"""Errors a user can fix, and the range checks that raise them.
+
+The ``dust-rl`` command prints a :class:`UserError` (and a few library errors of the same
+kind: corrupt checkpoints, file system errors) as one line, ``dust-rl: error: <message>``;
+any other exception is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import math
+
+
+class UserError(Exception):
+    """Bad input (an argument, a file, a folder); the message names the problem and what to do."""
+
+
+class ConfigError(UserError):
+    """A setting is out of range, of the wrong kind, or contradicts another setting.
+
+    Not a ``ValueError`` on purpose: tyro reports ValueErrors raised while it builds a config
+    in its own usage box; the CLI reports every user error the same way, as one line.
+    """
+
+
+def check_at_least(config: object, minimum: int, *names: str) -> None:
+    """Raise :class:`ConfigError` naming the first of ``config``'s fields ``names`` below ``minimum``.
+
+    Fields set to None (meaning "the default") pass.
+    """
+    for name in names:
+        value = getattr(config, name)
+        if value is not None and not value >= minimum:
+            raise ConfigError(f"{name} must be >= {minimum}, got {value}")
+
+
+def check_finite(config: object, *names: str, positive: bool = False) -> None:
+    """Raise :class:`ConfigError` naming the first of ``config``'s fields ``names`` that is not finite
+    (and > 0 when ``positive``, else >= 0)."""
+    for name in names:
+        value = getattr(config, name)
+        if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
+            raise ConfigError(f"{name} must be a finite number {'>' if positive else '>='} 0, got {value}")
+
+
+def check_fraction(config: object, *names: str) -> None:
+    """Raise :class:`ConfigError` naming the first of ``config``'s fields ``names`` outside [0, 1)."""
+    for name in names:
+        value = getattr(config, name)
+        if not 0 <= value < 1:
+            raise ConfigError(f"{name} must be in [0, 1), got {value}")

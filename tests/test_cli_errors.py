@@ -1,0 +1,130 @@
+"""The ``dust-rl`` command on bad input: one-line errors, nothing lost on disk, settings that take effect."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from dust_rl.agents import save_image_encoder
+from dust_rl.cli import main
+from dust_rl.data import DemoDataset
+from test_evaluate import tiny_policy_file
+from test_train import TINY_MODEL
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def error_of(args: list[str]) -> str:
+    """The message ``dust-rl`` exits with; it must be one ``dust-rl: error:`` line."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(args)
+    message = str(exit_info.value.code)
+    assert message.startswith("dust-rl: error: ") and "\n" not in message, message
+    return message
+
+
+def collect_args(out, episodes: int = 3, task: str = "press_button,open_drawer") -> list[str]:
+    """``dust-rl collect`` with the settings of the conftest ``demo_dir`` (so a copy of it resumes)."""
+    return ["collect", "--task", task, "--episodes", str(episodes), "--image-size", "32", "--out", str(out)]
+
+
+@pytest.fixture
+def dataset_copy(demo_dir, tmp_path):
+    return shutil.copytree(demo_dir, tmp_path / "ds")
+
+
+def test_smaller_episode_count_keeps_every_episode(dataset_copy, capsys):
+    before = DemoDataset(dataset_copy).meta["episodes"]
+    episode_dirs = sorted(p.relative_to(dataset_copy) for p in (dataset_copy / "episodes").rglob("*"))
+    for _ in range(2):  # the second run used to fail on the episodes the first one deleted
+        main(collect_args(dataset_copy, episodes=1))
+        printed = capsys.readouterr().out
+        assert "press_button already holds 3 episodes, more than the 1 asked; keeping them all" in printed
+        dataset = DemoDataset(dataset_copy)
+        assert dataset.meta["episodes"] == before and dataset.meta["episodes_per_task"] == {
+            "press_button": 3, "open_drawer": 3}
+        assert sorted(p.relative_to(dataset_copy) for p in (dataset_copy / "episodes").rglob("*")) == episode_dirs
+        assert len(dataset.episode(5)) == before[5]["length"]  # the rows are all still there
+
+
+def test_bad_task_list_writes_nothing(dataset_copy, tmp_path):
+    meta = (dataset_copy / "meta.json").read_bytes()
+    assert "unknown franka task 'nope'" in error_of(collect_args(dataset_copy, task="press_button,nope"))
+    assert (dataset_copy / "meta.json").read_bytes() == meta
+    main(collect_args(dataset_copy))  # later collects into the folder still work
+    new = tmp_path / "new"
+    for args in (collect_args(new, task="nope"), collect_args(new, episodes=0),
+                 [*collect_args(new), "--cameras", "front,nope"], ["collect", "--env", "Nope-v0", "--out", str(new)],
+                 ["collect", "--task", "all", "--robot", "spider", "--out", str(new)]):
+        error_of(args)
+    assert not new.exists()
+
+
+def test_a_second_collector_is_refused_and_told_who_holds_the_folder(dataset_copy):
+    script = ("import pathlib, time; from dust_rl.data.lock import dataset_lock; "
+              f"lock = dataset_lock(pathlib.Path({str(dataset_copy)!r})); lock.__enter__(); print('locked', flush=True); "
+              "time.sleep(120)")
+    holder = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "locked\n"
+        message = error_of(collect_args(dataset_copy))
+        assert f"is being written by another process (pid {holder.pid} on " in message and "dataset_lock" in message
+    finally:
+        holder.kill()
+        holder.wait()
+    main(collect_args(dataset_copy))  # the kernel released the lock of the killed process
+
+
+def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
+    torch.manual_seed(0)  # an untrained policy: it never presses the button, so episodes run to the limit
+    policy = tiny_policy_file(tmp_path / "policy.pt", minilm)
+    out = tmp_path / "eval"
+    main(["eval", "--policy", str(policy), "--out", str(out), "--episodes", "1", "--workers", "1",
+          "--max-steps", "103", "--videos", "0", "--no-progress"])  # press_button's default limit: 100 steps
+    report = json.loads((out / "report.json").read_text())
+    assert report["env_kwargs"]["max_episode_steps"] == 103
+    assert report["tasks"][0]["per_episode"][0][1:3] == [False, 103]
+    assert not list(out.glob(".*.tmp"))  # the report files were moved into place
+    for args in (["--episodes", "0"], ["--max-steps", "0"], ["--tasks", "press_button", "fly"]):
+        error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"), *args])
+    assert "no such checkpoint file" in error_of(["eval", "--policy", str(tmp_path / "missing.pt")])
+    assert not (tmp_path / "bad").exists()
+
+
+@pytest.fixture
+def train_args(dataset_copy, tiny_encoder, tmp_path):
+    encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
+    return ["train", "--dataset", str(dataset_copy), "--image-encoder", str(encoder), "--threads", "1",
+            "--no-progress", "--log-every", "1", "--checkpoint-every", "1",
+            *[f"--{k.replace('_', '-')}={v}" for k, v in TINY_MODEL.items()]]
+
+
+def test_train_refuses_bad_settings_before_writing(train_args, tmp_path):
+    out = tmp_path / "run"
+    for flags, field in ((["--lr", "inf"], "lr"), (["--grad-clip", "nan"], "grad_clip"), (["--lr", "0"], "lr"),
+                         (["--steps", "0"], "steps"), (["--batch-size", "0"], "batch_size"),
+                         (["--execute-steps", "9"], "execute_steps"), (["--warmup", "1"], "warmup"),
+                         (["--n-heads", "3"], "d_model must be divisible by n_heads")):
+        assert field in error_of([*train_args, "--out", str(out), *flags])
+    assert "not a dust-rl dataset" in error_of(["train", "--dataset", str(tmp_path / "none"), "--out", str(out)])
+    assert not out.exists()
+
+
+def test_diverging_training_stops_at_the_first_non_finite_loss(train_args, tmp_path):
+    out = tmp_path / "run"
+    message = error_of([*train_args, "--out", str(out), "--steps", "6", "--lr", "1e30"])
+    step = int(message.split("diverged at step ")[1].split(":")[0])
+    assert not (out / "policy.pt").exists()
+    checkpoints = sorted((out / "checkpoints").iterdir())
+    assert [int(p.name.split("-")[1]) for p in checkpoints] == list(range(max(1, step - 2), step))
+    for checkpoint in checkpoints:  # the weights and their average that were saved are finite
+        for component in ("model", "ema"):
+            (state,) = checkpoint.glob(f"components/*-{component}/state")
+            tensors = TensorDict.load_memmap(state).values(include_nested=True, leaves_only=True)
+            assert all(torch.isfinite(t).all() for t in tensors if t.is_floating_point()), checkpoint
