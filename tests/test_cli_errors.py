@@ -11,7 +11,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from dust_rl.agents import save_image_encoder
+from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
 from test_evaluate import tiny_policy_file
@@ -86,13 +86,17 @@ def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
     policy = tiny_policy_file(tmp_path / "policy.pt", minilm)
     out = tmp_path / "eval"
     main(["eval", "--policy", str(policy), "--out", str(out), "--episodes", "1", "--workers", "1",
-          "--max-steps", "103", "--videos", "0", "--no-progress"])  # press_button's default limit: 100 steps
+          "--max-steps", "103", "--execute-steps", "3", "--videos", "0", "--no-progress"])  # default limit: 100
     report = json.loads((out / "report.json").read_text())
-    assert report["env_kwargs"]["max_episode_steps"] == 103
+    assert report["env_kwargs"]["max_episode_steps"] == 103 and report["execute_steps"] == 3
     assert report["tasks"][0]["per_episode"][0][1:3] == [False, 103]
     assert not list(out.glob(".*.tmp"))  # the report files were moved into place
-    for args in (["--episodes", "0"], ["--max-steps", "0"], ["--tasks", "press_button", "fly"]):
+    for args in (["--episodes", "0"], ["--max-steps", "0"], ["--tasks", "press_button", "fly"],
+                 ["--execute-steps", "0"]):
         error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"), *args])
+    horizon = unwrap(load_policy(policy)).config.horizon
+    assert "execute_steps must be in [1, " in error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"),
+                                                        "--execute-steps", str(horizon + 1)])
     assert "no such checkpoint file" in error_of(["eval", "--policy", str(tmp_path / "missing.pt")])
     assert not (tmp_path / "bad").exists()
 
