@@ -47,7 +47,7 @@ from .image_encoder import ImageEncoder
 # Stride of the first block of each of the 7 stages (EfficientNet-B0/Lite layout); later blocks use 1.
 STAGE_STRIDES = (1, 2, 2, 2, 1, 2, 1)
 BN_EPS = 1e-3  # TensorFlow's batch-norm epsilon, which the weights were trained with
-# ImageNet statistics of the pixels in [0, 1], as the wheels' own example preprocesses them.
+# ImageNet statistics of the pixels in [0, 1], as the PyTorch port these weights come from preprocesses them.
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 FRAMES_PER_PASS = 4  # frames per forward pass: larger batches fall out of the CPU cache (see feature_map)
