@@ -80,5 +80,6 @@ def test_dust_overfits_a_tiny_dataset():
     assert untrained_action.mean() > 0.4
     train(agent, torch.cat([data] * 8), steps=300, lr=3e-3)
     action_err, vision_err = errors()
-    assert action_err.mean() < 0.1 and action_err.max() < 0.4, (action_err.mean(), action_err.max())
+    # Worst entry over 8 init x 3 noise seeds and 3 CPU kernel levels: 0.09-0.33; an unlearned chunk is off by ~1.
+    assert action_err.mean() < 0.1 and action_err.max() < 0.5, (action_err.mean(), action_err.max())
     assert vision_err.mean() < 0.15, vision_err.mean()
