@@ -194,9 +194,9 @@ class EfficientNetLite(ImageEncoder):
     def feature_map(self, images: Tensor) -> Tensor:
         """Images [B, 3, S, S] in [0, 1] -> features [B, dim, S / stride, S / stride] (ceil).
 
-        Runs channels-last, a few frames at a time: on one CPU thread a 128 px frame (Lite0 to stride 16)
-        took 40 ms in a contiguous batch of 64, 12 ms channels-last, and 4 ms in batches of 1-2, whose
-        activations stay in cache.
+        Runs channels-last, a few frames at a time: in scratch timings on one CPU thread (other jobs
+        running) a 128 px frame (Lite0 to stride 16) took ~40 ms in a contiguous batch of 64, ~12 ms
+        channels-last, and ~4 ms in passes of 1-2 frames, whose activations stay in cache.
         """
         return torch.cat([self._features(chunk) for chunk in images.split(FRAMES_PER_PASS)])
 

@@ -47,13 +47,12 @@ class ProbeResult:
 
 def _ridge(x: Tensor, y: Tensor, alpha: float) -> Tensor:
     """Ridge weights [D + 1, K] (last row: intercept) in float64; the dual form when rows < features."""
-    ones = torch.ones(x.shape[0], 1, dtype=x.dtype)
-    x1 = torch.cat([x, ones], dim=1)
-    reg = alpha * torch.eye(x1.shape[1], dtype=x.dtype)
-    reg[-1, -1] = 0.0
+    x1 = torch.cat([x, torch.ones(x.shape[0], 1, dtype=x.dtype)], dim=1)
     if x1.shape[0] < x1.shape[1]:
         gram = x1 @ x1.T + alpha * torch.eye(x1.shape[0], dtype=x.dtype)
         return x1.T @ torch.linalg.solve(gram, y)
+    reg = alpha * torch.eye(x1.shape[1], dtype=x.dtype)
+    reg[-1, -1] = 0.0  # the intercept is not shrunk
     return torch.linalg.solve(x1.T @ x1 + reg, x1.T @ y)
 
 

@@ -216,7 +216,7 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
         CheckpointError: missing or corrupt policy file, or a policy that does not fit the env.
         ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
     """
-    policy = unwrap(load_policy(config.policy))
+    policy = unwrap(load_policy(config.policy, execute_steps=config.execute_steps))  # the policy checks the range
     env_id = config.env_id or policy.info.get("env_id")
     tasks = tuple(config.tasks or policy.info.get("tasks", ()))
     if not env_id or not tasks:
@@ -235,11 +235,6 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
         sampler.apply(policy)
     except ValueError as err:  # the policy's own config check (e.g. async sampling of a shared-timestep variant)
         raise ConfigError(f"{config.policy}: sampler {sampler.describe()} does not apply: {err}") from err
-    if config.execute_steps is not None:
-        if config.execute_steps > policy.config.horizon:
-            raise ConfigError(f"execute_steps must be in [1, {policy.config.horizon}] (the policy's chunk length), "
-                              f"got {config.execute_steps}")
-        policy.execute_steps = config.execute_steps
     return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps)
 
 

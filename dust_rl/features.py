@@ -87,10 +87,10 @@ class FeatureCache:
                                    f"expected {shape} float16; delete the file to rebuild it")
             self.views = stored.view(shape)
         else:
-            jobs = [(view, start) for view in range(views) for start in range(0, len(dataset), batch_size)]
-            encoded = [self._encode(view, start) for view, start in tqdm(jobs, desc="encoding frames",
-                                                                          disable=not progress)]
-            self.views = torch.cat(encoded).view(shape)
+            starts = range(0, len(dataset), batch_size)
+            encoded = [self._encode(start, views) for start in tqdm(starts, desc="encoding frames",
+                                                                    disable=not progress)]
+            self.views = torch.cat(encoded, dim=1)
             if self.path is not None:
                 save_checkpoint({"image_tokens": self.views}, self.path, FEATURES_KIND)
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(dataset.instructions)
@@ -100,15 +100,19 @@ class FeatureCache:
         """[rows, C, N, Dv] float16 condition tokens of the frames themselves (view 0)."""
         return self.views[0]
 
-    def _encode(self, view: int, start: int) -> torch.Tensor:
-        """Tokens of one batch of rows as they are (view 0) or augmented (see :mod:`dust_rl.augment`)."""
-        rows = self.dataset.data[start:start + self.batch_size]
-        if view:
+    def _encode(self, start: int, views: int) -> torch.Tensor:
+        """Tokens [views, rows, ...] of the batch of rows from ``start``: as they are, then augmented copies.
+
+        The frames are read once for all views (see :mod:`dust_rl.augment` for the augmentation).
+        """
+        keys = [(*IMAGE_KEY, cam) for cam in self.policy.cameras]
+        rows = self.dataset.data.select(*keys)[start:start + self.batch_size]
+        encoded = [self.policy.image_features(rows).half()]
+        for view in range(1, views):
             generator = view_generator(start, view)
-            frames = {(*IMAGE_KEY, cam): augment_frames(rows.get((*IMAGE_KEY, cam)), generator)
-                      for cam in self.policy.cameras}
-            rows = TensorDict(frames, batch_size=rows.batch_size)
-        return self.policy.image_features(rows).half()
+            frames = {key: augment_frames(rows.get(key), generator) for key in keys}
+            encoded.append(self.policy.image_features(TensorDict(frames, batch_size=rows.batch_size)).half())
+        return torch.stack(encoded)
 
     def batch(self, windows: TensorDictBase) -> TensorDict:
         """The policy's feature batch (see :mod:`dust_rl.agents.policy`) for a ``DemoWindows`` batch."""
