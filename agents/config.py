@@ -3,7 +3,7 @@
 One dataclass selects the variant, the trunk size, the flow-matching loss and
 the sampler, so that every baseline is the same code at the same depth/width.
 
-Variants (paper's comparison set, DESIGN §3):
+Variants (paper's comparison set, docs/algorithm.md):
 
 - ``"dust"``: dual-stream MMDiT, decoupled timesteps (per-stream AdaLN).
 - ``"mmdit_shared"``: dual-stream MMDiT, one shared timestep for both streams.

@@ -79,7 +79,7 @@ def test_shapes_of_loss_and_prediction(variant):
 
 def test_default_size_matches_design():
     n_params = sum(p.numel() for p in DustModel(DustConfig()).parameters())
-    assert 3.0e6 < n_params < 5.0e6  # DESIGN §5: ~4.1M for d=128, 4 MMDiT + 2 DiT blocks
+    assert 3.0e6 < n_params < 5.0e6  # docs/architecture.md: 3.85M for d=128, 4 MMDiT + 2 DiT blocks
 
 
 def test_streams_keep_separate_weights_and_baselines_share():
