@@ -88,6 +88,8 @@ def _collect(args: argparse.Namespace) -> None:
     env_kwargs = {"image_size": args.image_size}
     if args.cameras:
         env_kwargs["cameras"] = _names(args.cameras)
+    if args.privileged_state:
+        env_kwargs["privileged_state"] = True
     collect_demos(args.out, args.env, tasks, args.episodes, env_kwargs=env_kwargs, workers=args.workers,
                   start_seed=args.seed, noise_std=args.noise_std, keep_failed=args.keep_failed)
     print(dataset_summary(DemoDataset(args.out)))
@@ -255,6 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
     collect.add_argument("--noise-std", type=float, default=0.0,
                          help="DART: Gaussian noise on the executed action; the label stays the expert's")
     collect.add_argument("--keep-failed", action="store_true", help="also store failed episodes")
+    collect.add_argument("--privileged-state", action="store_true",
+                         help="append the objects' state to observation.state (an oracle: policies trained on it "
+                              "need not see the objects; compare with an image-only dataset to measure perception)")
     collect.set_defaults(func=_collect)
     _add_dataset_commands(commands)
 

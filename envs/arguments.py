@@ -52,6 +52,13 @@ def camera_names(cameras: object, available: Sequence[str]) -> tuple[str, ...]:
     return tuple(cameras)
 
 
+def flag(name: str, value: object) -> bool:
+    """A plain ``bool`` (a string such as ``"false"`` would otherwise read as true)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
 def max_episode_steps(value: object) -> int | None:
     """A positive int, or None for the task's default."""
     if value is not None and not (_is_int(value) and value > 0):

@@ -73,6 +73,9 @@ class DustEnv(gym.Env):
         control_hz: control rate; physics runs at ``1 / physics_dt``.
         physics_dt: MuJoCo timestep (s); must divide the control period into whole substeps.
         ik_solver: QP solver for mink, one of ``qpsolvers.available_solvers`` (``"daqp"``, ``"quadprog"``).
+        privileged_state: append the task's ``environment_state`` (object positions) to
+            ``observation.state``. A policy trained on it cannot fail for lack of seeing the
+            objects: an oracle that measures how much perception costs, not a deployable policy.
 
     Raises:
         ValueError: an argument is out of its domain; the message names it and what is allowed.
@@ -103,6 +106,7 @@ class DustEnv(gym.Env):
         control_hz: float = 20.0,
         physics_dt: float = 0.002,
         ik_solver: str = "daqp",
+        privileged_state: bool = False,
     ) -> None:
         arguments.check_choice("obs_mode", obs_mode, OBS_MODES)
         arguments.check_choice("control_mode", control_mode, CONTROL_MODES)
@@ -114,6 +118,7 @@ class DustEnv(gym.Env):
         self.image_shape = arguments.image_shape(image_size)
         self.n_substeps = arguments.substeps(control_hz, physics_dt)
         max_episode_steps = arguments.max_episode_steps(max_episode_steps)
+        self.privileged_state = arguments.flag("privileged_state", privileged_state)
         self.task = make_task(task, robot)
         self.obs_mode, self.control_mode, self.reward_type = obs_mode, control_mode, reward_type
         self.render_mode = render_mode
@@ -177,6 +182,7 @@ class DustEnv(gym.Env):
     def _make_observation_space(self) -> gym.spaces.Dict:
         n_ee = len(self.robot.end_effectors)
         state_dim = len(self._state_qadr) + 8 * n_ee  # joints + per-EE (pos, quat, opening)
+        state_dim += self.task.environment_state_dim if self.privileged_state else 0
         spaces: dict[str, gym.spaces.Space] = {}
         if self.obs_mode == "rgb":
             for camera in self.cameras:
@@ -298,7 +304,8 @@ class DustEnv(gym.Env):
         return {STATE_MODE_KEYS[k]: v for k, v in entries.items()} if self.obs_mode == "state" else entries
 
     def _state(self) -> np.ndarray:
-        """Joint positions, then per end effector: position, quaternion (wxyz), opening."""
+        """Joint positions, then per end effector: position, quaternion (wxyz), opening; then the
+        task's environment state with ``privileged_state``."""
         n = len(self._state_qadr)
         state = np.empty(n + 8 * len(self._ee_sites))
         state[:n] = self.data.qpos[self._state_qadr]
@@ -307,6 +314,8 @@ class DustEnv(gym.Env):
             block[:3] = self.data.site_xpos[site]
             mujoco.mju_mat2Quat(block[3:7], self.data.site_xmat[site])
             block[7] = ee.opening(self.data.qpos[opening])
+        if self.privileged_state:
+            state = np.concatenate([state, self.task.environment_state(self.data)])
         return state.astype(np.float32)
 
     def _render_camera(self, camera: str) -> np.ndarray:

@@ -91,6 +91,7 @@ BAD_ARGUMENTS = [
     ("control_hz", -20.0), ("control_hz", 0), ("control_hz", float("nan")), ("control_hz", float("inf")),
     ("control_hz", "20"), ("control_hz", True), ("physics_dt", 0.0), ("physics_dt", -0.002),
     ("physics_dt", float("nan")), ("physics_dt", 0.1), ("physics_dt", 0.003), ("ik_solver", "no_such_solver"),
+    ("privileged_state", "false"), ("privileged_state", 1),
 ]
 
 
@@ -110,6 +111,17 @@ def test_valid_constructor_arguments_are_taken_as_given():
     assert env.n_substeps == 25 and env.control_dt == pytest.approx(0.1) and env.metadata["render_fps"] == 10
     assert not env.step(np.zeros(7, np.float32))[3] and env.step(np.zeros(7, np.float32))[3]  # 2-step time limit
     env.close()
+
+
+@pytest.mark.parametrize("robot, task", [("franka", "pick_place"), ("humanoid", "push")])
+def test_privileged_state_appends_the_objects_to_the_robot_state(robot, task):
+    plain, oracle = (DustEnv(task=task, robot=robot, obs_mode="state", privileged_state=flag) for flag in (False, True))
+    obs, _ = plain.reset(seed=3)
+    seen, _ = oracle.reset(seed=3)
+    assert oracle.observation_space["agent_pos"].shape == seen["agent_pos"].shape
+    np.testing.assert_array_equal(seen["agent_pos"], np.concatenate([obs["agent_pos"], obs["environment_state"]]))
+    gym_check_env(oracle, skip_render_check=True)
+    plain.close(), oracle.close()
 
 
 def test_make_without_import_uses_module_prefix():
