@@ -132,3 +132,13 @@ def test_diverging_training_stops_at_the_first_non_finite_loss(train_args, tmp_p
             (state,) = checkpoint.glob(f"components/*-{component}/state")
             tensors = TensorDict.load_memmap(state).values(include_nested=True, leaves_only=True)
             assert all(torch.isfinite(t).all() for t in tensors if t.is_floating_point()), checkpoint
+
+
+def test_collect_privileged_state_reaches_the_env_and_the_dataset(tmp_path):
+    out = tmp_path / "oracle"
+    main([*collect_args(out, episodes=1, task="pick_place"), "--privileged-state"])
+    dataset = DemoDataset(out)
+    assert dataset.meta["env_kwargs"]["privileged_state"] is True
+    rows = dataset.episode(0)
+    objects = rows.get(("observation", "environment_state"))
+    torch.testing.assert_close(rows.get(("observation", "state"))[:, -objects.shape[-1]:], objects, rtol=0, atol=0)
