@@ -293,8 +293,10 @@ class DustEnv(gym.Env):
         if self.obs_mode == "rgb":
             for camera in self.cameras:
                 obs[f"observation.image.{camera}"] = self._render_camera(camera)
-        obs[STATE_KEY] = self._state()
-        obs[ENV_STATE_KEY] = self.task.environment_state(self.data).astype(np.float32)
+        env_state = self.task.environment_state(self.data).astype(np.float32)
+        state = self._state()
+        obs[STATE_KEY] = np.concatenate([state, env_state]) if self.privileged_state else state
+        obs[ENV_STATE_KEY] = env_state
         if self.obs_mode == "rgb":
             obs["language_instruction"] = self._instruction
         return self._mode_keys(obs)
@@ -304,8 +306,7 @@ class DustEnv(gym.Env):
         return {STATE_MODE_KEYS[k]: v for k, v in entries.items()} if self.obs_mode == "state" else entries
 
     def _state(self) -> np.ndarray:
-        """Joint positions, then per end effector: position, quaternion (wxyz), opening; then the
-        task's environment state with ``privileged_state``."""
+        """Joint positions, then per end effector: position, quaternion (wxyz), opening."""
         n = len(self._state_qadr)
         state = np.empty(n + 8 * len(self._ee_sites))
         state[:n] = self.data.qpos[self._state_qadr]
@@ -314,8 +315,6 @@ class DustEnv(gym.Env):
             block[:3] = self.data.site_xpos[site]
             mujoco.mju_mat2Quat(block[3:7], self.data.site_xmat[site])
             block[7] = ee.opening(self.data.qpos[opening])
-        if self.privileged_state:
-            state = np.concatenate([state, self.task.environment_state(self.data)])
         return state.astype(np.float32)
 
     def _render_camera(self, camera: str) -> np.ndarray:

@@ -121,7 +121,8 @@ def test_privileged_state_appends_the_objects_to_the_robot_state(robot, task):
     assert oracle.observation_space["agent_pos"].shape == seen["agent_pos"].shape
     np.testing.assert_array_equal(seen["agent_pos"], np.concatenate([obs["agent_pos"], obs["environment_state"]]))
     gym_check_env(oracle, skip_render_check=True)
-    plain.close(), oracle.close()
+    plain.close()
+    oracle.close()
 
 
 def test_make_without_import_uses_module_prefix():
