@@ -5,7 +5,9 @@ different encoders with different sizes; each source gets its own linear map
 to ``cond_dim`` and a learned embedding that tells the trunk which camera and
 grid cell (or that it is text) a token came from. This is the trainable
 interface between the frozen backbone and the policy, like the projector
-between a VLM and its action head.
+between a VLM and its action head. With ``n_keypoints`` > 0 each camera also
+gets a trainable spatial-softmax head (:mod:`.keypoints`) whose keypoints
+become tokens of their own: coordinates finer than the grid, for grasping.
 """
 
 from __future__ import annotations
@@ -13,39 +15,64 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .keypoints import SpatialKeypoints
+
 EMBED_INIT_STD = 0.02
 
 
 class ConditionProjector(nn.Module):
-    """Image and text features to condition tokens [B, C*N + L, cond_dim] and their mask.
+    """Image and text features to condition tokens [B, C*(N + K) + L, cond_dim] and their mask.
 
     Args:
         n_cameras: C, cameras per observation.
-        n_image_tokens: N, tokens per camera.
+        grid: (rows, cols) of each camera's tokens; N = rows * cols.
         image_dim: size of an image token.
         text_dim: size of a text token.
         cond_dim: size of a condition token.
+        n_keypoints: K, spatial-softmax keypoints per camera (0: none).
     """
 
-    def __init__(self, n_cameras: int, n_image_tokens: int, image_dim: int, text_dim: int, cond_dim: int) -> None:
+    def __init__(self, n_cameras: int, grid: tuple[int, int], image_dim: int, text_dim: int, cond_dim: int,
+                 n_keypoints: int = 0) -> None:
         super().__init__()
+        self.grid = tuple(grid)
         self.image_in = nn.Linear(image_dim, cond_dim)
         self.text_in = nn.Linear(text_dim, cond_dim)
-        self.image_embed = nn.Parameter(EMBED_INIT_STD * torch.randn(n_cameras * n_image_tokens, cond_dim))
+        self.image_embed = nn.Parameter(EMBED_INIT_STD * torch.randn(n_cameras * grid[0] * grid[1], cond_dim))
         self.text_embed = nn.Parameter(EMBED_INIT_STD * torch.randn(cond_dim))
+        self.keypoints = nn.ModuleList(SpatialKeypoints(image_dim, n_keypoints) for _ in range(n_cameras)
+                                       if n_keypoints)
+        if n_keypoints:
+            self.keypoint_in = nn.Linear(2 + image_dim, cond_dim)
+            self.keypoint_embed = nn.Parameter(EMBED_INIT_STD * torch.randn(n_cameras * n_keypoints, cond_dim))
 
-    def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor) -> tuple[Tensor, Tensor]:
+    def keypoint_features(self, image_tokens: Tensor) -> Tensor:
+        """Per camera and keypoint, its coordinates and attended features [B, C*K, 2 + image_dim].
+
+        Args:
+            image_tokens: [B, C, N, image_dim], row-major on ``grid``; needs ``n_keypoints`` > 0.
+        """
+        maps = image_tokens.transpose(-1, -2).unflatten(-1, self.grid)  # [B, C, D, rows, cols]
+        return torch.cat([torch.cat(head(maps[:, c]), dim=-1) for c, head in enumerate(self.keypoints)], dim=1)
+
+    def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor,
+                keypoints: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Project and concatenate.
 
         Args:
-            image_tokens: [B, C, N, image_dim].
+            image_tokens: [B, C, N, image_dim], row-major on ``grid``.
             text_tokens: [B, L, text_dim].
             text_mask: bool [B, L], True for real tokens.
+            keypoints: :meth:`keypoint_features` if already computed (None: computed here when used).
 
         Returns:
-            (condition tokens [B, C*N + L, cond_dim], bool mask [B, C*N + L]).
+            (condition tokens [B, C*(N + K) + L, cond_dim], bool mask of the same length).
         """
-        image = self.image_in(image_tokens.flatten(1, 2)) + self.image_embed
+        image = [self.image_in(image_tokens.flatten(1, 2)) + self.image_embed]
+        if self.keypoints:
+            keypoints = self.keypoint_features(image_tokens) if keypoints is None else keypoints
+            image.append(self.keypoint_in(keypoints) + self.keypoint_embed)
+        image = torch.cat(image, dim=1)
         text = self.text_in(text_tokens) + self.text_embed
         image_mask = torch.ones(image.shape[:2], dtype=torch.bool, device=image.device)
         return torch.cat([image, text], dim=1), torch.cat([image_mask, text_mask], dim=1)

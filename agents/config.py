@@ -39,6 +39,7 @@ MAX_CONV_WIDTH = 512  # channels of a convolutional encoder stage
 MAX_ENCODER_LAYERS = 64  # transformer layers of an image encoder
 MAX_TEXT_TOKENS = 512  # tokens per instruction
 MAX_CAMERAS = 16  # cameras a policy reads
+MAX_KEYPOINTS = 256  # spatial-softmax keypoints per camera
 MAX_PARAMETERS = 1_000_000_000  # of the trunk, or of an image encoder: 4 GB of float32 weights
 TIME_FREQ_DIM = 256  # sinusoidal features of the timestep embedding
 
@@ -64,6 +65,12 @@ class DustConfig:
             backbone tokens than it predicts); None: ``vision_grid``. The future target is the
             condition grid pooled to ``vision_grid``, so each side must be a multiple of it.
         cond_dim: feature size of the backbone condition tokens.
+        keypoints: trainable spatial-softmax keypoints per camera on the condition grid, each one more
+            condition token (:mod:`.keypoints`); 0: none.
+        aux_state_dim: size of the privileged environment state (object positions) that the keypoints learn
+            to predict during training, an auxiliary loss (:meth:`~.policy.DustPolicy.compute_loss`); the
+            policy never reads it when acting. 0: no such loss. Needs ``keypoints``.
+        lambda_aux: weight of that auxiliary loss.
         d_model: trunk width.
         n_heads: attention heads.
         n_mmdit: dual-stream MMDiT blocks (single-stream variants use the same count of shared blocks).
@@ -85,6 +92,9 @@ class DustConfig:
     vision_grid: tuple[int, int] = (4, 4)
     cond_grid: tuple[int, int] | None = None
     cond_dim: int = 384
+    keypoints: int = 0
+    aux_state_dim: int = 0
+    lambda_aux: float = 1.0
     d_model: int = 128
     n_heads: int = 4
     n_mmdit: int = 4
@@ -105,6 +115,8 @@ class DustConfig:
             raise ValueError("d_model must be divisible by n_heads")
         if any(c % v for c, v in zip(self.condition_grid, self.vision_grid)):
             raise ValueError(f"cond_grid {self.condition_grid} must be a multiple of vision_grid {self.vision_grid}")
+        if self.aux_state_dim and not self.keypoints:
+            raise ValueError("aux_state_dim needs keypoints > 0: the auxiliary loss is read off the keypoints")
         sampler = self.sampler_name
         if not self.has_vision and sampler != "action_only":
             raise ValueError("the action_only variant has no vision stream; use sampler='action_only'")
@@ -116,6 +128,8 @@ class DustConfig:
         for name in ("action_dim", "state_dim", "vision_dim", "cond_dim", "d_model"):
             check_size(name, getattr(self, name), MAX_WIDTH)
         check_size("horizon", self.horizon, MAX_HORIZON)
+        check_size("keypoints", self.keypoints, MAX_KEYPOINTS, minimum=0)
+        check_size("aux_state_dim", self.aux_state_dim, MAX_WIDTH, minimum=0)
         check_size("n_heads", self.n_heads, self.d_model)
         check_size("n_mmdit", self.n_mmdit, MAX_BLOCKS, minimum=0)
         check_size("n_dit", self.n_dit, MAX_BLOCKS - self.n_mmdit, minimum=0)
@@ -130,7 +144,7 @@ class DustConfig:
             for side in grid:
                 check_size(name, side, MAX_GRID_SIDE)
         for name, low, high in (("mlp_ratio", 0.0, MAX_MLP_RATIO), ("tau_s", 0.0, 1.0), ("tau_alpha", 0.0, math.inf),
-                                ("lambda_wm", None, math.inf)):
+                                ("lambda_wm", None, math.inf), ("lambda_aux", None, math.inf)):
             value = getattr(self, name)
             if not (isinstance(value, numbers.Real) and math.isfinite(value)
                     and (value >= 0 if low is None else value > low) and value <= high):

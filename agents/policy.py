@@ -50,6 +50,7 @@ from .dust_agent import DustAgent
 from .image_encoder import pool_tokens
 from .normalizer import Normalizer
 from .samplers import schedule_for
+from .state_readout import StateReadout
 
 FEATURE_KEYS = ("image_tokens", "text_tokens", "text_mask")
 
@@ -111,9 +112,12 @@ class DustPolicy(VLAWrapperBase):
         super().__init__(action_dim=config.action_dim, chunk_size=config.horizon, image_key=IMAGE_KEY)
         self.future_camera, self.execute_steps = future_camera, execute_steps
         self.backbone = backbone
-        self.condition = ConditionProjector(len(cameras), config.n_cond_image_tokens, backbone.image_dim,
-                                            backbone.text_dim, config.cond_dim)
+        self.condition = ConditionProjector(len(cameras), config.condition_grid, backbone.image_dim,
+                                            backbone.text_dim, config.cond_dim, config.keypoints)
         self.agent = DustAgent(config)
+        if config.aux_state_dim:
+            self.state_readout = StateReadout(len(cameras) * config.keypoints, 2 + backbone.image_dim,
+                                              backbone.text_dim, config.aux_state_dim)
         self.normalizer = Normalizer(config.state_dim, config.action_dim, config.vision_dim)
         self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
         self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
@@ -197,16 +201,30 @@ class DustPolicy(VLAWrapperBase):
 
     def _agent_batch(self, features: TensorDictBase) -> TensorDictBase:
         image = self.normalizer.normalize_vision(features.get("image_tokens"))
-        cond, mask = self.condition(image, features.get("text_tokens"), features.get("text_mask"))
+        keypoints = self.condition.keypoint_features(image) if self.config.keypoints else None
+        cond, mask = self.condition(image, features.get("text_tokens"), features.get("text_mask"), keypoints)
         batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
+        if keypoints is not None:
+            batch.set("keypoints", keypoints)
         if "future_tokens" in features.keys():
             batch.set("future_tokens", self.normalizer.normalize_vision(features.get("future_tokens")))
         return batch
 
     # -- training and inference ---------------------------------------------
     def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
-        """DUST's flow-matching loss of a feature batch (``loss``, ``loss_action``, ``loss_vision``)."""
-        return self.agent.compute_loss(self._agent_batch(batch), generator)
+        """DUST's flow-matching loss of a feature batch (``loss``, ``loss_action``, ``loss_vision``).
+
+        With ``config.aux_state_dim`` and an ``env_state`` in the batch, ``loss`` also holds
+        ``lambda_aux`` times ``loss_aux``, the read-out error of the privileged state (:mod:`.state_readout`).
+        """
+        agent_batch = self._agent_batch(batch)
+        losses = self.agent.compute_loss(agent_batch, generator)
+        if self.config.aux_state_dim and "env_state" in batch.keys():
+            predicted = self.state_readout(agent_batch.get("keypoints"), batch.get("text_tokens"),
+                                           batch.get("text_mask"))
+            losses.set("loss_aux", (predicted - batch.get("env_state")).square().mean())
+            losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))
+        return losses
 
     @torch.no_grad()
     def plan(self, td: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:

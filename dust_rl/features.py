@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
 from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
+from dust_rl.agents.normalizer import MIN_STD
 from dust_rl.augment import JITTER, MAX_SHIFT, augment_frames, view_generator
 from dust_rl.data import DatasetError, DemoDataset
 from dust_rl.data.stats import stat_name
@@ -36,6 +37,7 @@ from dust_rl.data.windows import CHUNK_KEY, FUTURE_KEY, PAD_KEY
 from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
 
 STATE_KEY = ("observation", "state")
+ENV_STATE_KEY = ("observation", "environment_state")
 FEATURES_KIND = "dust-rl-features"
 
 
@@ -94,6 +96,7 @@ class FeatureCache:
             if self.path is not None:
                 save_checkpoint({"image_tokens": self.views}, self.path, FEATURES_KIND)
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(dataset.instructions)
+        self.env_state_stats = env_state_stats(dataset) if policy.config.aux_state_dim else None
 
     @property
     def image_tokens(self) -> torch.Tensor:
@@ -120,7 +123,7 @@ class FeatureCache:
         normalizer = self.policy.normalizer
         views = self.views.shape[0]  # one cached view per window
         view = torch.randint(0, views, rows.shape) if views > 1 else torch.zeros_like(rows)
-        return TensorDict({
+        batch = TensorDict({
             "image_tokens": self.views[view, rows].float(),
             "text_tokens": self.text_tokens[instructions],
             "text_mask": self.text_mask[instructions],
@@ -129,6 +132,28 @@ class FeatureCache:
             "action_is_pad": windows.get(PAD_KEY),
             "future_tokens": self.policy.future_targets(self.image_tokens[windows.get((FUTURE_KEY, "index"))].float()),
         }, batch_size=windows.batch_size)
+        if self.env_state_stats is not None:
+            mean, std = self.env_state_stats
+            batch.set("env_state", (windows.get(ENV_STATE_KEY).float() - mean) / std)
+        return batch
+
+
+def env_state_width(dataset: DemoDataset) -> int:
+    """Size of the dataset's privileged ``observation.environment_state`` (0 when it has none)."""
+    return len(dataset.meta["stats"].get(stat_name(ENV_STATE_KEY), {}).get("mean", []))
+
+
+def env_state_stats(dataset: DemoDataset) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and std (floored at :data:`~dust_rl.agents.normalizer.MIN_STD`) of the privileged state.
+
+    Raises:
+        DatasetError: the dataset stores no environment state (e.g. imported from LeRobot).
+    """
+    if not env_state_width(dataset):
+        raise DatasetError(f"{dataset.root}: no observation.environment_state to learn from (an imported dataset "
+                           "has none); train without the auxiliary state loss")
+    stats = dataset.meta["stats"][stat_name(ENV_STATE_KEY)]
+    return torch.tensor(stats["mean"]), torch.tensor(stats["std"]).clamp_min(MIN_STD)
 
 
 def feature_key(dataset: DemoDataset, policy: DustPolicy, views: int = 1, batch_size: int = 128) -> str:

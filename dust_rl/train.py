@@ -47,7 +47,7 @@ from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.ema import EMA
 from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
-from dust_rl.features import FeatureCache, dataset_policy_kwargs
+from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_width
 
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 # Fields that may differ between a run and its resumption.
@@ -101,6 +101,13 @@ class TrainConfig:
     cond_grid: tuple[int, int] | None = None
     """Condition tokens per camera (rows, cols); default: the image encoder's own grid (EfficientNet-Lite0 at
     128 px: 8x8; conv-ae: 4x4). Coarser grids are average-pooled and train faster."""
+    keypoints: int = 0
+    """Trainable spatial-softmax keypoints per camera on the condition grid, each one more condition token
+    (:mod:`dust_rl.agents.keypoints`): positions finer than the grid, for grasping small objects."""
+    lambda_aux: float = 0.0
+    """Weight of an auxiliary loss that teaches the keypoints the objects' positions from the dataset's
+    privileged ``observation.environment_state`` (:mod:`dust_rl.agents.state_readout`; training only, the
+    policy never reads that state); 0: off. Needs ``keypoints``."""
     augment_views: int = 1
     """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
     (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
@@ -127,9 +134,11 @@ class TrainConfig:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "horizon", "execute_steps", "d_model", "n_heads",
                        "augment_views", "log_every", "checkpoint_every", "eval_episodes", "eval_workers", "threads")
-        check_at_least(self, 0, "n_mmdit", "n_dit", "eval_every")
+        check_at_least(self, 0, "n_mmdit", "n_dit", "eval_every", "keypoints")
         check_finite(self, "lr", "grad_clip", positive=True)
-        check_finite(self, "weight_decay", "lambda_wm")
+        check_finite(self, "weight_decay", "lambda_wm", "lambda_aux")
+        if self.lambda_aux and not self.keypoints:
+            raise ConfigError("lambda_aux needs --keypoints: the auxiliary loss is read off the keypoints")
         check_fraction(self, "warmup", "ema_decay")
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
@@ -304,8 +313,10 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
     try:
         return unwrap(make_policy(
             config.variant, image_encoder=config.image_encoder, execute_steps=config.execute_steps,
-            horizon=config.horizon, cond_grid=config.cond_grid, d_model=config.d_model, n_heads=config.n_heads,
-            n_mmdit=config.n_mmdit, n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
+            horizon=config.horizon, cond_grid=config.cond_grid, keypoints=config.keypoints,
+            aux_state_dim=env_state_width(dataset) if config.lambda_aux else 0, lambda_aux=config.lambda_aux,
+            d_model=config.d_model, n_heads=config.n_heads, n_mmdit=config.n_mmdit, n_dit=config.n_dit,
+            lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
     except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)
         raise ConfigError(f"invalid model settings: {err}") from err
 

@@ -91,6 +91,16 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     assert list((tmp_path / "data" / "features").glob("*.pt"))  # cached for the next run on this dataset
 
 
+def test_keypoints_learn_from_the_privileged_state(run_inputs, tmp_path):
+    out = tmp_path / "run"
+    result = train(tiny_config(run_inputs, out, steps=3, log_every=3, keypoints=2, lambda_aux=0.5))
+    config = unwrap(load_policy(result.policy)).config
+    width = len(json.loads((run_inputs[0] / "meta.json").read_text())["stats"]["observation.environment_state"]["mean"])
+    assert (config.keypoints, config.aux_state_dim, config.lambda_aux) == (2, width, 0.5) and width > 0
+    aux = (out / "logs" / "train" / "scalars" / "train" / "loss_aux.csv").read_text().split(",")
+    assert int(aux[0]) == 3 and math.isfinite(float(aux[1])) and float(aux[1]) > 0
+
+
 def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
     steps = 600
     reference = train(tiny_config(run_inputs, tmp_path / "ref", steps=steps, checkpoint_every=50))
@@ -134,6 +144,8 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
 def test_bad_training_input_is_named(run_inputs, tmp_path):
     with pytest.raises(ConfigError, match=r"execute_steps must be in \[1, horizon=4\], got 9"):
         train(tiny_config(run_inputs, tmp_path / "a", execute_steps=9))
+    with pytest.raises(ConfigError, match="lambda_aux needs --keypoints"):
+        tiny_config(run_inputs, tmp_path / "a", lambda_aux=1.0)
     dataset, _ = run_inputs
     meta = json.loads((dataset / "meta.json").read_text())
     meta["env_kwargs"]["image_size"] = 48  # the env would render other images than the dataset holds
