@@ -21,8 +21,8 @@ from .backbone import FrozenBackbone, resolve_image_encoder
 from .checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from .config import MAX_CAMERAS, DustConfig, check_size
 from .execution import ChunkExecutor
-from .normalizer import Normalizer
 from .image_encoder import ImageEncoder
+from .normalizer import Normalizer
 from .policy import DustPolicy, flat_name
 from .text_encoder import TextEncoder, TransformersTextEncoder
 

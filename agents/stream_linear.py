@@ -28,6 +28,9 @@ class StreamLinear(nn.Module):
 
     def forward(self, x: Tensor, streams: slice = ALL_STREAMS) -> Tensor:
         """Map [S', ..., d_in] to [S', ..., d_out], S' being the ``streams`` selected from S."""
-        weight, bias = (self.weight, self.bias) if streams == ALL_STREAMS else (self.weight[streams], self.bias[streams])
+        if streams == ALL_STREAMS:
+            weight, bias = self.weight, self.bias
+        else:
+            weight, bias = self.weight[streams], self.bias[streams]
         shape = x.shape
         return torch.baddbmm(bias, x.reshape(shape[0], -1, shape[-1]), weight).view(*shape[:-1], -1)

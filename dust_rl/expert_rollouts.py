@@ -36,7 +36,7 @@ def run_expert_episode(env: DustEnv, seed: int, record: bool = False) -> Episode
     obs, info = env.reset(seed=seed)
     expert = env.make_expert()
     frames = [camera_strip(obs)] if record else []
-    for step in range(1, env.max_episode_steps + 1):
+    for step in range(1, env.max_episode_steps + 1):  # noqa: B007 (the count is read after the loop)
         obs, _, terminated, truncated, info = env.step(expert.act())
         if record:
             frames.append(camera_strip(obs))

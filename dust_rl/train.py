@@ -273,7 +273,8 @@ def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkp
     latest = checkpoints.latest()
     kept = f"the newest checkpoint, {latest.name}, is intact" if latest else "no checkpoint was written"
     raise NonFiniteLossError(f"training diverged at step {step}: loss {loss.item()}, gradient norm {grad_norm.item()}; "
-                             f"no policy.pt was written and {kept}; lower lr or check the dataset for non-finite values")
+                             f"no policy.pt was written and {kept}; lower lr or check the dataset for "
+                             "non-finite values")
 
 
 def _check_run_folder(config: TrainConfig) -> None:

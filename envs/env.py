@@ -18,15 +18,14 @@ from collections.abc import Sequence
 
 import gymnasium as gym
 import mink
+import mujoco  # noqa: E402  (after rendering)
 import numpy as np
 import qpsolvers
-
-from .rendering import CameraRenderer, RENDER_QUALITIES  # sets MUJOCO_GL before mujoco loads
-import mujoco  # noqa: E402  (after rendering)
 
 from . import arguments
 from .controller import OperationalSpaceController
 from .experts import WaypointExpert
+from .rendering import RENDER_QUALITIES, CameraRenderer  # sets MUJOCO_GL before mujoco loads
 from .robot import RobotConfig
 from .robots import ROBOT_BUILDERS
 from .scene import new_tabletop_spec
@@ -221,7 +220,8 @@ class DustEnv(gym.Env):
         if not reason and self._elapsed >= self.max_episode_steps:
             reason = "time_limit"
         if self.reward_type == "dense":
-            reward = 1.0 if success else self.task.progress(self.model, self.data, self.data.site_xpos[self._ee_sites[0]])
+            eef = self.data.site_xpos[self._ee_sites[0]]
+            reward = 1.0 if success else self.task.progress(self.model, self.data, eef)
         else:
             reward = float(success)
         obs = self._observation()

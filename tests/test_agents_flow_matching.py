@@ -6,10 +6,9 @@ import math
 
 import pytest
 import torch
-
 from conftest import rounding_tolerance
-from dust_rl.agents import action_validity, decoupled_loss, interpolate, masked_mse, sample_tau, velocity_target
 
+from dust_rl.agents import action_validity, decoupled_loss, interpolate, masked_mse, sample_tau, velocity_target
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

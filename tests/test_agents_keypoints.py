@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_agents_policy import observation, perturb, tiny_policy
 
 from dust_rl.agents import DustConfig, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.condition import ConditionProjector
 from dust_rl.agents.keypoints import SpatialKeypoints
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats
-from test_agents_policy import observation, perturb, tiny_policy
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import assert_close_up_to_rounding
 from torch import nn
 
-from conftest import assert_close_up_to_rounding
 from dust_rl.agents import VARIANTS, DustAgent, DustConfig, DustModel, random_batch
-
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

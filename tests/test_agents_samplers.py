@@ -15,7 +15,6 @@ from dust_rl.agents import (
     sync_schedule,
 )
 
-
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 

@@ -10,7 +10,6 @@ from tensordict import TensorDict
 
 from dust_rl.agents import VARIANTS, DustAgent, DustConfig
 
-
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 

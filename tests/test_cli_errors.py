@@ -10,12 +10,12 @@ import sys
 import pytest
 import torch
 from tensordict import TensorDict
+from test_evaluate import tiny_policy_file
+from test_train import TINY_MODEL
 
 from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
-from test_evaluate import tiny_policy_file
-from test_train import TINY_MODEL
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -68,7 +68,8 @@ def test_bad_task_list_writes_nothing(dataset_copy, tmp_path):
 
 def test_a_second_collector_is_refused_and_told_who_holds_the_folder(dataset_copy):
     script = ("import pathlib, time; from dust_rl.data.lock import dataset_lock; "
-              f"lock = dataset_lock(pathlib.Path({str(dataset_copy)!r})); lock.__enter__(); print('locked', flush=True); "
+              f"lock = dataset_lock(pathlib.Path({str(dataset_copy)!r})); lock.__enter__(); "
+              "print('locked', flush=True); "
               "time.sleep(120)")
     holder = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     try:

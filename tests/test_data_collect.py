@@ -11,8 +11,8 @@ import time
 import numpy as np
 import pytest
 import torch
-
 from conftest import DEMO_ENV_KWARGS
+
 from dust_rl.data import DatasetError, DemoDataset, collect_demos
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.data.policy import ExpertPolicy

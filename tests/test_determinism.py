@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-
 from conftest import assert_same_observations, seeded_rollout
+
 from dust_rl.envs import DustEnv
 
 

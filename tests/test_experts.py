@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import pytest
-
 from conftest import SUITE_TASKS
+
 from dust_rl.envs import DustEnv, list_tasks
 from dust_rl.envs.registration import ENV_IDS
 from dust_rl.expert_rollouts import expert_success_table, run_expert_episode

@@ -11,12 +11,12 @@ import mink
 import mujoco
 import numpy as np
 import pytest
+from conftest import HUMANOID_TASKS, assert_same_observations, seeded_rollout
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from torchrl.envs import GymEnv
 from torchrl.envs.utils import check_env_specs
 
-from conftest import HUMANOID_TASKS, assert_same_observations, seeded_rollout
 from dust_rl.envs import DustEnv
 from dust_rl.envs.env import MAX_TRANSLATION
 from dust_rl.envs.rendering import COLLISION_GROUP, VISUAL_GROUP

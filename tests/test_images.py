@@ -5,8 +5,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 import pytest
-
 from conftest import SUITE_TASKS
+
 from dust_rl.envs import DustEnv
 
 

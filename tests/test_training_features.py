@@ -7,8 +7,8 @@ import math
 
 import pytest
 import torch
-
 from conftest import rounding_tolerance
+
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_image_encoder, make_policy, unwrap
 from dust_rl.agents.backbone import DEFAULT_IMAGE_ENCODER_FILE
 from dust_rl.cli import main

@@ -17,8 +17,16 @@ from tensordict import TensorDict, TensorDictBase
 from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
 
 from .errors import DatasetError
-from .layout import (EPISODE_FILE, EPISODE_TD_DIR, EPISODES_DIR, episode_dir, inside, read_json, staging_dir,
-                     write_json_atomic)
+from .layout import (
+    EPISODE_FILE,
+    EPISODE_TD_DIR,
+    EPISODES_DIR,
+    episode_dir,
+    inside,
+    read_json,
+    staging_dir,
+    write_json_atomic,
+)
 from .memmap_io import load_memmap_checked
 from .policy import STEP_KEY
 from .seeding import SEED_KEY, SUCCESS_KEY
@@ -93,7 +101,8 @@ def scan_episodes(root: pathlib.Path) -> dict[str, dict[int, EpisodeRecord]]:
             record = EpisodeRecord(**read_json(path / EPISODE_FILE))
             home = episode_dir(root, record.task, record.seed)
         except (OSError, ValueError, TypeError) as err:
-            raise DatasetError(f"{path}: unreadable episode record ({err}); delete this folder to re-collect it") from err
+            raise DatasetError(f"{path}: unreadable episode record ({err}); "
+                               "delete this folder to re-collect it") from err
         if home != path:  # its rows are read (and deleted) by task and seed
             raise DatasetError(f"{path}: episode record names task {record.task!r} seed {record.seed!r}, not this "
                                "folder; delete this folder to re-collect it")

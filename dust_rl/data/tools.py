@@ -22,12 +22,15 @@ def dataset_summary(dataset: DemoDataset) -> str:
     data_bytes = folder_size(dataset.root / meta["data"])
     lines = [
         f"# {dataset.root}",
-        f"- env: {meta['env_id']} {meta['env_kwargs']}" + (f" (imported from {meta['source']})" if meta.get("source") else ""),
+        f"- env: {meta['env_id']} {meta['env_kwargs']}"
+        + (f" (imported from {meta['source']})" if meta.get("source") else ""),
         f"- episodes: {dataset.num_episodes}, transitions: {len(dataset)}, instructions: {len(dataset.instructions)}",
         f"- cameras: {', '.join(spec['cameras'])} at {spec['image_shape']}; state {spec['state_dim']}, "
         f"action {spec['action_dim']}; {spec['control_hz']:g} Hz",
-        f"- seeds from {meta['start_seed']}; action noise std {meta['noise_std']}; failed episodes kept: {meta['keep_failed']}",
-        f"- size: {data_bytes / 2**20:.1f} MiB consolidated ({1000 * data_bytes / max(len(dataset), 1) / 2**20:.2f} MiB "
+        f"- seeds from {meta['start_seed']}; action noise std {meta['noise_std']}; "
+        f"failed episodes kept: {meta['keep_failed']}",
+        f"- size: {data_bytes / 2**20:.1f} MiB consolidated "
+        f"({1000 * data_bytes / max(len(dataset), 1) / 2**20:.2f} MiB "
         f"per 1000 transitions), {folder_size(dataset.root) / 2**20:.1f} MiB in the folder",
         "",
         "| task | episodes | success | length mean | min | max |",
@@ -44,7 +47,9 @@ def dataset_summary(dataset: DemoDataset) -> str:
 
 def write_episode_grid(dataset: DemoDataset, out: str | pathlib.Path, episodes: Sequence[int] | None = None,
                        columns: int = 4, scale: int | None = None) -> pathlib.Path:
-    """An MP4 playing episodes side by side (all cameras of an episode in one cell); finished cells hold their last frame.
+    """An MP4 playing episodes side by side (all cameras of an episode in one cell).
+
+    Finished cells hold their last frame.
 
     Args:
         episodes: episode indices; defaults to the first 16.

@@ -44,7 +44,7 @@ class Task(abc.ABC):
     def build(self, spec: mujoco.MjSpec) -> None:
         """Add this task's props to the scene spec."""
 
-    def bind(self, model: mujoco.MjModel, robot: RobotConfig) -> None:
+    def bind(self, model: mujoco.MjModel, robot: RobotConfig) -> None:  # noqa: B027 (optional hook)
         """Resolve names to ids once the model is compiled (optional)."""
 
     @abc.abstractmethod

@@ -7,7 +7,7 @@ import numpy as np
 
 from ..experts import Waypoint
 from ..robot import RobotConfig
-from ..scene import add_free_box, add_free_cylinder, GEOM
+from ..scene import GEOM, add_free_box, add_free_cylinder
 from .base import COLORS, Task, geoms_touch, sample_separated, set_free_body_pose
 from .fixtures import add_walled_square, local_xyz, set_mocap_pose
 from .grasping import grasp_yaw, gripper_geoms, pick_and_place

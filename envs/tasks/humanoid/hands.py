@@ -65,8 +65,9 @@ def beside(hand: int, yaw: float, outward: float = 0.015, back: float = 0.01) ->
     return np.array([c * local[0] - s * local[1], s * local[0] + c * local[1], 0.0])
 
 
-def side_grasp(data: mujoco.MjData, body: str, site: str, hand: int, in_hand: np.ndarray = np.zeros(3),
-               yaw: float = 0.0, approach: float = APPROACH[2]) -> list[Waypoint]:
+def side_grasp(data: mujoco.MjData, body: str, site: str, hand: int,
+               in_hand: tuple[float, float, float] = (0.0, 0.0, 0.0), yaw: float = 0.0,
+               approach: float = APPROACH[2]) -> list[Waypoint]:
     """Lower the open hand beside ``body`` from ``approach`` above, move in and close at ``body + in_hand``.
 
     Coming down a little clear of the object keeps the open thumb behind it and the
