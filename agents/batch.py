@@ -32,7 +32,7 @@ def random_batch(
     return TensorDict(
         {
             "cond_tokens": randn(n_cond_tokens, config.cond_dim),
-            "state": randn(config.state_dim),
+            "state": randn(config.trunk_state_dim),
             "action_chunk": randn(config.horizon, config.action_dim),
             "future_tokens": randn(config.n_vision_tokens, config.vision_dim),
         },

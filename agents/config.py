@@ -71,6 +71,9 @@ class DustConfig:
             to predict during training, an auxiliary loss (:meth:`~.policy.DustPolicy.compute_loss`); the
             policy never reads it when acting. 0: no such loss. Needs ``keypoints``.
         lambda_aux: weight of that auxiliary loss.
+        aux_state_input: also give the trunk that read-out's estimate, beside the robot state (the state
+            token then embeds ``state_dim + aux_state_dim`` numbers): the estimated object positions reach
+            the actions as the privileged-state oracle's true ones do.
         d_model: trunk width.
         n_heads: attention heads.
         n_mmdit: dual-stream MMDiT blocks (single-stream variants use the same count of shared blocks).
@@ -95,6 +98,7 @@ class DustConfig:
     keypoints: int = 0
     aux_state_dim: int = 0
     lambda_aux: float = 1.0
+    aux_state_input: bool = False
     d_model: int = 128
     n_heads: int = 4
     n_mmdit: int = 4
@@ -117,6 +121,8 @@ class DustConfig:
             raise ValueError(f"cond_grid {self.condition_grid} must be a multiple of vision_grid {self.vision_grid}")
         if self.aux_state_dim and not self.keypoints:
             raise ValueError("aux_state_dim needs keypoints > 0: the auxiliary loss is read off the keypoints")
+        if self.aux_state_input and not self.aux_state_dim:
+            raise ValueError("aux_state_input needs aux_state_dim > 0: there is no state estimate to feed")
         sampler = self.sampler_name
         if not self.has_vision and sampler != "action_only":
             raise ValueError("the action_only variant has no vision stream; use sampler='action_only'")
@@ -163,7 +169,7 @@ class DustConfig:
         def linear(n_in: int, n_out: int) -> int:
             return n_in * n_out + n_out
 
-        count = linear(self.state_dim, d) + linear(self.action_dim, d) + linear(d, self.action_dim)
+        count = linear(self.trunk_state_dim, d) + linear(self.action_dim, d) + linear(d, self.action_dim)
         if self.has_vision:  # 3-layer MLP in, 2-layer MLP out
             count += linear(self.vision_dim, d) + 3 * linear(d, d) + linear(d, self.vision_dim)
         count += 2 * self.cond_dim + linear(self.cond_dim, d)  # LayerNorm, projection
@@ -171,6 +177,11 @@ class DustConfig:
         count += streams * linear(d, (6 * blocks + 2) * d)  # AdaLN modulation of all blocks and decoders
         count += blocks * streams * (4 * linear(d, d) + linear(d, hidden) + linear(hidden, d))  # attention, MLP
         return count
+
+    @property
+    def trunk_state_dim(self) -> int:
+        """Numbers the state token embeds: the robot state, then the estimated object state if fed."""
+        return self.state_dim + (self.aux_state_dim if self.aux_state_input else 0)
 
     @property
     def two_streams(self) -> bool:

@@ -80,7 +80,7 @@ class DustModel(nn.Module):
         self.n_action_tokens = 1 + config.horizon  # state token first
         n_vision = config.n_vision_tokens if config.has_vision else 0
 
-        self.state_in = nn.Linear(config.state_dim, d)
+        self.state_in = nn.Linear(config.trunk_state_dim, d)
         self.action_in = TokenEncoder([config.action_dim, d], sincos_positions_1d(config.horizon, d))
         self.action_out = TokenDecoder([d, config.action_dim])
         if config.has_vision:

@@ -39,7 +39,7 @@ from collections.abc import Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
-from torch import Tensor
+from torch import Tensor, nn
 from torchrl.data.vla.schema import ACTION_KEY, IMAGE_KEY
 from torchrl.modules.vla import VLAWrapperBase
 
@@ -150,6 +150,13 @@ class DustPolicy(VLAWrapperBase):
         """Projector and trunk parameters (the backbone is frozen)."""
         return [p for p in self.parameters() if p.requires_grad]
 
+    def trainable_modules(self) -> nn.ModuleDict:
+        """The modules training optimises and averages, by name (checkpoints key their state by these names)."""
+        modules = {"condition": self.condition, "agent": self.agent}
+        if self.config.aux_state_dim:
+            modules["state_readout"] = self.state_readout
+        return nn.ModuleDict(modules)
+
     # -- features ----------------------------------------------------------
     def canonical_view(self, td: TensorDictBase) -> TensorDictBase:
         """``td`` with the canonical keys this policy reads, taken from the flat gymnasium names where absent.
@@ -201,11 +208,15 @@ class DustPolicy(VLAWrapperBase):
 
     def _agent_batch(self, features: TensorDictBase) -> TensorDictBase:
         image = self.normalizer.normalize_vision(features.get("image_tokens"))
+        text, text_mask = features.get("text_tokens"), features.get("text_mask")
         keypoints = self.condition.keypoint_features(image) if self.config.keypoints else None
-        cond, mask = self.condition(image, features.get("text_tokens"), features.get("text_mask"), keypoints)
+        cond, mask = self.condition(image, text, text_mask, keypoints)
         batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
-        if keypoints is not None:
-            batch.set("keypoints", keypoints)
+        if self.config.aux_state_dim:
+            estimate = self.state_readout(keypoints, text, text_mask)
+            batch.set("env_state_estimate", estimate)
+            if self.config.aux_state_input:
+                batch.set("state", torch.cat([batch.get("state"), estimate], dim=-1))
         if "future_tokens" in features.keys():
             batch.set("future_tokens", self.normalizer.normalize_vision(features.get("future_tokens")))
         return batch
@@ -220,9 +231,8 @@ class DustPolicy(VLAWrapperBase):
         agent_batch = self._agent_batch(batch)
         losses = self.agent.compute_loss(agent_batch, generator)
         if self.config.aux_state_dim and "env_state" in batch.keys():
-            predicted = self.state_readout(agent_batch.get("keypoints"), batch.get("text_tokens"),
-                                           batch.get("text_mask"))
-            losses.set("loss_aux", (predicted - batch.get("env_state")).square().mean())
+            error = agent_batch.get("env_state_estimate") - batch.get("env_state")
+            losses.set("loss_aux", error.square().mean())
             losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))
         return losses
 

@@ -108,6 +108,9 @@ class TrainConfig:
     """Weight of an auxiliary loss that teaches the keypoints the objects' positions from the dataset's
     privileged ``observation.environment_state`` (:mod:`dust_rl.agents.state_readout`; training only, the
     policy never reads that state); 0: off. Needs ``keypoints``."""
+    aux_state_input: bool = False
+    """Also feed that auxiliary read-out's estimate of the object state to the trunk beside the robot state
+    (needs ``lambda_aux``)."""
     augment_views: int = 1
     """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
     (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
@@ -139,6 +142,8 @@ class TrainConfig:
         check_finite(self, "weight_decay", "lambda_wm", "lambda_aux")
         if self.lambda_aux and not self.keypoints:
             raise ConfigError("lambda_aux needs --keypoints: the auxiliary loss is read off the keypoints")
+        if self.aux_state_input and not self.lambda_aux:
+            raise ConfigError("aux_state_input needs --lambda-aux > 0: it feeds that read-out's estimate")
         check_fraction(self, "warmup", "ema_decay")
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
@@ -193,7 +198,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     windows = DemoWindows(dataset, horizon=config.horizon, batch_size=config.batch_size, images=False)
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
-    trained = nn.ModuleDict({"condition": policy.condition, "agent": policy.agent})
+    trained = policy.trainable_modules()
     optimizer = torch.optim.AdamW(trained.parameters(), lr=config.lr, betas=config.betas,
                                   weight_decay=config.weight_decay)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(config.steps, config.warmup))
@@ -316,8 +321,8 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
             config.variant, image_encoder=config.image_encoder, execute_steps=config.execute_steps,
             horizon=config.horizon, cond_grid=config.cond_grid, keypoints=config.keypoints,
             aux_state_dim=env_state_width(dataset) if config.lambda_aux else 0, lambda_aux=config.lambda_aux,
-            d_model=config.d_model, n_heads=config.n_heads, n_mmdit=config.n_mmdit, n_dit=config.n_dit,
-            lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
+            aux_state_input=config.aux_state_input, d_model=config.d_model, n_heads=config.n_heads,
+            n_mmdit=config.n_mmdit, n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
     except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)
         raise ConfigError(f"invalid model settings: {err}") from err
 

@@ -76,10 +76,16 @@ def test_config_checks_keypoint_settings():
         DustConfig(keypoints=-1)
     with pytest.raises(ValueError, match="lambda_aux must be a finite number"):
         DustConfig(keypoints=4, aux_state_dim=3, lambda_aux=float("nan"))
+    with pytest.raises(ValueError, match="aux_state_input needs aux_state_dim"):
+        DustConfig(keypoints=4, aux_state_input=True)
+    fed = DustConfig(state_dim=8, keypoints=4, aux_state_dim=3, aux_state_input=True)
+    assert fed.trunk_state_dim == 11 and DustConfig(state_dim=8, keypoints=4, aux_state_dim=3).trunk_state_dim == 8
 
 
-def test_keypoint_policy_round_trips_and_its_heads_get_gradients(tiny_encoder, minilm, tmp_path):
-    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm, keypoints=3, aux_state_dim=4))
+@pytest.mark.parametrize("aux_state_input", [False, True])
+def test_keypoint_policy_round_trips_and_its_heads_get_gradients(aux_state_input, tiny_encoder, minilm, tmp_path):
+    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm, keypoints=3, aux_state_dim=4,
+                                aux_state_input=aux_state_input))
     perturb(policy)
     features = policy.observation_features(observation())
     batch = features.set("action_chunk", torch.randn(2, 6, 3)).set(
@@ -93,6 +99,9 @@ def test_keypoint_policy_round_trips_and_its_heads_get_gradients(tiny_encoder, m
     losses["loss"].backward()
     for module in (policy.condition.keypoints, policy.state_readout):
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in module.parameters())
+    # Training optimises exactly the trainable parameters, the read-out among them.
+    trained = {id(p) for p in policy.trainable_modules().parameters()}
+    assert trained == {id(p) for p in policy.trainable_parameters()}
     loaded = unwrap(load_policy(save_policy(policy, tmp_path / "policy.pt")))
     assert loaded.config.keypoints == 3 and loaded.config.aux_state_dim == 4
     obs = observation()

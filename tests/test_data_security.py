@@ -305,7 +305,8 @@ def test_config_sizes_are_capped_before_anything_is_built(sizes, problem):
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_the_parameter_cap_counts_what_the_trunk_allocates(variant):
     config = DustConfig(variant=variant, d_model=48, n_heads=3, n_mmdit=3, n_dit=2, mlp_ratio=2.5, horizon=5,
-                        vision_grid=(2, 3), state_dim=4, action_dim=3, vision_dim=7, cond_dim=20)
+                        vision_grid=(2, 3), state_dim=4, action_dim=3, vision_dim=7, cond_dim=20,
+                        keypoints=2, aux_state_dim=5, aux_state_input=variant == "dust")
     assert config.n_parameters == sum(p.numel() for p in DustModel(config).parameters())
 
 
