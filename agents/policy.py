@@ -116,8 +116,8 @@ class DustPolicy(VLAWrapperBase):
                                             backbone.text_dim, config.cond_dim, config.keypoints)
         self.agent = DustAgent(config)
         if config.aux_state_dim:
-            self.state_readout = StateReadout(len(cameras) * config.keypoints, 2 + backbone.image_dim,
-                                              backbone.text_dim, config.aux_state_dim)
+            self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
+                                              config.aux_state_dim)
         self.normalizer = Normalizer(config.state_dim, config.action_dim, config.vision_dim)
         self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
         self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
