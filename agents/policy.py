@@ -221,6 +221,17 @@ class DustPolicy(VLAWrapperBase):
             batch.set("future_tokens", self.normalizer.normalize_vision(features.get("future_tokens")))
         return batch
 
+    @torch.no_grad()
+    def estimate_env_state(self, features: TensorDictBase) -> Tensor:
+        """The read-out's estimate [B, S] of the normalised object state for a feature batch (a diagnostic).
+
+        Raises:
+            ValueError: the policy was trained without the auxiliary state loss.
+        """
+        if not self.config.aux_state_dim:
+            raise ValueError("this policy has no state read-out (trained without --lambda-aux)")
+        return self._agent_batch(features).get("env_state_estimate")
+
     # -- training and inference ---------------------------------------------
     def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
         """DUST's flow-matching loss of a feature batch (``loss``, ``loss_action``, ``loss_vision``).

@@ -94,6 +94,7 @@ def test_keypoint_policy_round_trips_and_its_heads_get_gradients(aux_state_input
     assert "loss_aux" not in losses.keys()  # no privileged state in the batch: no auxiliary loss
     batch.set("env_state", torch.randn(2, 4))
     losses = policy.compute_loss(batch, torch.Generator().manual_seed(0))
+    assert policy.estimate_env_state(batch).shape == (2, 4)
     expected = losses["loss_action"] + losses["loss_vision"] + losses["loss_aux"]  # lambda_wm = lambda_aux = 1
     torch.testing.assert_close(losses["loss"], expected)
     losses["loss"].backward()
@@ -124,3 +125,7 @@ def test_feature_batches_carry_the_normalised_environment_state(demo_dir, tiny_e
     dataset.meta["stats"].pop("observation.environment_state")  # as in a LeRobot dataset from elsewhere
     with pytest.raises(DatasetError, match="no observation.environment_state"):
         FeatureCache(dataset, policy, progress=False)
+    without = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                                 horizon=6, d_model=32, n_heads=2, n_mmdit=1, n_dit=1))
+    with pytest.raises(ValueError, match="no state read-out"):
+        without.estimate_env_state(cache.batch(windows))

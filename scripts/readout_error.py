@@ -1,0 +1,57 @@
+"""How far is a policy's object-state read-out from the truth, by time in the episode?
+
+A policy trained with ``--lambda-aux`` estimates the privileged object state
+from its keypoints. On expert demonstrations the gripper sits on the target
+cube for most of an episode, so an estimate that merely follows the gripper
+scores well on average; this table separates the steps where the gripper is
+still far from the target (the ones that decide where the arm goes) from the
+rest. The first columns of ``observation.environment_state`` must be the
+named object's xyz (true of the Franka pick and place tasks).
+
+    .venv/bin/python scripts/readout_error.py --policy runs/train/T/policy.pt --dataset runs/data/T_val
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from dust_rl.agents import load_policy, unwrap
+from dust_rl.data import DemoDataset, DemoWindows
+from dust_rl.features import ENV_STATE_KEY, STATE_KEY, FeatureCache, env_state_stats
+
+STEP_BUCKETS = ((0, 1), (1, 10), (10, 30), (30, 60), (60, 10**6))
+EE_BLOCK = 8  # the state ends with the end effector's position, quaternion and opening (envs/env.py)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--policy", required=True, help="policy.pt trained with --lambda-aux")
+    parser.add_argument("--dataset", required=True, help="demonstrations from other seeds than the training data")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    policy = unwrap(load_policy(args.policy))
+    dataset = DemoDataset(args.dataset)
+    mean, std = env_state_stats(DemoDataset(policy.info["dataset"]))  # the training data's normalisation
+    cache = FeatureCache(dataset, policy, progress=False)
+    windows = list(DemoWindows(dataset, horizon=policy.config.horizon).iterate(512))
+    estimate = torch.cat([policy.estimate_env_state(cache.batch(w)) for w in windows]) * std + mean
+    target = torch.cat([w.get(ENV_STATE_KEY) for w in windows]).float()[:, :2]
+    gripper = torch.cat([w.get(STATE_KEY) for w in windows]).float()[:, -EE_BLOCK:-EE_BLOCK + 2]
+    step = torch.arange(len(dataset)) - torch.repeat_interleave(dataset.episode_starts, dataset.lengths)
+    print("| steps | rows | estimate to target (cm) | estimate to gripper (cm) | gripper to target (cm) |")
+    print("|---|---|---|---|---|")
+    for low, high in STEP_BUCKETS:
+        m = (step >= low) & (step < high)
+        if m.any():
+            def cm(a: torch.Tensor, b: torch.Tensor, m: torch.Tensor = m) -> float:
+                return 100 * (a[m] - b[m]).norm(dim=1).mean().item()
+
+            name = f"{low}+" if high > 10**5 else str(low) if high == low + 1 else f"{low}-{high - 1}"
+            print(f"| {name} | {int(m.sum())} | {cm(estimate[:, :2], target):.1f} | "
+                  f"{cm(estimate[:, :2], gripper):.1f} | {cm(gripper, target):.1f} |")
+
+
+if __name__ == "__main__":
+    main()
