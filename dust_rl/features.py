@@ -32,12 +32,12 @@ from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.normalizer import MIN_STD
 from dust_rl.augment import JITTER, MAX_SHIFT, augment_frames, view_generator
 from dust_rl.data import DatasetError, DemoDataset
+from dust_rl.data.finalize import ENV_STATE_KEY
 from dust_rl.data.stats import stat_name
 from dust_rl.data.windows import CHUNK_KEY, FUTURE_KEY, PAD_KEY
 from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
 
 STATE_KEY = ("observation", "state")
-ENV_STATE_KEY = ("observation", "environment_state")
 FEATURES_KIND = "dust-rl-features"
 
 
