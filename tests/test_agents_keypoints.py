@@ -109,6 +109,11 @@ def test_keypoint_policy_round_trips_and_its_heads_get_gradients(aux_state_input
     expected_plan = policy.plan(obs, torch.Generator().manual_seed(1))
     assert torch.equal(loaded.plan(obs, torch.Generator().manual_seed(1))["action_chunk"],
                        expected_plan["action_chunk"])
+    # The estimate reaches the actions exactly when it is fed to the trunk.
+    with torch.no_grad():
+        loaded.state_readout.mlp[-1].bias.add_(1.0)
+    moved = loaded.plan(obs, torch.Generator().manual_seed(1))["action_chunk"]
+    assert torch.equal(moved, expected_plan["action_chunk"]) != aux_state_input
 
 
 def test_feature_batches_carry_the_normalised_environment_state(demo_dir, tiny_encoder, minilm):
