@@ -13,7 +13,6 @@ from collections.abc import Sequence
 
 import gymnasium as gym
 
-import dust_rl  # noqa: F401  (registers the env ids)
 from dust_rl.envs import make_task
 from dust_rl.envs.registration import ENV_IDS
 from dust_rl.errors import ConfigError

@@ -39,7 +39,6 @@ from torchrl.data.vla.schema import STATE_KEY
 from torchrl.envs import InitTracker, TransformedEnv
 from tqdm import tqdm
 
-import dust_rl  # noqa: F401  (registers the env ids)
 from dust_rl.agents import ChunkExecutor, DustConfig, DustPolicy, load_policy, unwrap
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.config_json import config_json

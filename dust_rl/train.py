@@ -38,7 +38,6 @@ from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger
 from tqdm.auto import tqdm
 
-import dust_rl  # noqa: F401  (registers the env ids)
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.atomic_files import write_json_atomic

@@ -45,7 +45,5 @@ def make_torchrl_env(env: str | gym.Env = "DustFranka-v0", **kwargs) -> Transfor
         env: a registered gymnasium id, or an already built (possibly wrapped) gymnasium env.
         **kwargs: forwarded to the environment when ``env`` is an id (``task``, ``obs_mode``, ...).
     """
-    import dust_rl  # noqa: F401  (registers the ids)
-
     base = GymEnv(env, **kwargs) if isinstance(env, str) else GymWrapper(env)
     return TransformedEnv(base, canonical_transforms(base))

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-import dust_rl  # noqa: F401  (registers the envs)
 from dust_rl.envs import DustEnv, list_tasks
 
 FRANKA_TASKS = list_tasks("franka")

@@ -19,7 +19,6 @@ import mink
 import mujoco
 import numpy as np
 
-import dust_rl  # noqa: F401
 from dust_rl.envs import DustEnv
 from dust_rl.envs.env import MAX_ROTATION, MAX_TRANSLATION
 from dust_rl.envs.rendering import CameraRenderer

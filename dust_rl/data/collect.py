@@ -22,7 +22,6 @@ from collections.abc import Sequence
 from torchrl.collectors import BaseCollector, Collector
 from tqdm import tqdm
 
-import dust_rl  # noqa: F401  (registers the env ids)
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
 
