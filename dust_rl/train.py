@@ -26,7 +26,6 @@ from __future__ import annotations
 import json
 import math
 import pathlib
-import platform
 import time
 from dataclasses import dataclass
 from typing import Literal
@@ -43,6 +42,7 @@ from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.atomic_files import write_json_atomic
 from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, DemoWindows
+from dust_rl.data.metadata import package_versions
 from dust_rl.ema import EMA
 from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
@@ -303,15 +303,7 @@ def _write_run_config(config: TrainConfig, command: str | None) -> None:
     """``config.json`` of a new run: the full config, the command and package versions."""
     config.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(config.out / "config.json",
-                      {"config": config_json(config), "command": command, "versions": _versions()}, indent=2)
-
-
-def _versions() -> dict[str, str]:
-    import mujoco
-    import torchrl
-
-    return {"python": platform.python_version(), "torch": torch.__version__, "torchrl": torchrl.__version__,
-            "mujoco": mujoco.__version__}
+                      {"config": config_json(config), "command": command, "versions": package_versions()}, indent=2)
 
 
 def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:

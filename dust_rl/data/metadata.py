@@ -10,6 +10,7 @@ from __future__ import annotations
 import collections
 import importlib.metadata
 import pathlib
+import platform
 
 import gymnasium as gym
 
@@ -46,7 +47,11 @@ def spec_mismatches(expected: dict, actual: dict) -> list[str]:
 
 
 def package_versions() -> dict[str, str | None]:
-    versions = {}
+    """Python's version and those of the packages that shape datasets and runs (None: not installed).
+
+    Recorded in dataset metadata and in each training run's ``config.json``.
+    """
+    versions: dict[str, str | None] = {"python": platform.python_version()}
     for name in _VERSIONED_PACKAGES:
         try:
             versions[name] = importlib.metadata.version(name)
