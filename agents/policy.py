@@ -212,11 +212,11 @@ class DustPolicy(VLAWrapperBase):
         keypoints = self.condition.keypoint_features(image) if self.config.keypoints else None
         cond, mask = self.condition(image, text, text_mask, keypoints)
         batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
-        if self.config.aux_state_dim:
-            estimate = self.state_readout(keypoints, text, text_mask)
-            batch.set("env_state_estimate", estimate)
-            if self.config.aux_state_input:
-                batch.set("state", torch.cat([batch.get("state"), estimate], dim=-1))
+        if self.config.aux_state_dim:  # the loss and the diagnostics read the estimate; planning only if fed
+            batch.set("keypoints", keypoints)
+        if self.config.aux_state_input:
+            estimate = self._state_estimate(batch, features)
+            batch.set("env_state_estimate", estimate).set("state", torch.cat([batch.get("state"), estimate], dim=-1))
         if "future_tokens" in features.keys():
             batch.set("future_tokens", self.normalizer.normalize_vision(features.get("future_tokens")))
         return batch
@@ -230,7 +230,13 @@ class DustPolicy(VLAWrapperBase):
         """
         if not self.config.aux_state_dim:
             raise ValueError("this policy has no state read-out (trained without --lambda-aux)")
-        return self._agent_batch(features).get("env_state_estimate")
+        return self._state_estimate(self._agent_batch(features), features)
+
+    def _state_estimate(self, agent_batch: TensorDictBase, features: TensorDictBase) -> Tensor:
+        """The read-out's estimate from the keypoints in ``agent_batch`` (reused when already there)."""
+        if "env_state_estimate" in agent_batch.keys():
+            return agent_batch.get("env_state_estimate")
+        return self.state_readout(agent_batch.get("keypoints"), features.get("text_tokens"), features.get("text_mask"))
 
     # -- training and inference ---------------------------------------------
     def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
@@ -242,7 +248,7 @@ class DustPolicy(VLAWrapperBase):
         agent_batch = self._agent_batch(batch)
         losses = self.agent.compute_loss(agent_batch, generator)
         if self.config.aux_state_dim and "env_state" in batch.keys():
-            error = agent_batch.get("env_state_estimate") - batch.get("env_state")
+            error = self._state_estimate(agent_batch, batch) - batch.get("env_state")
             losses.set("loss_aux", error.square().mean())
             losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))
         return losses

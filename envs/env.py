@@ -18,14 +18,14 @@ from collections.abc import Sequence
 
 import gymnasium as gym
 import mink
-import mujoco  # noqa: E402  (after rendering)
+import mujoco  # MUJOCO_GL is set before this by the package's __init__ (envs/__init__.py)
 import numpy as np
 import qpsolvers
 
 from . import arguments
 from .controller import OperationalSpaceController
 from .experts import WaypointExpert
-from .rendering import RENDER_QUALITIES, CameraRenderer  # sets MUJOCO_GL before mujoco loads
+from .rendering import RENDER_QUALITIES, CameraRenderer
 from .robot import RobotConfig
 from .robots import ROBOT_BUILDERS
 from .scene import new_tabletop_spec

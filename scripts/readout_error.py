@@ -36,7 +36,7 @@ def main() -> None:
     dataset = DemoDataset(args.dataset)
     mean, std = env_state_stats(DemoDataset(policy.info["dataset"]))  # the training data's normalisation
     cache = FeatureCache(dataset, policy, progress=False)
-    windows = list(DemoWindows(dataset, horizon=policy.config.horizon).iterate(512))
+    windows = list(DemoWindows(dataset, horizon=policy.config.horizon, images=False).iterate(512))
     estimate = torch.cat([policy.estimate_env_state(cache.batch(w)) for w in windows]) * std + mean
     target = torch.cat([w.get(ENV_STATE_KEY) for w in windows]).float()[:, :2]
     gripper = torch.cat([w.get(STATE_KEY) for w in windows]).float()[:, -EE_BLOCK:-EE_BLOCK + 2]
