@@ -6,8 +6,10 @@ to ``cond_dim`` and a learned embedding that tells the trunk which camera and
 grid cell (or that it is text) a token came from. This is the trainable
 interface between the frozen backbone and the policy, like the projector
 between a VLM and its action head. With ``n_keypoints`` > 0 each camera also
-gets a trainable spatial-softmax head (:mod:`.keypoints`) whose keypoints
-become tokens of their own: coordinates finer than the grid, for grasping.
+gets trainable spatial-softmax keypoints that become tokens of their own:
+coordinates finer than the grid, for grasping. Their heat maps come from the
+frozen grid (:mod:`.keypoints`) or from the raw frames through a small
+network trained with the policy (:mod:`.pixel_keypoints`).
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .config import KeypointSource
 from .keypoints import SpatialKeypoints
+from .pixel_keypoints import PixelKeypoints
 
 EMBED_INIT_STD = 0.02
 
@@ -30,30 +34,42 @@ class ConditionProjector(nn.Module):
         text_dim: size of a text token.
         cond_dim: size of a condition token.
         n_keypoints: K, spatial-softmax keypoints per camera (0: none).
+        keypoint_source: ``"features"`` (heat maps on the image tokens) or ``"pixels"`` (on the raw frames).
     """
 
     def __init__(self, n_cameras: int, grid: tuple[int, int], image_dim: int, text_dim: int, cond_dim: int,
-                 n_keypoints: int = 0) -> None:
+                 n_keypoints: int = 0, keypoint_source: KeypointSource = "features") -> None:
         super().__init__()
         self.grid = tuple(grid)
         self.image_in = nn.Linear(image_dim, cond_dim)
         self.text_in = nn.Linear(text_dim, cond_dim)
         self.image_embed = nn.Parameter(EMBED_INIT_STD * torch.randn(n_cameras * grid[0] * grid[1], cond_dim))
         self.text_embed = nn.Parameter(EMBED_INIT_STD * torch.randn(cond_dim))
-        self.keypoints = nn.ModuleList(SpatialKeypoints(image_dim, n_keypoints) for _ in range(n_cameras)
-                                       if n_keypoints)
+        self.from_pixels = keypoint_source == "pixels"
+        heads = [PixelKeypoints(n_keypoints) if self.from_pixels else SpatialKeypoints(image_dim, n_keypoints)
+                 for _ in range(n_cameras if n_keypoints else 0)]
+        self.keypoints = nn.ModuleList(heads)
         if n_keypoints:
-            self.keypoint_in = nn.Linear(2 + image_dim, cond_dim)
+            attended_dim = PixelKeypoints.feature_dim if self.from_pixels else image_dim
+            self.keypoint_in = nn.Linear(2 + attended_dim, cond_dim)
             self.keypoint_embed = nn.Parameter(EMBED_INIT_STD * torch.randn(n_cameras * n_keypoints, cond_dim))
 
-    def keypoint_features(self, image_tokens: Tensor) -> Tensor:
-        """Per camera and keypoint, its coordinates and attended features [B, C*K, 2 + image_dim].
+    def keypoint_features(self, image_tokens: Tensor, pixels: Tensor | None = None, augment: bool = False,
+                          generator: torch.Generator | None = None) -> Tensor:
+        """Per camera and keypoint, its coordinates and attended features [B, C*K, 2 + attended size].
 
         Args:
             image_tokens: [B, C, N, image_dim], row-major on ``grid``; needs ``n_keypoints`` > 0.
+            pixels: uint8 frames [B, C, 3, H, W]; needed (and only read) with ``keypoint_source="pixels"``.
+            augment: shift those frames at random (drawn from ``generator``), as in training.
         """
-        maps = image_tokens.transpose(-1, -2).unflatten(-1, self.grid)  # [B, C, D, rows, cols]
-        return torch.cat([torch.cat(head(maps[:, c]), dim=-1) for c, head in enumerate(self.keypoints)], dim=1)
+        if not self.from_pixels:
+            maps = image_tokens.transpose(-1, -2).unflatten(-1, self.grid)  # [B, C, D, rows, cols]
+            return torch.cat([torch.cat(head(maps[:, c]), dim=-1) for c, head in enumerate(self.keypoints)], dim=1)
+        if pixels is None:
+            raise ValueError("pixel keypoints need the raw frames: the feature batch has no 'pixels'")
+        return torch.cat([torch.cat(head(pixels[:, c], augment, generator), dim=-1)
+                          for c, head in enumerate(self.keypoints)], dim=1)
 
     def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor,
                 keypoints: Tensor | None = None) -> tuple[Tensor, Tensor]:

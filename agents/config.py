@@ -23,8 +23,10 @@ from typing import Literal
 
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 SamplerName = Literal["async", "sync", "action_only"]
+KeypointSource = Literal["features", "pixels"]
 
 VARIANTS: tuple[str, ...] = ("dust", "mmdit_shared", "decoupled", "joint", "action_only")
+KEYPOINT_SOURCES: tuple[str, ...] = ("features", "pixels")
 
 # Caps on sizes, checked before anything is allocated: a policy file names its sizes, and a file
 # from elsewhere must not make loading reserve terabytes or loop over millions of blocks.
@@ -65,8 +67,10 @@ class DustConfig:
             backbone tokens than it predicts); None: ``vision_grid``. The future target is the
             condition grid pooled to ``vision_grid``, so each side must be a multiple of it.
         cond_dim: feature size of the backbone condition tokens.
-        keypoints: trainable spatial-softmax keypoints per camera on the condition grid, each one more
-            condition token (:mod:`.keypoints`); 0: none.
+        keypoints: trainable spatial-softmax keypoints per camera, each one more condition token; 0: none.
+        keypoint_source: what the keypoints' heat maps are computed from: ``"features"``, the frozen
+            condition grid (:mod:`.keypoints`), or ``"pixels"``, a small network trained end to end on
+            the raw frames (:mod:`.pixel_keypoints`; feature batches then carry ``pixels``).
         aux_state_dim: size of the privileged environment state (object positions) that the keypoints learn
             to predict during training, an auxiliary loss (:meth:`~.policy.DustPolicy.compute_loss`); the
             policy never reads it when acting. 0: no such loss. Needs ``keypoints``.
@@ -96,6 +100,7 @@ class DustConfig:
     cond_grid: tuple[int, int] | None = None
     cond_dim: int = 384
     keypoints: int = 0
+    keypoint_source: KeypointSource = "features"
     aux_state_dim: int = 0
     lambda_aux: float = 1.0
     aux_state_input: bool = False
@@ -119,6 +124,10 @@ class DustConfig:
             raise ValueError("d_model must be divisible by n_heads")
         if any(c % v for c, v in zip(self.condition_grid, self.vision_grid)):
             raise ValueError(f"cond_grid {self.condition_grid} must be a multiple of vision_grid {self.vision_grid}")
+        if self.keypoint_source not in KEYPOINT_SOURCES:
+            raise ValueError(f"unknown keypoint_source {self.keypoint_source!r}; expected one of {KEYPOINT_SOURCES}")
+        if self.keypoint_source == "pixels" and not self.keypoints:
+            raise ValueError("keypoint_source 'pixels' needs keypoints > 0")
         if self.aux_state_dim and not self.keypoints:
             raise ValueError("aux_state_dim needs keypoints > 0: the auxiliary loss is read off the keypoints")
         if self.aux_state_input and not self.aux_state_dim:

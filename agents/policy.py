@@ -24,6 +24,7 @@ key                 shape                    meaning
 ``action_is_pad``   [B, H] bool              optional; chunk entries past the episode end
 ``future_tokens``   [B, N_o, Dv] float       frozen tokens of ``future_camera`` at t+H, pooled to the
                                              vision grid (:meth:`DustPolicy.future_targets`; training)
+``pixels``          [B, C, 3, H, W] uint8    the frames themselves; only with ``keypoint_source="pixels"``
 ==================  =======================  ==========================================
 
 Image tokens arrive in the encoder's units; :meth:`DustPolicy.compute_loss`
@@ -52,7 +53,7 @@ from .normalizer import Normalizer
 from .samplers import schedule_for
 from .state_readout import StateReadout
 
-FEATURE_KEYS = ("image_tokens", "text_tokens", "text_mask")
+FEATURE_KEYS = ("image_tokens", "text_tokens", "text_mask", "pixels")
 
 
 def flat_name(key: NestedKey) -> str:
@@ -113,7 +114,8 @@ class DustPolicy(VLAWrapperBase):
         self.future_camera, self.execute_steps = future_camera, execute_steps
         self.backbone = backbone
         self.condition = ConditionProjector(len(cameras), config.condition_grid, backbone.image_dim,
-                                            backbone.text_dim, config.cond_dim, config.keypoints)
+                                            backbone.text_dim, config.cond_dim, config.keypoints,
+                                            config.keypoint_source)
         self.agent = DustAgent(config)
         if config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
@@ -176,9 +178,18 @@ class DustPolicy(VLAWrapperBase):
             view.set(key, value.movedim(-1, -3) if key in images else value)
         return view
 
+    @property
+    def reads_pixels(self) -> bool:
+        """Whether feature batches must carry the raw frames (``pixels``) besides the frozen tokens."""
+        return self.config.keypoints > 0 and self.config.keypoint_source == "pixels"
+
+    def frames(self, td: TensorDictBase) -> Tensor:
+        """Every camera's frames [*B, C, 3, H, W] from ``td`` (canonical keys, any batch shape)."""
+        return torch.stack([td.get((*self.tensor_keys.image, cam)) for cam in self.cameras], dim=-4)
+
     def image_features(self, td: TensorDictBase) -> Tensor:
         """Frozen tokens [*B, C, N, Dv] of every camera in ``td`` (canonical keys, any batch shape)."""
-        frames = torch.stack([td.get((*self.tensor_keys.image, cam)) for cam in self.cameras], dim=-4)
+        frames = self.frames(td)
         tokens = self.backbone.image_tokens(frames.reshape(-1, *frames.shape[-3:]), self.config.condition_grid)
         return tokens.view(*frames.shape[:-3], *tokens.shape[1:])
 
@@ -203,13 +214,20 @@ class DustPolicy(VLAWrapperBase):
         n = image.shape[0]
         text, mask = self.backbone.text_tokens(instruction_list(td.get(self.tensor_keys.instruction), n))
         state = self.normalizer.normalize_state(td.get(self.tensor_keys.state).reshape(n, -1).float())
-        return TensorDict({"image_tokens": image, "text_tokens": text, "text_mask": mask, "state": state},
-                          batch_size=[n])
+        out = TensorDict({"image_tokens": image, "text_tokens": text, "text_mask": mask, "state": state},
+                         batch_size=[n])
+        if self.reads_pixels:
+            frames = self.frames(td)
+            out.set("pixels", frames.reshape(n, *frames.shape[-4:]))
+        return out
 
-    def _agent_batch(self, features: TensorDictBase) -> TensorDictBase:
+    def _agent_batch(self, features: TensorDictBase, augment: bool = False,
+                     generator: torch.Generator | None = None) -> TensorDictBase:
+        """The trunk's batch; ``augment`` shifts the frames of pixel keypoints at random (training only)."""
         image = self.normalizer.normalize_vision(features.get("image_tokens"))
         text, text_mask = features.get("text_tokens"), features.get("text_mask")
-        keypoints = self.condition.keypoint_features(image) if self.config.keypoints else None
+        keypoints = (self.condition.keypoint_features(image, features.get("pixels", None), augment, generator)
+                     if self.config.keypoints else None)
         cond, mask = self.condition(image, text, text_mask, keypoints)
         batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
         if self.config.aux_state_dim:  # the loss and the diagnostics read the estimate; planning only if fed
@@ -242,10 +260,12 @@ class DustPolicy(VLAWrapperBase):
     def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
         """DUST's flow-matching loss of a feature batch (``loss``, ``loss_action``, ``loss_vision``).
 
+        In training mode the frames of pixel keypoints are shifted at random (:mod:`.pixel_keypoints`).
+
         With ``config.aux_state_dim`` and an ``env_state`` in the batch, ``loss`` also holds
         ``lambda_aux`` times ``loss_aux``, the read-out error of the privileged state (:mod:`.state_readout`).
         """
-        agent_batch = self._agent_batch(batch)
+        agent_batch = self._agent_batch(batch, augment=self.training, generator=generator)
         losses = self.agent.compute_loss(agent_batch, generator)
         if self.config.aux_state_dim and "env_state" in batch.keys():
             error = self._state_estimate(agent_batch, batch) - batch.get("env_state")

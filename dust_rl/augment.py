@@ -13,8 +13,9 @@ Training samples a view per window; the world-model target always uses view 0.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
+
+from dust_rl.agents.pixel_keypoints import random_shift
 
 MAX_SHIFT = 6  # pixels at 128 px (about 5% of the frame, as in DrQ's 4 px at 84 px)
 JITTER = 0.15  # brightness, contrast and saturation factors drawn from [1 - JITTER, 1 + JITTER]
@@ -27,11 +28,8 @@ def view_generator(first_row: int, view: int) -> torch.Generator:
 
 def augment_frames(frames: Tensor, generator: torch.Generator) -> Tensor:
     """A random shift and colour jitter of uint8 frames [N, 3, H, W] (one draw per frame), uint8 out."""
-    n, _, h, w = frames.shape
-    x = frames.float() / 255.0
-    padded = F.pad(x, (MAX_SHIFT,) * 4, mode="replicate")
-    dy, dx = (torch.randint(0, 2 * MAX_SHIFT + 1, (2, n), generator=generator)).tolist()
-    x = torch.stack([padded[i, :, y:y + h, xx:xx + w] for i, (y, xx) in enumerate(zip(dy, dx))])
+    n = frames.shape[0]
+    x = random_shift(frames.float() / 255.0, MAX_SHIFT, generator)
     factors = 1 + JITTER * (2 * torch.rand(3, n, 1, 1, 1, generator=generator) - 1)
     brightness, contrast, saturation = factors
     x = x * brightness

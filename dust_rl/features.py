@@ -103,12 +103,15 @@ class FeatureCache:
         """[rows, C, N, Dv] float16 condition tokens of the frames themselves (view 0)."""
         return self.views[0]
 
+    def _image_keys(self) -> list[tuple[str, ...]]:
+        return [(*IMAGE_KEY, cam) for cam in self.policy.cameras]
+
     def _encode(self, start: int, views: int) -> torch.Tensor:
         """Tokens [views, rows, ...] of the batch of rows from ``start``: as they are, then augmented copies.
 
         The frames are read once for all views (see :mod:`dust_rl.augment` for the augmentation).
         """
-        keys = [(*IMAGE_KEY, cam) for cam in self.policy.cameras]
+        keys = self._image_keys()
         rows = self.dataset.data.select(*keys)[start:start + self.batch_size]
         encoded = [self.policy.image_features(rows).half()]
         for view in range(1, views):
@@ -132,6 +135,9 @@ class FeatureCache:
             "action_is_pad": windows.get(PAD_KEY),
             "future_tokens": self.policy.future_targets(self.image_tokens[windows.get((FUTURE_KEY, "index"))].float()),
         }, batch_size=windows.batch_size)
+        if self.policy.reads_pixels:  # read from the dataset's memmap per batch (the OS caches the pages)
+            frames = self.dataset.data.select(*self._image_keys())[rows]
+            batch.set("pixels", self.policy.frames(frames))
         if self.env_state_stats is not None:
             mean, std = self.env_state_stats
             batch.set("env_state", (windows.get(ENV_STATE_KEY).float() - mean) / std)

@@ -39,6 +39,7 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.agents.config import KeypointSource
 from dust_rl.atomic_files import write_json_atomic
 from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, DemoWindows
@@ -101,8 +102,12 @@ class TrainConfig:
     """Condition tokens per camera (rows, cols); default: the image encoder's own grid (EfficientNet-Lite0 at
     128 px: 8x8; conv-ae: 4x4). Coarser grids are average-pooled and train faster."""
     keypoints: int = 0
-    """Trainable spatial-softmax keypoints per camera on the condition grid, each one more condition token
-    (:mod:`dust_rl.agents.keypoints`): positions finer than the grid, for grasping small objects."""
+    """Trainable spatial-softmax keypoints per camera, each one more condition token: positions finer than
+    the grid, for grasping small objects."""
+    keypoint_source: KeypointSource = "features"
+    """What the keypoints are computed from: ``features`` (the frozen condition grid,
+    :mod:`dust_rl.agents.keypoints`) or ``pixels`` (a small network on the raw frames trained with the policy,
+    :mod:`dust_rl.agents.pixel_keypoints`; each step then runs it on the batch's frames)."""
     lambda_aux: float = 0.0
     """Weight of an auxiliary loss that teaches the keypoints the objects' positions from the dataset's
     privileged ``observation.environment_state`` (:mod:`dust_rl.agents.state_readout`; training only, the
@@ -311,6 +316,7 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
         return unwrap(make_policy(
             config.variant, image_encoder=config.image_encoder, execute_steps=config.execute_steps,
             horizon=config.horizon, cond_grid=config.cond_grid, keypoints=config.keypoints,
+            keypoint_source=config.keypoint_source,
             aux_state_dim=env_state_width(dataset) if config.lambda_aux else 0, lambda_aux=config.lambda_aux,
             aux_state_input=config.aux_state_input, d_model=config.d_model, n_heads=config.n_heads,
             n_mmdit=config.n_mmdit, n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))

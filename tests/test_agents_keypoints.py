@@ -78,13 +78,18 @@ def test_config_checks_keypoint_settings():
         DustConfig(keypoints=4, aux_state_dim=3, lambda_aux=float("nan"))
     with pytest.raises(ValueError, match="aux_state_input needs aux_state_dim"):
         DustConfig(keypoints=4, aux_state_input=True)
+    with pytest.raises(ValueError, match="keypoint_source 'pixels' needs keypoints"):
+        DustConfig(keypoint_source="pixels")
+    with pytest.raises(ValueError, match="unknown keypoint_source 'depth'"):
+        DustConfig(keypoints=4, keypoint_source="depth")
     fed = DustConfig(state_dim=8, keypoints=4, aux_state_dim=3, aux_state_input=True)
     assert fed.trunk_state_dim == 11 and DustConfig(state_dim=8, keypoints=4, aux_state_dim=3).trunk_state_dim == 8
 
 
-@pytest.mark.parametrize("aux_state_input", [False, True])
-def test_keypoint_policy_round_trips_and_its_heads_get_gradients(aux_state_input, tiny_encoder, minilm, tmp_path):
-    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm, keypoints=3, aux_state_dim=4,
+@pytest.mark.parametrize(("source", "aux_state_input"), [("features", False), ("features", True), ("pixels", True)])
+def test_keypoint_policy_round_trips_and_its_heads_get_gradients(source, aux_state_input, tiny_encoder, minilm,
+                                                                 tmp_path):
+    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm, keypoints=3, keypoint_source=source, aux_state_dim=4,
                                 aux_state_input=aux_state_input))
     perturb(policy)
     features = policy.observation_features(observation())
@@ -104,7 +109,7 @@ def test_keypoint_policy_round_trips_and_its_heads_get_gradients(aux_state_input
     trained = {id(p) for p in policy.trainable_modules().parameters()}
     assert trained == {id(p) for p in policy.trainable_parameters()}
     loaded = unwrap(load_policy(save_policy(policy, tmp_path / "policy.pt")))
-    assert loaded.config.keypoints == 3 and loaded.config.aux_state_dim == 4
+    assert (loaded.config.keypoints, loaded.config.keypoint_source, loaded.config.aux_state_dim) == (3, source, 4)
     obs = observation()
     expected_plan = policy.plan(obs, torch.Generator().manual_seed(1))
     assert torch.equal(loaded.plan(obs, torch.Generator().manual_seed(1))["action_chunk"],
