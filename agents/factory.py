@@ -14,8 +14,9 @@ import dataclasses
 import pathlib
 from collections.abc import Mapping, Sequence
 
-from torchrl.data.vla.schema import IMAGE_KEY, STATE_KEY
 from torchrl.envs import EnvBase
+
+from dust_rl.keys import IMAGE_KEY, STATE_KEY, flat_name
 
 from .backbone import FrozenBackbone, resolve_image_encoder
 from .checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
@@ -23,7 +24,7 @@ from .config import MAX_CAMERAS, DustConfig, check_size
 from .execution import ChunkExecutor
 from .image_encoder import ImageEncoder
 from .normalizer import Normalizer
-from .policy import DustPolicy, flat_name
+from .policy import DustPolicy
 from .text_encoder import TextEncoder, TransformersTextEncoder
 
 POLICY_KIND = "dust-rl-policy"

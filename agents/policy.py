@@ -39,10 +39,10 @@ from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.utils import NestedKey
 from torch import Tensor, nn
-from torchrl.data.vla.schema import ACTION_KEY, IMAGE_KEY
 from torchrl.modules.vla import VLAWrapperBase
+
+from dust_rl.keys import ACTION_KEY, IMAGE_KEY, flat_name
 
 from .backbone import FrozenBackbone
 from .condition import ConditionProjector
@@ -54,11 +54,6 @@ from .samplers import schedule_for
 from .state_readout import StateReadout
 
 FEATURE_KEYS = ("image_tokens", "text_tokens", "text_mask", "pixels")
-
-
-def flat_name(key: NestedKey) -> str:
-    """The gymnasium/LeRobot name of a canonical key: ``("observation", "state")`` -> ``"observation.state"``."""
-    return key if isinstance(key, str) else ".".join(key)
 
 
 def instruction_list(value: object, n: int) -> list[str]:

@@ -22,13 +22,12 @@ from dataclasses import dataclass
 import torch
 from matplotlib.figure import Figure
 from torch import Tensor
-from torchrl.data.vla.schema import IMAGE_KEY
 from tqdm.auto import tqdm
 
 from dust_rl.agents.image_encoder import ImageEncoder, image_tokens
 from dust_rl.atomic_files import write_json_atomic
 from dust_rl.data import DemoDataset
-from dust_rl.data.finalize import ENV_STATE_KEY
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
 from dust_rl.report import save_png
 
 RIDGE_ALPHAS = (1e-2, 1e-1, 1.0, 10.0, 100.0, 1000.0)

@@ -35,17 +35,17 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector, Collector
-from torchrl.data.vla.schema import STATE_KEY
 from torchrl.envs import InitTracker, TransformedEnv
 from tqdm import tqdm
 
 from dust_rl.agents import ChunkExecutor, DustConfig, DustPolicy, load_policy, unwrap
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.config_json import config_json
-from dust_rl.data.seeding import SEED_KEY, SUCCESS_KEY, EpisodeSeedWrapper, SeedSchedule
+from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, check_at_least
+from dust_rl.keys import SEED_KEY, STATE_KEY, SUCCESS_KEY
 from dust_rl.report import plot_loss_curves, write_report
 from dust_rl.rollout_video import episode_digest, episode_generator, record_videos
 

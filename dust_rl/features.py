@@ -24,7 +24,6 @@ import math
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data.vla.schema import IMAGE_KEY
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
@@ -32,12 +31,17 @@ from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.normalizer import MIN_STD
 from dust_rl.augment import JITTER, MAX_SHIFT, augment_frames, view_generator
 from dust_rl.data import DatasetError, DemoDataset
-from dust_rl.data.finalize import ENV_STATE_KEY
-from dust_rl.data.stats import stat_name
-from dust_rl.data.windows import CHUNK_KEY, FUTURE_KEY, PAD_KEY
-from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
+from dust_rl.keys import (
+    ACTION_CHUNK_KEY,
+    ACTION_IS_PAD_KEY,
+    ENV_STATE_KEY,
+    EXPERT_ACTION_KEY,
+    FUTURE_KEY,
+    IMAGE_KEY,
+    STATE_KEY,
+    flat_name,
+)
 
-STATE_KEY = ("observation", "state")
 FEATURES_KIND = "dust-rl-features"
 
 
@@ -50,7 +54,7 @@ def dataset_policy_kwargs(dataset: DemoDataset, action_key: str = EXPERT_ACTION_
     """
     spec, stats = dataset.meta["spec"], dataset.meta["stats"]
     return {"action_dim": spec["action_dim"], "state_dim": spec["state_dim"], "cameras": list(spec["cameras"]),
-            "stats": {"state": stats[stat_name(STATE_KEY)], "action": stats[stat_name(action_key)]}}
+            "stats": {"state": stats[flat_name(STATE_KEY)], "action": stats[flat_name(action_key)]}}
 
 
 class FeatureCache:
@@ -131,8 +135,8 @@ class FeatureCache:
             "text_tokens": self.text_tokens[instructions],
             "text_mask": self.text_mask[instructions],
             "state": normalizer.normalize_state(windows.get(STATE_KEY)),
-            "action_chunk": normalizer.normalize_action(windows.get(CHUNK_KEY)),
-            "action_is_pad": windows.get(PAD_KEY),
+            "action_chunk": normalizer.normalize_action(windows.get(ACTION_CHUNK_KEY)),
+            ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY),
             "future_tokens": self.policy.future_targets(self.image_tokens[windows.get((FUTURE_KEY, "index"))].float()),
         }, batch_size=windows.batch_size)
         if self.policy.reads_pixels:  # read from the dataset's memmap per batch (the OS caches the pages)
@@ -146,7 +150,7 @@ class FeatureCache:
 
 def env_state_width(dataset: DemoDataset) -> int:
     """Size of the dataset's privileged ``observation.environment_state`` (0 when it has none)."""
-    return len(dataset.meta["stats"].get(stat_name(ENV_STATE_KEY), {}).get("mean", []))
+    return len(dataset.meta["stats"].get(flat_name(ENV_STATE_KEY), {}).get("mean", []))
 
 
 def env_state_stats(dataset: DemoDataset) -> tuple[torch.Tensor, torch.Tensor]:
@@ -158,7 +162,7 @@ def env_state_stats(dataset: DemoDataset) -> tuple[torch.Tensor, torch.Tensor]:
     if not env_state_width(dataset):
         raise DatasetError(f"{dataset.root}: no observation.environment_state to learn from (an imported dataset "
                            "has none); train without the auxiliary state loss")
-    stats = dataset.meta["stats"][stat_name(ENV_STATE_KEY)]
+    stats = dataset.meta["stats"][flat_name(ENV_STATE_KEY)]
     return torch.tensor(stats["mean"]), torch.tensor(stats["std"]).clamp_min(MIN_STD)
 
 

@@ -24,8 +24,7 @@ from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, save_image_encode
 from dust_rl.agents.image_encoder import to_unit_float
 from dust_rl.data import DemoDataset
 from dust_rl.errors import ConfigError
-
-IMAGE_KEY = ("observation", "image")
+from dust_rl.keys import IMAGE_KEY
 
 
 class FramePool:

@@ -33,14 +33,13 @@ import torch.nn.functional as F
 from PIL import Image, ImageDraw
 from tensordict import TensorDictBase
 from torch import Tensor
-from torchrl.data.vla.schema import IMAGE_KEY, STATE_KEY
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import step_mdp
 from tqdm import tqdm
 
 from dust_rl.agents import DustPolicy
-from dust_rl.data.seeding import SEED_KEY, SUCCESS_KEY
 from dust_rl.expert_rollouts import write_video
+from dust_rl.keys import IMAGE_KEY, SEED_KEY, STATE_KEY, SUCCESS_KEY
 
 LABEL_HEIGHT = 12
 Decoder = Callable[[Tensor], Tensor]

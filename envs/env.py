@@ -22,6 +22,8 @@ import mujoco  # MUJOCO_GL is set before this by the package's __init__ (envs/__
 import numpy as np
 import qpsolvers
 
+from dust_rl.keys import ENV_STATE_KEY, INSTRUCTION_KEY, STATE_KEY, flat_name
+
 from . import arguments
 from .controller import OperationalSpaceController
 from .experts import WaypointExpert
@@ -37,11 +39,11 @@ REWARD_TYPES = ("sparse", "dense")
 INSTRUCTION_CHARSET = string.ascii_letters + string.digits + " ,.'-"
 MAX_INSTRUCTION_LENGTH = 256
 # Flat VLA names of the numeric observations (torchrl_env nests them at the dots).
-STATE_KEY = "observation.state"
-ENV_STATE_KEY = "observation.environment_state"
+FLAT_STATE_KEY = flat_name(STATE_KEY)
+FLAT_ENV_STATE_KEY = flat_name(ENV_STATE_KEY)
 # obs_mode="state" names: SB3's MultiInputPolicy keys an nn.ModuleDict by them, which rejects dots.
 # They are LeRobot's gym-env names (gym_aloha, gym_pusht); torchrl's GymEnv would rename a plain "state".
-STATE_MODE_KEYS = {STATE_KEY: "agent_pos", ENV_STATE_KEY: "environment_state"}
+STATE_MODE_KEYS = {FLAT_STATE_KEY: "agent_pos", FLAT_ENV_STATE_KEY: "environment_state"}
 
 MAX_TRANSLATION = 0.02  # metres per control step at |action| = 1 (delta mode)
 MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
@@ -186,10 +188,10 @@ class DustEnv(gym.Env):
         if self.obs_mode == "rgb":
             for camera in self.cameras:
                 spaces[f"observation.image.{camera}"] = gym.spaces.Box(0, 255, self.image_shape, np.uint8)
-        spaces[STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
-        spaces[ENV_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (self.task.environment_state_dim,), np.float32)
+        spaces[FLAT_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
+        spaces[FLAT_ENV_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (self.task.environment_state_dim,), np.float32)
         if self.obs_mode == "rgb":
-            spaces["language_instruction"] = gym.spaces.Text(MAX_INSTRUCTION_LENGTH, min_length=1,
+            spaces[INSTRUCTION_KEY] = gym.spaces.Text(MAX_INSTRUCTION_LENGTH, min_length=1,
                                                              charset=INSTRUCTION_CHARSET)
         return gym.spaces.Dict(self._mode_keys(spaces))
 
@@ -295,10 +297,10 @@ class DustEnv(gym.Env):
                 obs[f"observation.image.{camera}"] = self._render_camera(camera)
         env_state = self.task.environment_state(self.data).astype(np.float32)
         state = self._state()
-        obs[STATE_KEY] = np.concatenate([state, env_state]) if self.privileged_state else state
-        obs[ENV_STATE_KEY] = env_state
+        obs[FLAT_STATE_KEY] = np.concatenate([state, env_state]) if self.privileged_state else state
+        obs[FLAT_ENV_STATE_KEY] = env_state
         if self.obs_mode == "rgb":
-            obs["language_instruction"] = self._instruction
+            obs[INSTRUCTION_KEY] = self._instruction
         return self._mode_keys(obs)
 
     def _mode_keys(self, entries: dict) -> dict:
@@ -325,7 +327,7 @@ class DustEnv(gym.Env):
 
     def _info(self, success: bool, reason: str) -> dict:
         return {"is_success": success, "task": self.task.name, "truncation_reason": reason,
-                "language_instruction": self._instruction}
+                INSTRUCTION_KEY: self._instruction}
 
     # -- helpers for scripted experts ------------------------------------------------------------
 

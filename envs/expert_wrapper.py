@@ -13,7 +13,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 
-EXPERT_ACTION_KEY = "expert_action"
+from dust_rl.keys import EXPERT_ACTION_KEY
 
 
 class ExpertActionWrapper(gym.Wrapper):

@@ -19,8 +19,8 @@ import torch
 
 from dust_rl.agents import load_policy, unwrap
 from dust_rl.data import DemoDataset, DemoWindows
-from dust_rl.data.finalize import ENV_STATE_KEY
-from dust_rl.features import STATE_KEY, FeatureCache, env_state_stats
+from dust_rl.features import FeatureCache, env_state_stats
+from dust_rl.keys import ENV_STATE_KEY, STATE_KEY
 
 STEP_BUCKETS = ((0, 1), (1, 10), (10, 30), (30, 60), (60, 10**6))
 EE_BLOCK = 8  # the state ends with the end effector's position, quaternion and opening (envs/env.py)

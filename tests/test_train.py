@@ -91,12 +91,15 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     assert list((tmp_path / "data" / "features").glob("*.pt"))  # cached for the next run on this dataset
 
 
-def test_keypoints_learn_from_the_privileged_state(run_inputs, tmp_path):
+@pytest.mark.parametrize("source", ["features", "pixels"])
+def test_keypoints_learn_from_the_privileged_state(source, run_inputs, tmp_path):
     out = tmp_path / "run"
-    result = train(tiny_config(run_inputs, out, steps=3, log_every=3, keypoints=2, lambda_aux=0.5))
+    result = train(tiny_config(run_inputs, out, steps=3, log_every=3, keypoints=2, keypoint_source=source,
+                               lambda_aux=0.5))
     config = unwrap(load_policy(result.policy)).config
     width = len(json.loads((run_inputs[0] / "meta.json").read_text())["stats"]["observation.environment_state"]["mean"])
-    assert (config.keypoints, config.aux_state_dim, config.lambda_aux) == (2, width, 0.5) and width > 0
+    assert (config.keypoints, config.keypoint_source, config.aux_state_dim, config.lambda_aux) == (
+        2, source, width, 0.5) and width > 0
     aux = (out / "logs" / "train" / "scalars" / "train" / "loss_aux.csv").read_text().split(",")
     assert int(aux[0]) == 3 and math.isfinite(float(aux[1])) and float(aux[1]) > 0
 

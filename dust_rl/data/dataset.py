@@ -14,12 +14,12 @@ import gymnasium as gym
 import torch
 from tensordict import NonTensorStack, TensorDict
 
+from dust_rl.keys import INSTRUCTION_KEY
+
 from .errors import DatasetError
 from .layout import META_FILE
 from .memmap_io import load_memmap_checked
 from .metadata import env_spec, read_meta, spec_mismatches
-
-INSTRUCTION_KEY = "language_instruction"
 
 
 def _is_int(value: object) -> bool:

@@ -14,7 +14,7 @@ import pathlib
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
+from dust_rl.keys import EXPERT_ACTION_KEY, INSTRUCTION_KEY, SEED_KEY, STEP_KEY, SUCCESS_KEY
 
 from .errors import DatasetError
 from .layout import (
@@ -28,10 +28,7 @@ from .layout import (
     write_json_atomic,
 )
 from .memmap_io import load_memmap_checked
-from .policy import STEP_KEY
-from .seeding import SEED_KEY, SUCCESS_KEY
 
-INSTRUCTION_KEY = "language_instruction"
 # Per-row entries kept from a collected trajectory; the next observation is not stored
 # (it is the next row's observation), which halves the image storage.
 _NEXT_FLAGS = ("reward", "done", "terminated", "truncated")

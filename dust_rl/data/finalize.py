@@ -21,6 +21,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tqdm import tqdm
 
+from dust_rl.keys import ENV_STATE_KEY
+
 from .episodes import EpisodeRecord, episode_rows_dir, load_episode_rows, scan_episodes
 from .errors import DatasetError
 from .layout import DATA_PREFIX, META_FILE, staging_dir, write_json_atomic
@@ -29,7 +31,6 @@ from .metadata import read_meta
 from .selection import select_episodes
 from .stats import compute_stats
 
-ENV_STATE_KEY = ("observation", "environment_state")
 INDEX_COLUMNS = ("episode", "task_index", "instruction_index", "seed")
 
 

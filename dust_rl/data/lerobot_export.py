@@ -30,7 +30,7 @@ import torch
 from tensordict import TensorDictBase
 from tqdm import tqdm
 
-from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
+from dust_rl.keys import ENV_STATE_KEY, EXPERT_ACTION_KEY, IMAGE_KEY, STATE_KEY
 
 from .dataset import DemoDataset
 from .layout import write_json_atomic
@@ -45,8 +45,8 @@ DUST_META_FILE = "meta/dust_rl.json"
 IMAGE_PREFIX = "observation.images."
 # LeRobot column <- dataset entry, for every per-step entry besides images and LeRobot's index columns.
 COLUMNS: dict[str, str | tuple[str, ...]] = {
-    "observation.state": ("observation", "state"),
-    "observation.environment_state": ("observation", "environment_state"),
+    "observation.state": STATE_KEY,
+    "observation.environment_state": ENV_STATE_KEY,
     "action": "action",
     EXPERT_ACTION_KEY: EXPERT_ACTION_KEY,
     "next.reward": ("next", "reward"),
@@ -83,7 +83,7 @@ def _write(dataset: DemoDataset, root: pathlib.Path, crf: int, progress: bool) -
     fps = meta["spec"]["fps"]
     video_keys = [IMAGE_PREFIX + camera for camera in dataset.cameras]
     for camera, key in zip(dataset.cameras, video_keys):
-        frames = data.get(("observation", "image", camera))
+        frames = data.get((*IMAGE_KEY, camera))
         write_mp4(root / VIDEO_PATH.format(video_key=key, chunk_index=0, file_index=0),
                   (frame.permute(1, 2, 0).numpy() for frame in tqdm(frames, desc=f"encoding {camera}",
                                                                       disable=not progress)), fps, crf)
@@ -180,7 +180,7 @@ def _image_stats(data: TensorDictBase, cameras: list[str]) -> dict:
     rows = torch.linspace(0, data.shape[0] - 1, min(_IMAGE_STATS_FRAMES, data.shape[0])).long().unique()
     stats = {}
     for camera in cameras:
-        pixels = data.get(("observation", "image", camera))[rows].double().div(255).transpose(0, 1).flatten(1)
+        pixels = data.get((*IMAGE_KEY, camera))[rows].double().div(255).transpose(0, 1).flatten(1)
         stats[IMAGE_PREFIX + camera] = {
             name: value.reshape(3, 1, 1).tolist() for name, value in (
                 ("mean", pixels.mean(1)), ("std", pixels.std(1, correction=0)),

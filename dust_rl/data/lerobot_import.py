@@ -46,6 +46,8 @@ import pyarrow.parquet as pq
 import torch
 from tensordict import TensorDict
 
+from dust_rl.keys import ENV_STATE_KEY, EXPERT_ACTION_KEY, IMAGE_KEY, flat_name
+
 from .episodes import EpisodeRecord
 from .errors import DatasetError
 from .finalize import consolidate
@@ -317,7 +319,7 @@ class _LeRobotFolder:
         frames, rows = self.frames, len(self.frames["index"])
         last = torch.zeros(rows, dtype=torch.bool)
         last[[episode["dataset_to_index"] - 1 for episode in self.episodes]] = True
-        defaults = {"observation.environment_state": torch.zeros(rows, 0), "expert_action": frames[ACTION],
+        defaults = {flat_name(ENV_STATE_KEY): torch.zeros(rows, 0), EXPERT_ACTION_KEY: frames[ACTION],
                     "next.reward": torch.zeros(rows), "next.done": last, "next.terminated": last,
                     "next.truncated": torch.zeros(rows, dtype=torch.bool), "next.success": last}
         for name, value in defaults.items():
@@ -374,15 +376,15 @@ class _LeRobotFolder:
         start, end = episode["dataset_from_index"], episode["dataset_to_index"]
         rows = TensorDict({key: self.frames[name][start:end] for name, key in COLUMNS.items()},
                           batch_size=[end - start])
-        env_state = rows.get(("observation", "environment_state"))[:, :self.env_state_dims[record.task]]
-        rows.set(("observation", "environment_state"), env_state)
+        env_state = rows.get(ENV_STATE_KEY)[:, :self.env_state_dims[record.task]]
+        rows.set(ENV_STATE_KEY, env_state)
         rows.set("frame_index", self.frames["frame_index"][start:end])
         for camera, stream in self._videos.items():
             key = IMAGE_PREFIX + camera
             first = round(episode[f"videos/{key}/from_timestamp"] * self.fps)
             images = np.stack(stream.read(video_files[camera], first, end - start,
                                           f"episode {episode['episode_index']}"))
-            rows.set(("observation", "image", camera), torch.from_numpy(images).permute(0, 3, 1, 2))
+            rows.set((*IMAGE_KEY, camera), torch.from_numpy(images).permute(0, 3, 1, 2))
         return rows
 
 

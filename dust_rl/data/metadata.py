@@ -14,7 +14,7 @@ import platform
 
 import gymnasium as gym
 
-from dust_rl.envs.env import STATE_KEY, STATE_MODE_KEYS
+from dust_rl.envs.env import FLAT_STATE_KEY, STATE_MODE_KEYS
 
 from .errors import DatasetError
 from .layout import FORMAT_VERSION, META_FILE, inside, read_json, write_json_atomic
@@ -33,7 +33,7 @@ def env_spec(env: gym.Env) -> dict:
     return {
         "cameras": cameras,
         "image_shape": list(spaces[_IMAGE_PREFIX + cameras[0]].shape) if cameras else None,
-        "state_dim": int(spaces.get(STATE_KEY, spaces.get(STATE_MODE_KEYS[STATE_KEY])).shape[0]),
+        "state_dim": int(spaces.get(FLAT_STATE_KEY, spaces.get(STATE_MODE_KEYS[FLAT_STATE_KEY])).shape[0]),
         "action_dim": int(env.action_space.shape[0]),
         "control_hz": round(1.0 / unwrapped.control_dt, 6),
         "fps": int(unwrapped.metadata["render_fps"]),

@@ -14,11 +14,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
-
-from .seeding import SEED_KEY
-
-STEP_KEY = "step_count"
+from dust_rl.keys import EXPERT_ACTION_KEY, SEED_KEY, STEP_KEY
 
 
 class ExpertPolicy(nn.Module):

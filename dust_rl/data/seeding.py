@@ -15,8 +15,7 @@ from collections.abc import Iterator
 import gymnasium as gym
 import numpy as np
 
-SEED_KEY = "episode_seed"
-SUCCESS_KEY = "is_success"
+from dust_rl.keys import SEED_KEY, SUCCESS_KEY
 
 
 @dataclasses.dataclass(frozen=True)

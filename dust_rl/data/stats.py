@@ -5,14 +5,9 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
-from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
+from dust_rl.keys import ACTION_KEY, ENV_STATE_KEY, EXPERT_ACTION_KEY, STATE_KEY, flat_name
 
-STAT_KEYS = (("observation", "state"), ("observation", "environment_state"), "action", EXPERT_ACTION_KEY)
-
-
-def stat_name(key: str | tuple[str, ...]) -> str:
-    """``("observation", "state")`` -> ``"observation.state"`` (the JSON/LeRobot name)."""
-    return key if isinstance(key, str) else ".".join(key)
+STAT_KEYS = (STATE_KEY, ENV_STATE_KEY, ACTION_KEY, EXPERT_ACTION_KEY)
 
 
 def compute_stats(rows: TensorDictBase) -> dict[str, dict[str, list[float]]]:
@@ -24,7 +19,7 @@ def compute_stats(rows: TensorDictBase) -> dict[str, dict[str, list[float]]]:
         values = rows.get(key).to(torch.float64).reshape(rows.shape[0], -1)
         if not values.shape[1]:  # e.g. no privileged state in an imported dataset
             continue
-        stats[stat_name(key)] = {
+        stats[flat_name(key)] = {
             "mean": values.mean(0).tolist(), "std": values.std(0, correction=0).tolist(),
             "min": values.min(0).values.tolist(), "max": values.max(0).values.tolist(),
             "count": [values.shape[0]],

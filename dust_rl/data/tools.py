@@ -7,6 +7,8 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
+from dust_rl.keys import IMAGE_KEY
+
 from .dataset import DemoDataset
 from .video import write_mp4
 
@@ -79,5 +81,5 @@ def _grid_frames(dataset: DemoDataset, episodes: list[int], columns: int, scale:
 def _cell_frames(dataset: DemoDataset, index: int) -> np.ndarray:
     """Frames ``[T, H, W * cameras, 3]`` of one episode, cameras side by side."""
     rows = dataset.episode(index)
-    images = [rows.get(("observation", "image", camera)).permute(0, 2, 3, 1).numpy() for camera in dataset.cameras]
+    images = [rows.get((*IMAGE_KEY, camera)).permute(0, 2, 3, 1).numpy() for camera in dataset.cameras]
     return np.concatenate(images, axis=2)

@@ -33,14 +33,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer, TensorStorage
 from torchrl.data.replay_buffers.samplers import RandomSampler, SamplerWithoutReplacement
 
-from dust_rl.envs.expert_wrapper import EXPERT_ACTION_KEY
+from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, EXPERT_ACTION_KEY, FUTURE_KEY, IMAGE_KEY
 
 from .dataset import DemoDataset
-
-CHUNK_KEY = ("vla_action", "chunk")
-PAD_KEY = "action_is_pad"
-FUTURE_KEY = "future"
-IMAGE_KEY = ("observation", "image")
 
 
 class DemoWindows:
@@ -90,8 +85,8 @@ class DemoWindows:
         future_rows = rows + self.future_offset
         out = self.dataset.with_instructions(current)
         out.set("index", rows)
-        out.set(CHUNK_KEY, data.get(self.action_key)[torch.minimum(chunk_rows, last[:, None])])
-        out.set(PAD_KEY, chunk_rows > last[:, None])
+        out.set(ACTION_CHUNK_KEY, data.get(self.action_key)[torch.minimum(chunk_rows, last[:, None])])
+        out.set(ACTION_IS_PAD_KEY, chunk_rows > last[:, None])
         future = data[torch.minimum(future_rows, last)].select("observation")
         future.update({"index": torch.minimum(future_rows, last), "is_clamped": future_rows > last})
         out.set(FUTURE_KEY, future)

@@ -1,0 +1,36 @@
+"""Every data key the project reads or writes, declared once.
+
+torchrl's VLA schema names the canonical ones (camera frames, robot state,
+instruction, action chunk, padding mask); this module re-exports them and
+adds the few DUST and the datasets need. Gymnasium observations and LeRobot
+features use the same keys joined by dots (:func:`flat_name`):
+``("observation", "state")`` is ``"observation.state"``. Nothing here
+imports the envs or the agents, so both can import it.
+"""
+
+from __future__ import annotations
+
+from tensordict.utils import NestedKey
+from torchrl.data.vla.schema import (
+    ACTION_CHUNK_KEY,
+    ACTION_IS_PAD_KEY,
+    ACTION_KEY,
+    IMAGE_KEY,
+    INSTRUCTION_KEY,
+    STATE_KEY,
+)
+
+ENV_STATE_KEY = ("observation", "environment_state")  # privileged object state (never given to a policy)
+EXPERT_ACTION_KEY = "expert_action"  # the scripted expert's label (differs from "action" under DART noise)
+FUTURE_KEY = "future"  # a training window's observation H rows after its first
+SEED_KEY = "episode_seed"  # the reset seed of the episode a row belongs to
+SUCCESS_KEY = "is_success"
+STEP_KEY = "step_count"  # steps since the episode's reset
+
+__all__ = ["ACTION_CHUNK_KEY", "ACTION_IS_PAD_KEY", "ACTION_KEY", "ENV_STATE_KEY", "EXPERT_ACTION_KEY", "FUTURE_KEY",
+           "IMAGE_KEY", "INSTRUCTION_KEY", "SEED_KEY", "STATE_KEY", "STEP_KEY", "SUCCESS_KEY", "flat_name"]
+
+
+def flat_name(key: NestedKey) -> str:
+    """The gymnasium/LeRobot name of a key: ``("observation", "state")`` -> ``"observation.state"``."""
+    return key if isinstance(key, str) else ".".join(key)
