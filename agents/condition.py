@@ -54,12 +54,13 @@ class ConditionProjector(nn.Module):
             self.keypoint_in = nn.Linear(2 + attended_dim, cond_dim)
             self.keypoint_embed = nn.Parameter(EMBED_INIT_STD * torch.randn(n_cameras * n_keypoints, cond_dim))
 
-    def keypoint_features(self, image_tokens: Tensor, pixels: Tensor | None = None, augment: bool = False,
+    def keypoint_features(self, image_tokens: Tensor | None, pixels: Tensor | None = None, augment: bool = False,
                           generator: torch.Generator | None = None) -> Tensor:
         """Per camera and keypoint, its coordinates and attended features [B, C*K, 2 + attended size].
 
         Args:
-            image_tokens: [B, C, N, image_dim], row-major on ``grid``; needs ``n_keypoints`` > 0.
+            image_tokens: [B, C, N, image_dim], row-major on ``grid``; needs ``n_keypoints`` > 0 (unread, and
+                may be None, with ``keypoint_source="pixels"``).
             pixels: uint8 frames [B, C, 3, H, W]; needed (and only read) with ``keypoint_source="pixels"``.
             augment: shift those frames at random (drawn from ``generator``), as in training.
         """

@@ -263,10 +263,26 @@ class DustPolicy(VLAWrapperBase):
         agent_batch = self._agent_batch(batch, augment=self.training, generator=generator)
         losses = self.agent.compute_loss(agent_batch, generator)
         if self.config.aux_state_dim and "env_state" in batch.keys():
-            error = self._state_estimate(agent_batch, batch) - batch.get("env_state")
-            losses.set("loss_aux", error.square().mean())
+            losses.set("loss_aux", _squared_error(self._state_estimate(agent_batch, batch), batch.get("env_state")))
             losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))
         return losses
+
+    def readout_loss(self, frames: TensorDictBase, generator: torch.Generator | None = None) -> Tensor:
+        """The read-out's error of the normalised object state on frames without actions (unweighted).
+
+        Args:
+            frames: ``pixels`` [B, C, 3, H, W] uint8, ``text_tokens``, ``text_mask`` and ``env_state``
+                (:class:`~dust_rl.aux_frames.AuxFrameBatches`); shifted at random in training mode.
+
+        Raises:
+            ValueError: the policy has no read-out, or its keypoints are not computed from pixels.
+        """
+        if not (self.config.aux_state_dim and self.reads_pixels):
+            raise ValueError("readout_loss needs a state read-out on pixel keypoints (--lambda-aux with "
+                             "--keypoint-source pixels)")
+        keypoints = self.condition.keypoint_features(None, frames.get("pixels"), self.training, generator)
+        estimate = self.state_readout(keypoints, frames.get("text_tokens"), frames.get("text_mask"))
+        return _squared_error(estimate, frames.get("env_state"))
 
     @torch.no_grad()
     def plan(self, td: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
@@ -292,3 +308,8 @@ class DustPolicy(VLAWrapperBase):
         """Write ``("vla_action", "chunk")`` and ``action`` (the chunk's first step)."""
         out = super().forward(tensordict, **kwargs)
         return out.set(ACTION_KEY, out.get(self.tensor_keys.action_chunk)[..., 0, :])
+
+
+def _squared_error(estimate: Tensor, target: Tensor) -> Tensor:
+    """The auxiliary read-out loss: mean squared error of the normalised object state."""
+    return (estimate - target).square().mean()

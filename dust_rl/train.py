@@ -41,13 +41,14 @@ from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.agents.config import KeypointSource
 from dust_rl.atomic_files import write_json_atomic
+from dust_rl.aux_frames import AuxFrameBatches, render_aux_frames
 from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.data.metadata import package_versions
 from dust_rl.ema import EMA
 from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
-from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_width
+from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats, env_state_width
 
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 # Fields that may differ between a run and its resumption.
@@ -115,6 +116,11 @@ class TrainConfig:
     aux_state_input: bool = False
     """Also feed that auxiliary read-out's estimate of the object state to the trunk beside the robot state
     (needs ``lambda_aux``)."""
+    aux_frames: int = 0
+    """Frames of random resets and random arm motions (objects independent of the arm,
+    :mod:`dust_rl.aux_frames`) rendered once at the start; every step adds the read-out's error on a batch
+    of them to the loss (weight ``lambda_aux``), so the read-out cannot settle for "the target is where the
+    gripper is". Needs ``lambda_aux`` and ``keypoint_source pixels``; 0: off."""
     augment_views: int = 1
     """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
     (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
@@ -141,13 +147,16 @@ class TrainConfig:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "horizon", "execute_steps", "d_model", "n_heads",
                        "augment_views", "log_every", "checkpoint_every", "eval_episodes", "eval_workers", "threads")
-        check_at_least(self, 0, "n_mmdit", "n_dit", "eval_every", "keypoints")
+        check_at_least(self, 0, "n_mmdit", "n_dit", "eval_every", "keypoints", "aux_frames")
         check_finite(self, "lr", "grad_clip", positive=True)
         check_finite(self, "weight_decay", "lambda_wm", "lambda_aux")
         if self.lambda_aux and not self.keypoints:
             raise ConfigError("lambda_aux needs --keypoints: the auxiliary loss is read off the keypoints")
         if self.aux_state_input and not self.lambda_aux:
             raise ConfigError("aux_state_input needs --lambda-aux > 0: it feeds that read-out's estimate")
+        if self.aux_frames and not (self.lambda_aux and self.keypoint_source == "pixels"):
+            raise ConfigError("aux_frames needs --lambda-aux > 0 and --keypoint-source pixels: the frames train "
+                              "the read-out of the pixel keypoints")
         check_fraction(self, "warmup", "ema_decay")
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
@@ -200,6 +209,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
     policy.normalizer.set_vision_stats(features.image_tokens)
     windows = DemoWindows(dataset, horizon=config.horizon, batch_size=config.batch_size, images=False)
+    aux = _aux_frame_batches(config, dataset, policy) if config.aux_frames else None
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
     trained = policy.trainable_modules()
@@ -220,6 +230,9 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     began = tick
     for step in bar:
         losses = policy.compute_loss(features.batch(windows.sample()))
+        if aux is not None:
+            losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.batch_size)))
+            losses.set("loss", losses.get("loss") + config.lambda_aux * losses.get("loss_aux_frames"))
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.grad_clip)
@@ -322,6 +335,14 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
             n_mmdit=config.n_mmdit, n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
     except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)
         raise ConfigError(f"invalid model settings: {err}") from err
+
+
+def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy) -> AuxFrameBatches:
+    """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed)."""
+    rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
+                                           policy.cameras, config.aux_frames, env_state_width(dataset),
+                                           seed=config.seed, progress=config.progress)
+    return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
 
 
 def _restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> int:

@@ -104,6 +104,16 @@ def test_keypoints_learn_from_the_privileged_state(source, run_inputs, tmp_path)
     assert int(aux[0]) == 3 and math.isfinite(float(aux[1])) and float(aux[1]) > 0
 
 
+def test_training_logs_the_aux_frame_loss(run_inputs, tmp_path):
+    out = tmp_path / "run"
+    train(tiny_config(run_inputs, out, steps=2, log_every=2, keypoints=2, keypoint_source="pixels", lambda_aux=1.0,
+                      aux_frames=3))
+    step, value = (out / "logs" / "train" / "scalars" / "train" / "loss_aux_frames.csv").read_text().split(",")
+    assert int(step) == 2 and float(value) > 0
+    with pytest.raises(ConfigError, match="aux_frames needs --lambda-aux > 0 and --keypoint-source pixels"):
+        tiny_config(run_inputs, out, keypoints=2, lambda_aux=1.0, aux_frames=3)
+
+
 def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
     steps = 600
     reference = train(tiny_config(run_inputs, tmp_path / "ref", steps=steps, checkpoint_every=50))

@@ -1,0 +1,99 @@
+"""Frames whose objects do not follow the arm, to teach the privileged read-out where things are.
+
+On expert demonstrations the gripper holds the target cube in nearly nine
+rows of ten, so a read-out of the objects' state fitted on demonstrations
+learns "the target is where the gripper is": on 40 validation episodes it
+is 15 cm from the target cube at step 0 (where the gripper is 17 cm away),
+no better than guessing, with pixel keypoints and frozen features alike
+(``scripts/readout_error.py``, README). These frames break that shortcut:
+each is a random reset of a training task followed by 0..39 uniformly random
+actions, so the cubes lie anywhere relative to the arm. ``--aux-frames N``
+renders N of them once at the start of training and adds their read-out
+error to every step's loss beside the demonstrations'.
+
+Seeds start at :data:`FIRST_SEED`, away from the demonstration (0..),
+validation (5000..) and held-out (10000..) seeds, so the frames never show a
+layout the policy is scored on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from tqdm.auto import tqdm
+
+from dust_rl.agents import DustPolicy
+from dust_rl.env_factory import make_env
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, flat_name
+
+FIRST_SEED = 1_000_000
+MAX_RANDOM_STEPS = 40
+
+
+def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: list[str], count: int,
+                      env_state_width: int, seed: int = 0, progress: bool = True) -> tuple[TensorDict, list[str]]:
+    """``count`` frames of random resets and random arm motions, tasks taken in turn.
+
+    Args:
+        env_id, env_kwargs: the env the training data came from.
+        tasks: its tasks.
+        cameras: the policy's cameras.
+        count: frames to render.
+        env_state_width: the dataset's (padded) width of the object state; shorter states are zero-padded.
+        seed: offsets the frames' seeds (FIRST_SEED + seed * count + i), so runs can differ.
+        progress: show a progress bar.
+
+    Returns:
+        (rows with ``(observation, image, cam)`` uint8 [count, 3, H, W] and the object state [count, S],
+        the instruction of each frame).
+    """
+    envs = {task: make_env(env_id, {**env_kwargs, "task": task}) for task in tasks}
+    frames = {cam: [] for cam in cameras}
+    states, instructions = torch.zeros(count, env_state_width), []
+    try:
+        for i in tqdm(range(count), desc="aux frames", disable=not progress):
+            frame_seed = FIRST_SEED + seed * count + i
+            env = envs[tasks[i % len(tasks)]]
+            rng = np.random.default_rng(frame_seed)
+            obs, _ = env.reset(seed=frame_seed)
+            for _ in range(rng.integers(0, MAX_RANDOM_STEPS)):
+                obs, *_ = env.step(rng.uniform(-1.0, 1.0, env.action_space.shape).astype(np.float32))
+            for cam in cameras:
+                frames[cam].append(torch.from_numpy(obs[f"{flat_name(IMAGE_KEY)}.{cam}"]).permute(2, 0, 1))
+            state = torch.from_numpy(obs[flat_name(ENV_STATE_KEY)])
+            states[i, :state.shape[0]] = state
+            instructions.append(obs[INSTRUCTION_KEY])
+    finally:
+        for env in envs.values():
+            env.close()
+    rows = TensorDict({**{(*IMAGE_KEY, cam): torch.stack(frames[cam]) for cam in cameras}, ENV_STATE_KEY: states},
+                      batch_size=[count])
+    return rows, instructions
+
+
+class AuxFrameBatches:
+    """Random batches of aux frames in the form :meth:`~dust_rl.agents.DustPolicy.readout_loss` reads.
+
+    Args:
+        rows, instructions: :func:`render_aux_frames` output.
+        policy: supplies the cameras and the text encoder.
+        env_state_stats: mean and std that normalise the object state (the training data's).
+    """
+
+    def __init__(self, rows: TensorDict, instructions: list[str], policy: DustPolicy,
+                 env_state_stats: tuple[torch.Tensor, torch.Tensor]) -> None:
+        mean, std = env_state_stats
+        self.pixels = policy.frames(rows)
+        self.text_tokens, self.text_mask = policy.backbone.text_tokens(instructions)
+        self.env_state = (rows.get(ENV_STATE_KEY) - mean) / std
+
+    def __len__(self) -> int:
+        return self.pixels.shape[0]
+
+    def sample(self, batch_size: int) -> TensorDict:
+        """``batch_size`` frames drawn with replacement (torch's global generator, as the demo windows)."""
+        index = torch.randint(0, len(self), (batch_size,))
+        return TensorDict({"pixels": self.pixels[index], "text_tokens": self.text_tokens[index],
+                           "text_mask": self.text_mask[index], "env_state": self.env_state[index]},
+                          batch_size=[batch_size])

@@ -1,0 +1,59 @@
+"""Aux frames: random resets and arm motions whose object state trains the read-out beside the demonstrations."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import DEMO_ENV_KWARGS
+
+from dust_rl.agents import make_policy, unwrap
+from dust_rl.aux_frames import FIRST_SEED, AuxFrameBatches, render_aux_frames
+from dust_rl.data import DemoDataset
+from dust_rl.env_factory import make_env
+from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+ENV_ID = "DustFranka-v0"
+
+
+def test_frames_are_seeded_padded_and_show_the_reset_objects():
+    tasks, width = ["pick_place", "press_button"], 16
+    rows, instructions = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, tasks, ["front"], 4, width, progress=False)
+    again, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, tasks, ["front"], 4, width, progress=False)
+    other, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, tasks, ["front"], 4, width, seed=1, progress=False)
+    frames = rows.get((*IMAGE_KEY, "front"))
+    assert frames.dtype == torch.uint8 and frames.shape[:2] == (4, 3) and len(instructions) == 4
+    assert torch.equal(frames, again.get((*IMAGE_KEY, "front")))  # bit for bit
+    assert not torch.equal(frames, other.get((*IMAGE_KEY, "front")))
+    state = rows.get(ENV_STATE_KEY)
+    assert state.shape == (4, width)
+    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
+    obs, _ = env.reset(seed=FIRST_SEED)  # frame 0: pick_place; the objects rest until the arm meets them
+    env.close()
+    reset_state = torch.from_numpy(obs["observation.environment_state"])
+    plate = slice(6, 9)  # the plate is a mocap body: random actions never move it
+    assert torch.equal(state[0, plate], reset_state[plate]) and not state[0, 9:].any()  # zero padding
+
+
+def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm):
+    dataset = DemoDataset(demo_dir)
+    width = env_state_width(dataset)
+    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                                horizon=6, d_model=32, n_heads=2, n_mmdit=1, n_dit=1, keypoints=2,
+                                keypoint_source="pixels", aux_state_dim=width))
+    rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
+                                           width, progress=False)
+    batches = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+    frames = batches.sample(5)
+    assert frames.get("pixels").shape[:3] == (5, len(policy.cameras), 3) and frames.get("env_state").shape == (5, width)
+    loss = policy.readout_loss(frames, torch.Generator().manual_seed(0))
+    loss.backward()
+    assert loss > 0 and all(p.grad is not None for p in policy.condition.keypoints.parameters())
+    assert all(p.grad is not None for p in policy.state_readout.parameters())
+    on_features = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                                     horizon=6, d_model=32, n_heads=2, n_mmdit=1, n_dit=1, keypoints=2,
+                                     aux_state_dim=width))
+    with pytest.raises(ValueError, match="needs a state read-out on pixel keypoints"):
+        on_features.readout_loss(frames)
+
