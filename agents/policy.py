@@ -184,7 +184,10 @@ class DustPolicy(VLAWrapperBase):
 
     def image_features(self, td: TensorDictBase) -> Tensor:
         """Frozen tokens [*B, C, N, Dv] of every camera in ``td`` (canonical keys, any batch shape)."""
-        frames = self.frames(td)
+        return self._frame_tokens(self.frames(td))
+
+    def _frame_tokens(self, frames: Tensor) -> Tensor:
+        """Frozen tokens [*B, C, N, Dv] of frames [*B, C, 3, H, W]."""
         tokens = self.backbone.image_tokens(frames.reshape(-1, *frames.shape[-3:]), self.config.condition_grid)
         return tokens.view(*frames.shape[:-3], *tokens.shape[1:])
 
@@ -204,16 +207,16 @@ class DustPolicy(VLAWrapperBase):
     def observation_features(self, td: TensorDictBase) -> TensorDict:
         """Feature batch (flat [B], no training targets) of raw observations of any batch shape."""
         td = self.canonical_view(td)
-        image = self.image_features(td)
-        image = image.reshape(-1, *image.shape[-3:])
+        frames = self.frames(td)
+        frames = frames.reshape(-1, *frames.shape[-4:])
+        image = self._frame_tokens(frames)
         n = image.shape[0]
         text, mask = self.backbone.text_tokens(instruction_list(td.get(self.tensor_keys.instruction), n))
         state = self.normalizer.normalize_state(td.get(self.tensor_keys.state).reshape(n, -1).float())
         out = TensorDict({"image_tokens": image, "text_tokens": text, "text_mask": mask, "state": state},
                          batch_size=[n])
         if self.reads_pixels:
-            frames = self.frames(td)
-            out.set("pixels", frames.reshape(n, *frames.shape[-4:]))
+            out.set("pixels", frames)
         return out
 
     def _agent_batch(self, features: TensorDictBase, augment: bool = False,

@@ -85,7 +85,9 @@ class AuxFrameBatches:
                  env_state_stats: tuple[torch.Tensor, torch.Tensor]) -> None:
         mean, std = env_state_stats
         self.pixels = policy.frames(rows)
-        self.text_tokens, self.text_mask = policy.backbone.text_tokens(instructions)
+        distinct = {text: i for i, text in enumerate(dict.fromkeys(instructions))}  # tokens once per instruction
+        self.text_tokens, self.text_mask = policy.backbone.text_tokens(list(distinct))
+        self.instruction_index = torch.tensor([distinct[text] for text in instructions])
         self.env_state = (rows.get(ENV_STATE_KEY) - mean) / std
 
     def __len__(self) -> int:
@@ -94,6 +96,7 @@ class AuxFrameBatches:
     def sample(self, batch_size: int) -> TensorDict:
         """``batch_size`` frames drawn with replacement (torch's global generator, as the demo windows)."""
         index = torch.randint(0, len(self), (batch_size,))
-        return TensorDict({"pixels": self.pixels[index], "text_tokens": self.text_tokens[index],
-                           "text_mask": self.text_mask[index], "env_state": self.env_state[index]},
+        text = self.instruction_index[index]
+        return TensorDict({"pixels": self.pixels[index], "text_tokens": self.text_tokens[text],
+                           "text_mask": self.text_mask[text], "env_state": self.env_state[index]},
                           batch_size=[batch_size])
