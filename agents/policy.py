@@ -154,6 +154,20 @@ class DustPolicy(VLAWrapperBase):
             modules["state_readout"] = self.state_readout
         return nn.ModuleDict(modules)
 
+    def readout_modules(self) -> nn.ModuleDict:
+        """The pixel keypoint networks and the state read-out: what ``--readout-warmup`` fits and then freezes.
+
+        Raises:
+            ValueError: the policy has no read-out on pixel keypoints.
+        """
+        self._check_pixel_readout()
+        return nn.ModuleDict({"keypoints": self.condition.keypoints, "state_readout": self.state_readout})
+
+    def _check_pixel_readout(self) -> None:
+        if not (self.config.aux_state_dim and self.reads_pixels):
+            raise ValueError("this needs a state read-out on pixel keypoints (--lambda-aux with "
+                             "--keypoint-source pixels)")
+
     # -- features ----------------------------------------------------------
     def canonical_view(self, td: TensorDictBase) -> TensorDictBase:
         """``td`` with the canonical keys this policy reads, taken from the flat gymnasium names where absent.
@@ -280,9 +294,7 @@ class DustPolicy(VLAWrapperBase):
         Raises:
             ValueError: the policy has no read-out, or its keypoints are not computed from pixels.
         """
-        if not (self.config.aux_state_dim and self.reads_pixels):
-            raise ValueError("readout_loss needs a state read-out on pixel keypoints (--lambda-aux with "
-                             "--keypoint-source pixels)")
+        self._check_pixel_readout()
         keypoints = self.condition.keypoint_features(None, frames.get("pixels"), self.training, generator)
         estimate = self.state_readout(keypoints, frames.get("text_tokens"), frames.get("text_mask"))
         return _squared_error(estimate, frames.get("env_state"))

@@ -49,6 +49,7 @@ from dust_rl.ema import EMA
 from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
 from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.readout_warmup import warm_up_readout
 
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 # Fields that may differ between a run and its resumption.
@@ -121,6 +122,11 @@ class TrainConfig:
     :mod:`dust_rl.aux_frames`) rendered once at the start; every step adds the read-out's error on a batch
     of them to the loss (weight ``lambda_aux``), so the read-out cannot settle for "the target is where the
     gripper is". Needs ``lambda_aux`` and ``keypoint_source pixels``; 0: off."""
+    readout_warmup: int = 0
+    """Steps that fit the pixel keypoints and the read-out alone (on aux frames and demonstration rows) before
+    the policy trains; they are then frozen (:mod:`dust_rl.readout_warmup`). Needs ``aux_frames``; 0: off."""
+    readout_lr: float = 1e-3
+    """Learning rate of that warm-up (constant)."""
     augment_views: int = 1
     """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
     (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
@@ -147,8 +153,9 @@ class TrainConfig:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "horizon", "execute_steps", "d_model", "n_heads",
                        "augment_views", "log_every", "checkpoint_every", "eval_episodes", "eval_workers", "threads")
-        check_at_least(self, 0, "n_mmdit", "n_dit", "eval_every", "keypoints", "aux_frames")
-        check_finite(self, "lr", "grad_clip", positive=True)
+        check_at_least(self, 0, "n_mmdit", "n_dit", "eval_every", "keypoints", "aux_frames",
+                       "readout_warmup")
+        check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
         check_finite(self, "weight_decay", "lambda_wm", "lambda_aux")
         if self.lambda_aux and not self.keypoints:
             raise ConfigError("lambda_aux needs --keypoints: the auxiliary loss is read off the keypoints")
@@ -157,6 +164,9 @@ class TrainConfig:
         if self.aux_frames and not (self.lambda_aux and self.keypoint_source == "pixels"):
             raise ConfigError("aux_frames needs --lambda-aux > 0 and --keypoint-source pixels: the frames train "
                               "the read-out of the pixel keypoints")
+        if self.readout_warmup and not self.aux_frames:
+            raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
+                              "is where the gripper is' (dust_rl.aux_frames)")
         check_fraction(self, "warmup", "ema_decay")
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
@@ -210,20 +220,29 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     policy.normalizer.set_vision_stats(features.image_tokens)
     windows = DemoWindows(dataset, horizon=config.horizon, batch_size=config.batch_size, images=False)
     aux = _aux_frame_batches(config, dataset, policy) if config.aux_frames else None
+    rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
+    loggers = _loggers(out)
+    policy.train()
+
+    # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it).
+    if config.readout_warmup:
+        if config.resume and rotation.latest() is not None:
+            policy.readout_modules().requires_grad_(False)
+        else:
+            warm_up_readout(policy, lambda: features.batch(windows.sample()), aux, config.readout_warmup,
+                            config.readout_lr, lambda scalars, step: _log(loggers, scalars, step), config.progress)
+        aux = None  # its frames trained the read-out, which the policy's loss no longer moves
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
     trained = policy.trainable_modules()
-    optimizer = torch.optim.AdamW(trained.parameters(), lr=config.lr, betas=config.betas,
-                                  weight_decay=config.weight_decay)
+    optimizer = torch.optim.AdamW([p for p in trained.parameters() if p.requires_grad], lr=config.lr,
+                                  betas=config.betas, weight_decay=config.weight_decay)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(config.steps, config.warmup))
     ema = EMA(trained, config.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
-    rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
     start = _restore(checkpoint, rotation) if config.resume else 0
-    loggers = _loggers(out)
 
     # The loop.
-    policy.train()
     bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc="training",
                disable=not config.progress)
     tick, samples, losses = time.perf_counter(), 0, None

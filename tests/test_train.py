@@ -114,6 +114,27 @@ def test_training_logs_the_aux_frame_loss(run_inputs, tmp_path):
         tiny_config(run_inputs, out, keypoints=2, lambda_aux=1.0, aux_frames=3)
 
 
+def test_readout_warmup_freezes_the_readout_and_resumes(run_inputs, tmp_path):
+    def run(out, steps, **extra):
+        return train(tiny_config(run_inputs, out, steps=steps, checkpoint_every=2, keypoints=2,
+                                 keypoint_source="pixels", lambda_aux=1.0, aux_frames=3, readout_warmup=3, **extra))
+
+    short, long = trained_weights(run(tmp_path / "short", 2).policy), trained_weights(run(tmp_path / "long", 4).policy)
+    readout = [k for k in short if k.startswith(("condition.keypoints.", "state_readout."))]
+    assert readout and all(torch.equal(short[k], long[k]) for k in readout)  # warmed, then never moved
+    assert any(not torch.equal(short[k], long[k]) for k in short if k.startswith("agent."))
+    warm = (tmp_path / "long" / "logs" / "train" / "scalars" / "warmup" / "loss_aux_frames.csv").read_text().split(",")
+    assert int(warm[0]) == 3 and float(warm[1]) > 0
+    # Resuming from step 2 skips the warm-up (the checkpoint holds it) and ends where the straight run did.
+    shutil.rmtree(sorted((tmp_path / "long" / "checkpoints").iterdir())[-1])
+    (tmp_path / "long" / "policy.pt").unlink()
+    resumed = trained_weights(run(tmp_path / "long", 4, resume=True).policy)
+    assert [k for k in long if not torch.equal(resumed[k], long[k])] == []
+    with pytest.raises(ConfigError, match="readout_warmup needs --aux-frames"):
+        tiny_config(run_inputs, tmp_path / "x", keypoints=2, keypoint_source="pixels", lambda_aux=1.0,
+                    readout_warmup=3)
+
+
 def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
     steps = 600
     reference = train(tiny_config(run_inputs, tmp_path / "ref", steps=steps, checkpoint_every=50))

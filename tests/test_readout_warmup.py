@@ -1,0 +1,37 @@
+"""The read-out warm-up: it fits the pixel keypoints and read-out, touches nothing else, then freezes them."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dust_rl.agents import make_policy, unwrap
+from dust_rl.aux_frames import AuxFrameBatches, render_aux_frames
+from dust_rl.data import DemoDataset
+from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.readout_warmup import warm_up_readout
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_warm_up_fits_the_readout_alone_then_freezes_it(demo_dir, tiny_encoder, minilm):
+    dataset = DemoDataset(demo_dir)
+    width = env_state_width(dataset)
+    torch.manual_seed(0)
+    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                                horizon=6, d_model=32, n_heads=2, n_mmdit=1, n_dit=1, keypoints=2,
+                                keypoint_source="pixels", aux_state_dim=width))
+    rows, instructions = render_aux_frames("DustFranka-v0", dataset.meta["env_kwargs"], dataset.tasks,
+                                           policy.cameras, 4, width, progress=False)
+    aux = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+    frames = aux.sample(4)  # the demonstration rows are stood in for by aux frames: the loss reads the same keys
+    before = policy.readout_loss(frames).item()
+    agent = {k: v.clone() for k, v in policy.agent.state_dict().items()}
+    logged = {}
+    warm_up_readout(policy, lambda: frames, aux, 100, 3e-3, lambda scalars, step: logged.update({step: scalars}),
+                    progress=False)
+    assert policy.readout_loss(frames).item() < 0.5 * before
+    assert sorted(logged) == [100] and set(logged[100]) == {"warmup/loss_aux", "warmup/loss_aux_frames"}
+    assert not any(p.requires_grad or p.grad is not None for p in policy.readout_modules().parameters())
+    assert all(p.requires_grad for p in policy.agent.parameters())
+    assert all(torch.equal(v, agent[k]) for k, v in policy.agent.state_dict().items())
