@@ -10,8 +10,8 @@ A run folder holds
   weights, EMA, optimiser, schedule, global RNG state), published atomically, the
   last two kept; ``--resume`` continues from the newest one, and a run killed at any
   point and resumed ends with the same weights as one never interrupted;
-* ``logs/``: torchrl ``CSVLogger`` (``logs/train/scalars/*.csv``) and
-  ``TensorboardLogger`` (``logs/tensorboard``) scalars;
+* ``logs/``: scalars through torchrl's ``get_logger`` (``--loggers``; by default CSV files
+  in ``logs/train/scalars/`` and TensorBoard events in ``logs/train/``);
 * ``policy.pt``: the EMA policy (:func:`dust_rl.agents.save_policy`), whose ``info``
   names the env, tasks and dataset it was trained for; ``loss.png``.
 
@@ -24,17 +24,16 @@ weights, so no checkpoint or ``policy.pt`` holds NaN weights.
 from __future__ import annotations
 
 import json
-import math
 import pathlib
 import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from torch import nn
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
-from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger
+from torchrl.record.loggers import Logger, get_logger
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
@@ -45,15 +44,16 @@ from dust_rl.aux_frames import AuxFrameBatches, render_aux_frames
 from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.data.metadata import package_versions
-from dust_rl.ema import EMA
 from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
 from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.readout_warmup import warm_up_readout
 
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
+LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 # Fields that may differ between a run and its resumption.
-RESUMABLE_FIELDS = ("resume", "progress", "threads", "eval_every", "eval_episodes", "eval_workers")
+RESUMABLE_FIELDS = ("resume", "progress", "threads", "eval_every", "eval_episodes", "eval_workers", "loggers")
 
 
 @dataclass
@@ -149,6 +149,9 @@ class TrainConfig:
     """Continue the run in ``out`` from its newest checkpoint."""
     progress: bool = True
     """Show a progress bar."""
+    loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
+    """Where the scalars go, each through torchrl's ``get_logger`` into ``out/logs`` (experiment ``train``);
+    ``wandb`` and ``mlflow`` need their package installed. ``loss.png`` is drawn from the CSV files."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "horizon", "execute_steps", "d_model", "n_heads",
@@ -168,6 +171,9 @@ class TrainConfig:
             raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
                               "is where the gripper is' (dust_rl.aux_frames)")
         check_fraction(self, "warmup", "ema_decay")
+        unknown = set(self.loggers) - set(get_args(LoggerKind))
+        if unknown:
+            raise ConfigError(f"unknown loggers {sorted(unknown)}; choose from {list(get_args(LoggerKind))}")
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
         if self.execute_steps > self.horizon:
@@ -221,7 +227,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     windows = DemoWindows(dataset, horizon=config.horizon, batch_size=config.batch_size, images=False)
     aux = _aux_frame_batches(config, dataset, policy) if config.aux_frames else None
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
-    loggers = _loggers(out)
+    loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers]
     policy.train()
 
     # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it).
@@ -237,8 +243,8 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     trained = policy.trainable_modules()
     optimizer = torch.optim.AdamW([p for p in trained.parameters() if p.requires_grad], lr=config.lr,
                                   betas=config.betas, weight_decay=config.weight_decay)
-    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(config.steps, config.warmup))
-    ema = EMA(trained, config.ema_decay)
+    schedule = warmup_cosine(optimizer, config.steps, config.warmup)
+    ema = weight_average(trained, config.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
     start = _restore(checkpoint, rotation) if config.resume else 0
 
@@ -259,7 +265,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
         _check_finite(losses["loss"], grad_norm, done, rotation)
         optimizer.step()
         schedule.step()
-        ema.update()
+        ema.update_parameters(trained)
         samples += config.batch_size
         if done % config.log_every == 0 or done == config.steps:
             speed = samples / (time.perf_counter() - tick)
@@ -272,11 +278,12 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
         if done % config.checkpoint_every == 0 or done == config.steps:
             rotation.save(checkpoint, step=done, metadata={"step": done})
         if config.eval_every and (done % config.eval_every == 0 or done == config.steps):
-            _log(loggers, _periodic_eval(config, policy, ema, done), done)
+            with averaged_weights(ema, trained):
+                _log(loggers, _periodic_eval(config, policy, done), done)
     bar.close()
     seconds = time.perf_counter() - began
 
-    with ema.applied():
+    with averaged_weights(ema, trained):
         path = save_policy(policy, out / "policy.pt")
     _plot_losses(out)
     final = losses["loss"].item() if losses is not None else float("nan")
@@ -290,21 +297,8 @@ def train_command(config: TrainConfig, command: str | None = None) -> None:
     result = train(config, command)
     print(f"trained {result.steps} steps in {result.seconds:.0f} s ({result.samples_per_second:.0f} samples/s); "
           f"final loss {result.final_loss:.4f}")
-    print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} (CSV, TensorBoard); "
+    print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} ({', '.join(config.loggers)}); "
           f"loss curve: {result.out / 'loss.png'}")
-
-
-def warmup_cosine(total_steps: int, warmup_fraction: float):
-    """Learning-rate factor: linear warm-up over the first ``warmup_fraction`` of the steps, then cosine to 0."""
-    warmup = max(1, round(warmup_fraction * total_steps))
-
-    def factor(step: int) -> float:
-        if step < warmup:
-            return (step + 1) / warmup
-        progress = (step - warmup) / max(1, total_steps - warmup)
-        return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
-
-    return factor
 
 
 def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkpoints: CheckpointRotation) -> None:
@@ -376,24 +370,18 @@ def _restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> int:
     return int(Checkpoint.manifest(latest)["metadata"]["step"])
 
 
-def _loggers(out: pathlib.Path) -> list[Logger]:
-    return [CSVLogger("train", log_dir=str(out / "logs")),
-            TensorboardLogger("tensorboard", log_dir=str(out / "logs"))]
-
-
 def _log(loggers: list[Logger], scalars: dict[str, float], step: int) -> None:
     for logger in loggers:
         for name, value in scalars.items():
             logger.log_scalar(name, value, step=step)
 
 
-def _periodic_eval(config: TrainConfig, policy: DustPolicy, ema: EMA, step: int) -> dict[str, float]:
-    """Closed-loop success of the EMA policy, without touching the training RNG streams."""
+def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int) -> dict[str, float]:
+    """Closed-loop success of ``policy`` (holding the averaged weights), without touching the training RNG."""
     from dust_rl.evaluate import EvalConfig, evaluate
 
     folder = config.out / "eval" / f"step-{step:07d}"
-    with ema.applied():
-        path = save_policy(policy, folder / "policy.pt")
+    path = save_policy(policy, folder / "policy.pt")
     with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
         report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.eval_episodes,
                                      workers=config.eval_workers, videos=0, progress=False))

@@ -17,9 +17,9 @@ import torch
 from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.data import DatasetError
-from dust_rl.ema import EMA
 from dust_rl.errors import ConfigError
-from dust_rl.train import TrainConfig, train, warmup_cosine
+from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
+from dust_rl.train import TrainConfig, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -45,27 +45,35 @@ def trained_weights(path) -> dict[str, torch.Tensor]:
 
 
 def test_warmup_cosine_schedule():
-    factor = warmup_cosine(100, 0.1)
-    assert [factor(s) for s in (0, 4, 9)] == pytest.approx([0.1, 0.5, 1.0])
-    assert factor(10) == pytest.approx(1.0) and factor(55) == pytest.approx(0.5) and factor(99) < 0.01
-    assert factor(10 + 45) == pytest.approx(0.5 * (1 + math.cos(math.pi * 0.5)))
+    optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=2.0)
+    schedule = warmup_cosine(optimizer, 100, 0.1)
+    factors = []
+    for _ in range(100):
+        factors.append(schedule.get_last_lr()[0] / 2.0)
+        optimizer.step()
+        schedule.step()
+    expected = [(s + 1) / 10 for s in range(10)]
+    expected += [0.5 * (1 + math.cos(math.pi * (s - 10) / 90)) for s in range(10, 100)]
+    torch.testing.assert_close(torch.tensor(factors, dtype=torch.float64), torch.tensor(expected, dtype=torch.float64))
+    assert factors[99] < 0.01
 
 
-def test_ema_tracks_the_average_and_round_trips():
+def test_ema_ramps_up_and_round_trips():
     module = torch.nn.Linear(3, 2)
-    module.register_buffer("flag", torch.ones(2, dtype=torch.bool))  # non-float buffers are left alone
-    ema = EMA(module, decay=0.9)
+    ema = weight_average(module, decay=0.9)
     start = module.weight.detach().clone()
     with torch.no_grad():
         module.weight.add_(1.0)
-    ema.update()  # decay min(0.9, 2/11)
+    ema.update_parameters(module)  # the second average: decay min(0.9, 2/11)
     expected = start + (1 - 2 / 11)
-    with ema.applied():
+    with averaged_weights(ema, module):
         torch.testing.assert_close(module.weight.detach(), expected)
     torch.testing.assert_close(module.weight.detach(), start + 1)  # own weights back outside
-    copy = EMA(module, decay=0.9)
+    copy = weight_average(torch.nn.Linear(3, 2), decay=0.9)
     copy.load_state_dict(ema.state_dict())
-    assert copy.updates == 1 and torch.equal(copy.average["weight"], ema.average["weight"])
+    assert copy.n_averaged.item() == 2 and torch.equal(copy.module.weight, ema.module.weight)
+    with pytest.raises(ValueError, match="EMA decay must be in"):
+        weight_average(module, decay=1.0)
 
 
 def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
@@ -79,7 +87,7 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     assert stored["command"] == "dust-rl train ..." and stored["config"]["steps"] == 12
     rows = (out / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text().split()
     assert [int(r.split(",")[0]) for r in rows] == [3, 6, 9, 12]
-    assert list((out / "logs" / "tensorboard").rglob("events.out.tfevents.*"))
+    assert list((out / "logs" / "train").glob("events.out.tfevents.*"))
     # The periodic closed-loop evaluation ran on every training task and logged its success rates.
     evaluated = json.loads((out / "eval" / "step-0000012" / "report.json").read_text())
     assert [row["task"] for row in evaluated["tasks"]] == ["press_button", "open_drawer"]
@@ -89,6 +97,15 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
                                                                         "checkpoint-000000000012"]
     assert (out / "loss.png").stat().st_size > 0
     assert list((tmp_path / "data" / "features").glob("*.pt"))  # cached for the next run on this dataset
+
+
+def test_loggers_are_chosen_by_name(run_inputs, tmp_path):
+    out = tmp_path / "run"
+    train(tiny_config(run_inputs, out, steps=2, log_every=1, loggers=("csv",)))
+    assert (out / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text().count("\n") == 2
+    assert not list((out / "logs").rglob("events.out.tfevents.*"))
+    with pytest.raises(ConfigError, match=r"unknown loggers \['visdom'\]"):
+        tiny_config(run_inputs, out, loggers=("csv", "visdom"))
 
 
 @pytest.mark.parametrize("source", ["features", "pixels"])
