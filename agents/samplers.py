@@ -7,8 +7,12 @@ modality unchanged.
 
 - Asynchronous (DUST): N_o = q * N_A. At global step j = 0..N_o-1 the model
   sees tau_o = j / N_o and tau_a = floor(j / q) * q / N_o; vision moves by
-  1 / N_o every step, actions by q / N_o when j % q == 0. So vision makes N_o
-  updates and actions N_A.
+  1 / N_o every step, actions by q / N_o at the last step of each block of q
+  (j % q == q - 1). So vision makes N_o updates and actions N_A, and every
+  step labels each stream with the noise level its tokens hold: had actions
+  moved at a block's first step, the model would be told the old tau_a for
+  the q - 1 steps after it. Moving last also lets each action step read the
+  vision tokens at their least noisy within the block.
 - Synchronous: the asynchronous schedule with q = 1 (both streams share steps).
 - Action-only: the vision tokens stay pure noise at tau_o = 0 and actions take
   N_A steps; the only option for the action-only variant.
@@ -50,7 +54,7 @@ def async_schedule(n_action_steps: int, vision_step_ratio: int) -> list[DenoiseS
     q = vision_step_ratio
     n_o = q * n_action_steps
     return [
-        DenoiseStep(j, (j // q) * q / n_o, j / n_o, q / n_o if j % q == 0 else 0.0, 1.0 / n_o) for j in range(n_o)
+        DenoiseStep(j, (j // q) * q / n_o, j / n_o, q / n_o if j % q == q - 1 else 0.0, 1.0 / n_o) for j in range(n_o)
     ]
 
 

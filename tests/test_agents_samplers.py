@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -49,9 +51,23 @@ def test_async_schedule_matches_the_paper(n_action_steps, q):
         assert step.tau_o == pytest.approx(j / n_o)
         assert step.tau_a == pytest.approx((j // q) * q / n_o)
         assert step.dt_o == pytest.approx(1 / n_o)
-        assert step.dt_a == (pytest.approx(q / n_o) if j % q == 0 else 0.0)
+        assert step.dt_a == (pytest.approx(q / n_o) if j % q == q - 1 else 0.0)
     assert sum(s.dt_a for s in steps) == pytest.approx(1.0)
     assert sum(s.dt_o for s in steps) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("schedule", [async_schedule(4, 1), async_schedule(4, 4), async_schedule(2, 8),
+                                      async_schedule(3, 2), action_only_schedule(4)],
+                         ids=["q1", "q4", "q8", "q2", "action_only"])
+def test_every_step_labels_each_stream_with_its_noise_level(schedule):
+    level_a = level_o = 0.0  # tau of the tokens: 0 is the initial noise, 1 the data
+    tolerance = 4 * len(schedule) * torch.finfo(torch.float64).eps
+    for step in schedule:
+        assert math.isclose(step.tau_a, level_a, abs_tol=tolerance), step
+        assert math.isclose(step.tau_o, level_o, abs_tol=tolerance), step
+        level_a, level_o = level_a + step.dt_a, level_o + step.dt_o
+    assert math.isclose(level_a, 1.0, abs_tol=tolerance)
+    assert math.isclose(level_o, 0.0 if schedule[0].dt_o == 0 else 1.0, abs_tol=tolerance)
 
 
 def test_sync_and_action_only_schedules():
@@ -68,16 +84,16 @@ def test_async_sampler_makes_n_o_vision_and_n_a_action_updates(n_action_steps, q
     states = []
     agent.predict_action(obs_for(config), torch.Generator().manual_seed(0), lambda step, a, o: states.append((a, o)))
     assert len(states) == q * n_action_steps
-    n_action_updates = n_vision_updates = 0
-    previous_a = previous_o = None
-    for j, (a, o) in enumerate(states):
-        if j:
-            n_action_updates += not torch.equal(a, previous_a)
-            n_vision_updates += not torch.equal(o, previous_o)
+    g = torch.Generator().manual_seed(0)  # the initial noise, drawn as the sampler draws it (actions first)
+    previous_a = torch.randn(2, config.horizon, config.action_dim, generator=g)
+    previous_o = torch.randn(2, config.n_vision_tokens, config.vision_dim, generator=g)
+    moved_a, moved_o = [], []
+    for a, o in states:
+        moved_a.append(not torch.equal(a, previous_a))
+        moved_o.append(not torch.equal(o, previous_o))
         previous_a, previous_o = a, o
-    # The first step always updates both streams (j = 0 is a multiple of q).
-    assert n_action_updates + 1 == n_action_steps
-    assert n_vision_updates + 1 == q * n_action_steps
+    assert moved_a == [j % q == q - 1 for j in range(q * n_action_steps)]  # actions move last in each block
+    assert all(moved_o)
 
 
 def test_action_only_sampling_leaves_vision_as_noise():
