@@ -7,21 +7,27 @@ elsewhere. Method names follow diffusion_policy: ``compute_loss(batch)`` and
 
 TensorDict keys (B = batch size):
 
-==================  ===================  =====================================================
-key                 shape / dtype        meaning
-==================  ===================  =====================================================
-``cond_tokens``     [B, Nc, Dc] float    backbone condition tokens (image + language)
-``cond_mask``       [B, Nc] bool         optional; True where a condition token is valid
-``state``           [B, Ds] float        normalised proprioceptive state
-``action_chunk``    [B, H, Da] float     normalised action chunk (training; output of predict)
-``action_is_pad``   [B, H] bool          optional; True for entries past the episode end
-``has_action``      [B] bool             optional; False for action-free (video-only) samples
-``future_tokens``   [B, N_o, Dv] float   frozen embedding of the frame after the chunk (t+H);
-                                         training target, and predicted by ``predict_action``
-==================  ===================  =====================================================
+=====================  ===================  =====================================================
+key                    shape / dtype        meaning
+=====================  ===================  =====================================================
+``cond_tokens``        [B, Nc, Dc] float    backbone condition tokens (image + language)
+``cond_mask``          [B, Nc] bool         optional; True where a condition token is valid
+``state``              [B, Ds] float        normalised proprioceptive state
+``action_chunk``       [B, H, Da] float     normalised action chunk (training; output of predict)
+``action_is_pad``      [B, H] bool          optional; True for entries past the episode end
+``has_action``         [B] bool             optional; False for action-free (video-only) samples
+``future_tokens``      [B, N_o, Dv] float   frozen embedding of the frame after the chunk (t+H);
+                                            training target, and predicted by ``predict_action``
+``future_is_clamped``  [B] bool             optional; True where t+H lies past the episode's last
+                                            stored row, so ``future_tokens`` hold that row instead
+=====================  ===================  =====================================================
 
 ``action_is_pad`` entries and action-free samples are left out of the action
-loss. An action-free sample also gets pure-noise action tokens (tau_A = 0 in
+loss, and clamped futures out of the vision loss: the last stored row is the
+observation before the final action, not the frame H steps on, and a padded
+chunk's repeated actions are no more real than that frame.
+
+An action-free sample also gets pure-noise action tokens (tau_A = 0 in
 the decoupled variants, as UWM does), so the vision stream learns the future
 marginalised over actions, and the sampler's first steps (tau_A = 0) see the
 same input distribution.
@@ -90,7 +96,9 @@ class DustAgent(nn.Module):
             noisy_vision = interpolate(future, eps_o, tau_o)
             target_vision = velocity_target(future, eps_o)
         v_a, v_o = self.model(ctx, noisy_action, noisy_vision, tau_a, tau_o if cfg.has_vision else None)
-        losses = decoupled_loss(v_a, velocity_target(action, eps_a), valid, v_o, target_vision, cfg.lambda_wm)
+        clamped = batch.get("future_is_clamped", None)
+        losses = decoupled_loss(v_a, velocity_target(action, eps_a), valid, v_o, target_vision, cfg.lambda_wm,
+                                None if clamped is None else ~clamped)
         return TensorDict(losses, batch_size=[])
 
     @torch.no_grad()

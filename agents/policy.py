@@ -12,20 +12,21 @@ torchrl's :class:`~torchrl.modules.MultiStepActorWrapper` (see
 Training runs on features, so the frozen backbone runs once per dataset row.
 Feature batches (B = batch size) hold:
 
-==================  =======================  ==========================================
-key                 shape                    meaning
-==================  =======================  ==========================================
-``image_tokens``    [B, C, N, Dv] float      frozen tokens of each camera (``cameras`` order) on the
-                                             condition grid (N = ``config.n_cond_image_tokens``)
-``text_tokens``     [B, L, Dt] float         frozen instruction tokens
-``text_mask``       [B, L] bool              True for real instruction tokens
-``state``           [B, Ds] float            normalised state
-``action_chunk``    [B, H, Da] float         normalised chunk (training)
-``action_is_pad``   [B, H] bool              optional; chunk entries past the episode end
-``future_tokens``   [B, N_o, Dv] float       frozen tokens of ``future_camera`` at t+H, pooled to the
-                                             vision grid (:meth:`DustPolicy.future_targets`; training)
-``pixels``          [B, C, 3, H, W] uint8    the frames themselves; only with ``keypoint_source="pixels"``
-==================  =======================  ==========================================
+=====================  =======================  ==========================================
+key                    shape                    meaning
+=====================  =======================  ==========================================
+``image_tokens``       [B, C, N, Dv] float      frozen tokens of each camera (``cameras`` order) on the
+                                                condition grid (N = ``config.n_cond_image_tokens``)
+``text_tokens``        [B, L, Dt] float         frozen instruction tokens
+``text_mask``          [B, L] bool              True for real instruction tokens
+``state``              [B, Ds] float            normalised state
+``action_chunk``       [B, H, Da] float         normalised chunk (training)
+``action_is_pad``      [B, H] bool              optional; chunk entries past the episode end
+``future_tokens``      [B, N_o, Dv] float       frozen tokens of ``future_camera`` at t+H, pooled to the
+                                                vision grid (:meth:`DustPolicy.future_targets`; training)
+``future_is_clamped``  [B] bool                 optional; t+H lies past the episode's end (no vision loss)
+``pixels``             [B, C, 3, H, W] uint8    the frames themselves; only with ``keypoint_source="pixels"``
+=====================  =======================  ==========================================
 
 Image tokens arrive in the encoder's units; :meth:`DustPolicy.compute_loss`
 and :meth:`DustPolicy.plan` standardise them (condition and target alike)

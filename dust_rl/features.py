@@ -138,6 +138,7 @@ class FeatureCache:
             "action_chunk": normalizer.normalize_action(windows.get(ACTION_CHUNK_KEY)),
             ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY),
             "future_tokens": self.policy.future_targets(self.image_tokens[windows.get((FUTURE_KEY, "index"))].float()),
+            "future_is_clamped": windows.get((FUTURE_KEY, "is_clamped")),
         }, batch_size=windows.batch_size)
         if self.policy.reads_pixels:  # read from the dataset's memmap per batch (the OS caches the pages)
             frames = self.dataset.data.select(*self._image_keys())[rows]

@@ -259,6 +259,24 @@ def test_padded_action_entries_are_excluded():
     assert (v_action.grad[:, :-2] != 0).all()
 
 
+def test_clamped_futures_are_left_out_of_the_vision_loss():
+    config = tiny("dust")
+    agent = DustAgent(config)
+    randomised(agent.model)
+    batch = random_batch(config, 3, n_cond_tokens=4, generator=torch.Generator().manual_seed(5))
+    batch["future_is_clamped"] = torch.tensor([True, False, False])
+
+    def vision_loss(future_tokens):
+        return agent.compute_loss(batch.clone().set("future_tokens", future_tokens),
+                                  torch.Generator().manual_seed(0))["loss_vision"]
+
+    changed = batch["future_tokens"].clone()
+    changed[0] = float("nan")  # the clamped sample's target may be anything, NaN included
+    assert torch.equal(vision_loss(changed), vision_loss(batch["future_tokens"]))
+    changed[0], changed[1] = batch["future_tokens"][0], batch["future_tokens"][1] + 1.0
+    assert not torch.equal(vision_loss(changed), vision_loss(batch["future_tokens"]))
+
+
 def test_invalid_configs_are_rejected():
     with pytest.raises(ValueError):
         tiny("joint", sampler="async", vision_step_ratio=4)
