@@ -43,7 +43,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
 from torchrl.modules.vla import VLAWrapperBase
 
-from dust_rl.keys import ACTION_KEY, IMAGE_KEY, flat_name
+from dust_rl.keys import ACTION_KEY, IMAGE_KEY, PREDICTED_FUTURE_KEY, flat_name
 
 from .backbone import FrozenBackbone
 from .condition import ConditionProjector
@@ -105,7 +105,7 @@ class DustPolicy(VLAWrapperBase):
         execute_steps = execute_steps or max(1, config.horizon // 2)
         if not 1 <= execute_steps <= config.horizon:
             raise ValueError(f"execute_steps must be in [1, {config.horizon}], got {execute_steps}")
-        self.cameras = cameras  # read by _update_keys during the base constructor
+        self.cameras, self.writes_future = cameras, config.has_vision  # read by _update_keys in the base constructor
         super().__init__(action_dim=config.action_dim, chunk_size=config.horizon, image_key=IMAGE_KEY)
         self.future_camera, self.execute_steps = future_camera, execute_steps
         self.backbone = backbone
@@ -130,6 +130,8 @@ class DustPolicy(VLAWrapperBase):
         image = self.tensor_keys.image
         self.in_keys = [(*image, cam) for cam in self.cameras] + [k for k in self.in_keys if k != image]
         self.out_keys = [*self.out_keys, ACTION_KEY]
+        if self.writes_future:
+            self.out_keys.append(PREDICTED_FUTURE_KEY)
 
     def set_action_bounds(self, low: Tensor, high: Tensor) -> None:
         """Clamp sampled actions to the env's action box."""
@@ -317,13 +319,20 @@ class DustPolicy(VLAWrapperBase):
             out.set("future_tokens", self.normalizer.denormalize_vision(out.get("future_tokens")))
         return out.reshape(td.batch_size)
 
-    def _predict_chunk(self, tensordict: TensorDictBase) -> Tensor:
-        return self.plan(tensordict).get("action_chunk")
+    def forward(self, tensordict: TensorDictBase, *, tensordict_out: TensorDictBase | None = None,
+                **kwargs) -> TensorDictBase:
+        """Write ``("vla_action", "chunk")``, ``action`` (the chunk's first step) and, with a vision stream,
+        the sampled future tokens (``PREDICTED_FUTURE_KEY``, [*B, N_o, Dv] in the encoder's units).
 
-    def forward(self, tensordict: TensorDictBase, **kwargs) -> TensorDictBase:
-        """Write ``("vla_action", "chunk")`` and ``action`` (the chunk's first step)."""
-        out = super().forward(tensordict, **kwargs)
-        return out.set(ACTION_KEY, out.get(self.tensor_keys.action_chunk)[..., 0, :])
+        One joint sample gives both, so collectors and RL see the future that came with the chunk.
+        """
+        planned = self.plan(tensordict)
+        chunk = planned.get("action_chunk")
+        out = TensorDict({ACTION_KEY: chunk[..., 0, :]}, batch_size=chunk.shape[:-2], device=chunk.device)
+        self._set_action(out, chunk=chunk)
+        if self.writes_future:
+            out.set(PREDICTED_FUTURE_KEY, planned.get("future_tokens"))
+        return self._output_tensordict(tensordict, out, tensordict_out)
 
 
 def _squared_error(estimate: Tensor, target: Tensor) -> Tensor:

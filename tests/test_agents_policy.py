@@ -20,6 +20,7 @@ from dust_rl.agents import (
     unwrap,
 )
 from dust_rl.envs.torchrl_env import make_torchrl_env
+from dust_rl.keys import PREDICTED_FUTURE_KEY
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -60,9 +61,17 @@ def test_every_variant_writes_a_chunk_and_an_action(variant, tiny_encoder, minil
     assert isinstance(policy, DustPolicy) and policy.config.variant == variant
     assert policy.in_keys[:2] == [("observation", "image", "front"), ("observation", "image", "wrist")]
     for batch in [(2,), (), (2, 3)]:
+        torch.manual_seed(0)
         out = policy(observation(batch))
         assert out["vla_action", "chunk"].shape == (*batch, 6, 3)
         torch.testing.assert_close(out["action"], out["vla_action", "chunk"][..., 0, :])
+        # The future sampled with the chunk comes out too (the same joint sample as plan's).
+        assert (PREDICTED_FUTURE_KEY in policy.out_keys) == (variant != "action_only")
+        if variant != "action_only":
+            torch.manual_seed(0)
+            planned = policy.plan(observation(batch))
+            assert torch.equal(out[PREDICTED_FUTURE_KEY], planned["future_tokens"])
+            assert torch.equal(out["vla_action", "chunk"], planned["action_chunk"])
 
 
 def test_normalisation_and_bounds_map_chunks_to_env_units(tiny_encoder, minilm):
