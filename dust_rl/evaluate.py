@@ -353,7 +353,9 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
     steps = sum(e[2] for row in rows for e in row["per_episode"])
     loss_plot = plot_loss_curves(config.train_dir or config.policy.parent, config.out / "loss.png")
     report = {
-        "policy": str(config.policy), "variant": policy.config.variant, "env_id": setup.env_id,
+        "policy": str(config.policy), "variant": policy.config.variant,
+        "trainable_parameters": sum(p.numel() for p in policy.trainable_modules().parameters()),
+        "env_id": setup.env_id,
         "env_kwargs": setup.env_kwargs, "sampler": setup.sampler.describe(),
         "execute_steps": setup.execute_steps, "command": command,
         "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],

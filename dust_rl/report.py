@@ -49,7 +49,8 @@ def markdown_report(report: dict, out_dir: pathlib.Path) -> str:
     lines = [
         f"# Evaluation: {report['policy']}",
         "",
-        f"- policy: `{report['policy']}` (variant `{report['variant']}`)",
+        f"- policy: `{report['policy']}` (variant `{report['variant']}`, "
+        f"{report.get('trainable_parameters', 0) / 1e6:.2f}M trainable parameters)",
         f"- env: `{report['env_id']}` {report['env_kwargs']}",
         f"- sampler: {sampler['name']}, N_A = {sampler['n_action_steps']}, N_o = {sampler['vision_steps']}; "
         f"{report.get('execute_steps', '?')} actions executed per chunk",

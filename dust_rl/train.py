@@ -65,7 +65,8 @@ class TrainConfig:
     out: pathlib.Path = pathlib.Path("runs/train")
     """Run folder: config, checkpoints, logs, ``policy.pt``."""
     variant: Variant = "dust"
-    """Model: DUST or one of the paper's baselines (same size)."""
+    """Model: DUST or one of the paper's baselines at the same depth and width (single-stream variants then hold
+    about half the trunk parameters of the two-stream ones; the evaluation report counts them)."""
     steps: int = 3000
     """Optimiser steps."""
     batch_size: int = 64

@@ -89,6 +89,8 @@ def test_report_rows_count_each_seed_once(report, eval_config):
     assert report["env_steps"] == sum(e[2] for e in row["per_episode"]) and report["env_steps_per_s"] > 0
     assert report["sampler"] == {"name": "async", "n_action_steps": 4, "vision_steps": 4}
     assert report["variant"] == "dust" and report["env_id"] == "DustFranka-v0"
+    policy = unwrap(load_policy(eval_config.policy))
+    assert report["trainable_parameters"] == sum(p.numel() for p in policy.parameters() if p.requires_grad) > 0
     assert report["env_kwargs"] == {"image_size": IMAGE, "max_episode_steps": 10}
 
 
@@ -97,6 +99,7 @@ def test_report_files(report, eval_config):
     assert "| task | episodes | success | 95% CI | mean length |" in markdown
     assert "| press_button | 2 |" in markdown and "**overall**" in markdown
     assert "dust-rl eval --policy policy.pt" in markdown and "N_A = 4, N_o = 4" in markdown
+    assert f"{report['trainable_parameters'] / 1e6:.2f}M trainable parameters" in markdown
     for png in ("success.png", "loss.png"):
         assert (eval_config.out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert pathlib.Path(report["loss_plot"]) == eval_config.out / "loss.png"
