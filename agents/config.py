@@ -122,6 +122,10 @@ class DustConfig:
         self._check_sizes()
         if self.d_model % self.n_heads:
             raise ValueError("d_model must be divisible by n_heads")
+        if self.two_streams and self.n_mmdit < 2:
+            raise ValueError(f"variant {self.variant!r} needs n_mmdit >= 2: MMDiT blocks alternate cross-attention "
+                             f"(even) and joint attention (odd), and with n_mmdit={self.n_mmdit} the two streams "
+                             "would never meet")
         if any(c % v for c, v in zip(self.condition_grid, self.vision_grid)):
             raise ValueError(f"cond_grid {self.condition_grid} must be a multiple of vision_grid {self.vision_grid}")
         if self.keypoint_source not in KEYPOINT_SOURCES:

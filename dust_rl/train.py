@@ -92,7 +92,8 @@ class TrainConfig:
     n_heads: int = 4
     """Attention heads."""
     n_mmdit: int = 4
-    """Dual-stream MMDiT blocks."""
+    """Dual-stream MMDiT blocks, alternating cross-attention and joint attention (two-stream variants need
+    at least 2, or the streams never meet; single-stream variants get as many shared blocks)."""
     n_dit: int = 2
     """Per-stream DiT blocks after the MMDiT blocks."""
     lambda_wm: float = 1.0

@@ -98,7 +98,7 @@ def test_named_encoders_resolve():
 
 def test_encoder_is_frozen_in_a_policy_and_rebuilds_from_stored_weights(one_thread):
     policy = unwrap(make_policy("dust", image_encoder="efficientnet-lite0", action_dim=7, state_dim=17,
-                                cameras=["front"], d_model=32, n_heads=2, n_mmdit=1, n_dit=1, horizon=4))
+                                cameras=["front"], d_model=32, n_heads=2, n_mmdit=2, n_dit=0, horizon=4))
     assert policy.config.cond_grid == (8, 8) and policy.config.vision_dim == 112
     assert not any(p.requires_grad for p in policy.backbone.parameters())
     frames = torch.randint(0, 256, (2, 3, 128, 128), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
@@ -138,7 +138,7 @@ def test_probe_reads_a_small_object_position_off_the_features(one_thread):
 def test_policy_files_from_before_the_condition_grid_still_load(tmp_path, one_thread):
     """Files from before ``cond_grid`` and image-token statistics: identity stats, cond grid = vision grid."""
     policy = make_policy("dust", image_encoder="conv-ae", action_dim=7, state_dim=17, cameras=["front"],
-                         d_model=32, n_heads=2, n_mmdit=1, n_dit=1, horizon=4)
+                         d_model=32, n_heads=2, n_mmdit=2, n_dit=0, horizon=4)
     path = save_policy(policy, tmp_path / "new.pt")
     payload = load_checkpoint(path, POLICY_KIND)
     del payload["config"]["cond_grid"]

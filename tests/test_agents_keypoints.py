@@ -125,7 +125,7 @@ def test_feature_batches_carry_the_normalised_environment_state(demo_dir, tiny_e
     dataset = DemoDataset(demo_dir)
     width = len(dataset.meta["stats"]["observation.environment_state"]["mean"])
     policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=1, n_dit=1, keypoints=2,
+                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
                                 aux_state_dim=width))
     cache = FeatureCache(dataset, policy, progress=False)
     windows = DemoWindows(dataset, horizon=6, batch_size=5).sample()
@@ -136,6 +136,6 @@ def test_feature_batches_carry_the_normalised_environment_state(demo_dir, tiny_e
     with pytest.raises(DatasetError, match="no observation.environment_state"):
         FeatureCache(dataset, policy, progress=False)
     without = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                 horizon=6, d_model=32, n_heads=2, n_mmdit=1, n_dit=1))
+                                 horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0))
     with pytest.raises(ValueError, match="no state read-out"):
         without.estimate_env_state(cache.batch(windows))

@@ -55,7 +55,7 @@ def test_pixel_keypoints_need_the_frames(tiny_encoder, minilm):
 def test_feature_batches_carry_the_window_frames(demo_dir, tiny_encoder, minilm):
     dataset = DemoDataset(demo_dir)
     policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=1, n_dit=1, keypoints=2,
+                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
                                 keypoint_source="pixels"))
     windows = DemoWindows(dataset, horizon=6, batch_size=5, images=False).sample()
     pixels = FeatureCache(dataset, policy, progress=False).batch(windows).get("pixels")

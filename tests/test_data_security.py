@@ -246,7 +246,7 @@ def test_a_crafted_lerobot_folder_is_refused_and_leaves_nothing(lerobot, tmp_pat
 @pytest.fixture
 def policy_file(tiny_encoder, minilm, tmp_path):
     policy = make_policy("dust", image_encoder=tiny_encoder, text_encoder=minilm, cameras=["front"], action_dim=3,
-                         state_dim=5, horizon=4, d_model=32, n_heads=2, n_mmdit=1, n_dit=1)
+                         state_dim=5, horizon=4, d_model=32, n_heads=2, n_mmdit=2, n_dit=0)
     return save_policy(policy, tmp_path / "policy.pt")
 
 

@@ -23,7 +23,7 @@ from dust_rl.train import TrainConfig, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-TINY_MODEL = {"horizon": 4, "execute_steps": 2, "d_model": 32, "n_heads": 2, "n_mmdit": 1, "n_dit": 1,
+TINY_MODEL = {"horizon": 4, "execute_steps": 2, "d_model": 32, "n_heads": 2, "n_mmdit": 2, "n_dit": 0,
               "batch_size": 8}
 
 
