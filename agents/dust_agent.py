@@ -112,7 +112,8 @@ class DustAgent(nn.Module):
         """Sample an action chunk (and, with a vision stream, the predicted future tokens).
 
         Args:
-            obs: ``state``, ``cond_tokens`` and optionally ``cond_mask``.
+            obs: ``state``, ``cond_tokens`` and optionally ``cond_mask`` and ``action_noise`` [B, H, Da]
+                (the initial action noise, :func:`.samplers.run_schedule`).
             generator: random source of the initial noise; same seed, same chunk.
             callback: called after every denoising step (see :func:`.samplers.run_schedule`).
             schedule: overrides the configured sampler, e.g. ``async_schedule(4, 8)`` for
@@ -124,7 +125,7 @@ class DustAgent(nn.Module):
         """
         ctx = self.model.encode_context(obs["state"], obs["cond_tokens"], obs.get("cond_mask", None))
         steps = self.schedule if schedule is None else schedule
-        action, vision = run_schedule(self.model, ctx, steps, generator, callback)
+        action, vision = run_schedule(self.model, ctx, steps, generator, callback, obs.get("action_noise", None))
         out = {"action_chunk": action}
         if vision is not None:
             out["future_tokens"] = vision

@@ -43,7 +43,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
 from torchrl.modules.vla import VLAWrapperBase
 
-from dust_rl.keys import ACTION_KEY, IMAGE_KEY, PREDICTED_FUTURE_KEY, flat_name
+from dust_rl.keys import ACTION_KEY, ACTION_NOISE_KEY, IMAGE_KEY, PREDICTED_FUTURE_KEY, flat_name
 
 from .backbone import FrozenBackbone
 from .condition import ConditionProjector
@@ -303,8 +303,16 @@ class DustPolicy(VLAWrapperBase):
         return _squared_error(estimate, frames.get("env_state"))
 
     @torch.no_grad()
-    def plan(self, td: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
+    def plan(self, td: TensorDictBase, generator: torch.Generator | None = None,
+             action_noise: Tensor | None = None) -> TensorDict:
         """Sample a chunk for raw observations of any batch shape.
+
+        Args:
+            td: observations [*B].
+            generator: random source of the initial noise.
+            action_noise: [*B, H, Da] initial action noise in the sampler's (normalised) units, replacing the
+                drawn one: the chunk is a deterministic function of it (noise-space steering; also read
+                from ``ACTION_NOISE_KEY`` by :meth:`forward`).
 
         Returns:
             TensorDict shaped like ``td`` with ``action_chunk`` [*B, H, Da] in env units (clamped to the
@@ -312,7 +320,10 @@ class DustPolicy(VLAWrapperBase):
             frozen embedding of the frame after the chunk in the encoder's units (left as noise by the
             action-only sampler).
         """
-        out = self.agent.predict_action(self._agent_batch(self.observation_features(td)), generator)
+        batch = self._agent_batch(self.observation_features(td))
+        if action_noise is not None:
+            batch.set("action_noise", action_noise.reshape(batch.batch_size[0], *action_noise.shape[-2:]))
+        out = self.agent.predict_action(batch, generator)
         chunk = self.normalizer.denormalize_action(out.get("action_chunk"))
         out.set("action_chunk", chunk.clamp(self.action_low, self.action_high))
         if "future_tokens" in out.keys():
@@ -324,9 +335,10 @@ class DustPolicy(VLAWrapperBase):
         """Write ``("vla_action", "chunk")``, ``action`` (the chunk's first step) and, with a vision stream,
         the sampled future tokens (``PREDICTED_FUTURE_KEY``, [*B, N_o, Dv] in the encoder's units).
 
-        One joint sample gives both, so collectors and RL see the future that came with the chunk.
+        One joint sample gives both, so collectors and RL see the future that came with the chunk. An
+        ``ACTION_NOISE_KEY`` entry [*B, H, Da] in ``tensordict`` sets the initial action noise (:meth:`plan`).
         """
-        planned = self.plan(tensordict)
+        planned = self.plan(tensordict, action_noise=tensordict.get(ACTION_NOISE_KEY, None))
         chunk = planned.get("action_chunk")
         out = TensorDict({ACTION_KEY: chunk[..., 0, :]}, batch_size=chunk.shape[:-2], device=chunk.device)
         self._set_action(out, chunk=chunk)

@@ -85,6 +85,7 @@ def run_schedule(
     schedule: list[DenoiseStep],
     generator: torch.Generator | None = None,
     callback: Callable[[DenoiseStep, Tensor, Tensor | None], None] | None = None,
+    action_noise: Tensor | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """Integrate both modalities from noise along ``schedule``.
 
@@ -95,6 +96,9 @@ def run_schedule(
         generator: random source of the initial noise (actions first, then vision).
         callback: called after every step with (step, actions, vision) as they now stand,
             e.g. to count or inspect updates.
+        action_noise: [B, H, Da], the initial action noise to start from instead of the drawn one (the
+            sampler is deterministic given it: an RL actor can steer a frozen policy through it). The
+            action noise is drawn and discarded all the same, so the vision noise does not change.
 
     Returns:
         (action chunk [B, H, Da], future-vision tokens [B, N_o, Dv] or None).
@@ -102,6 +106,11 @@ def run_schedule(
     cfg = model.config
     b, device = ctx.batch_size, ctx.state_token.device
     action = torch.randn(b, cfg.horizon, cfg.action_dim, generator=generator, device=device)
+    if action_noise is not None:
+        if action_noise.shape != action.shape:
+            raise ValueError(f"action_noise must have shape {tuple(action.shape)} [B, H, Da], "
+                             f"got {tuple(action_noise.shape)}")
+        action = action_noise.to(action)
     vision = None
     if cfg.has_vision:
         vision = torch.randn(b, cfg.n_vision_tokens, cfg.vision_dim, generator=generator, device=device)

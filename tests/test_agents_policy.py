@@ -20,7 +20,7 @@ from dust_rl.agents import (
     unwrap,
 )
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.keys import PREDICTED_FUTURE_KEY
+from dust_rl.keys import ACTION_NOISE_KEY, PREDICTED_FUTURE_KEY
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -72,6 +72,29 @@ def test_every_variant_writes_a_chunk_and_an_action(variant, tiny_encoder, minil
             planned = policy.plan(observation(batch))
             assert torch.equal(out[PREDICTED_FUTURE_KEY], planned["future_tokens"])
             assert torch.equal(out["vla_action", "chunk"], planned["action_chunk"])
+
+
+@pytest.mark.parametrize("variant", ["dust", "action_only"])
+def test_the_initial_action_noise_steers_the_chunk(variant, tiny_encoder, minilm):
+    policy = unwrap(tiny_policy(variant, tiny_encoder, minilm))
+    perturb(policy)
+    obs = observation((2,))
+    shape = (2, policy.config.horizon, policy.config.action_dim)
+    drawn = torch.randn(shape, generator=torch.Generator().manual_seed(3))  # what the sampler draws first
+    base = policy.plan(obs, torch.Generator().manual_seed(3))
+    same = policy.plan(obs, torch.Generator().manual_seed(3), action_noise=drawn)
+    assert all(torch.equal(base[k], same[k]) for k in base.keys())  # passing the drawn noise changes nothing
+    steered = policy.plan(obs, torch.Generator().manual_seed(3), action_noise=-drawn)
+    assert not torch.equal(steered["action_chunk"], base["action_chunk"])
+    if variant == "action_only":  # no vision noise: the chunk is a function of the action noise alone
+        again = policy.plan(obs, torch.Generator().manual_seed(4), action_noise=-drawn)
+        assert torch.equal(again["action_chunk"], steered["action_chunk"])
+    torch.manual_seed(0)
+    through_forward = policy(obs.clone().set(ACTION_NOISE_KEY, -drawn))
+    torch.manual_seed(0)
+    assert torch.equal(through_forward["vla_action", "chunk"], policy.plan(obs, action_noise=-drawn)["action_chunk"])
+    with pytest.raises(ValueError, match=r"action_noise must have shape \(2, 6, 3\)"):
+        policy.plan(obs, action_noise=torch.zeros(2, 5, 3))
 
 
 def test_normalisation_and_bounds_map_chunks_to_env_units(tiny_encoder, minilm):
