@@ -14,7 +14,7 @@ from .hf_vision import TransformersImageEncoder
 from .image_encoder import ImageEncoder
 from .policy import DustPolicy
 from .samplers import DenoiseStep, action_only_schedule, async_schedule, run_schedule, schedule_for, sync_schedule
-from .text_encoder import TextEncoder, TransformersTextEncoder
+from .text_encoder import TextEncoder, TransformersTextEncoder, pooled_text
 
 __all__ = [
     "VARIANTS",
@@ -33,6 +33,7 @@ __all__ = [
     "TextEncoder",
     "TransformersImageEncoder",
     "TransformersTextEncoder",
+    "pooled_text",
     "action_only_schedule",
     "action_validity",
     "async_schedule",

