@@ -1,4 +1,5 @@
-"""Noise-space steering: SB3's env checker, the base policy recovered exactly, bad actions named, SAC runs on it."""
+"""RL fine-tuning envs (noise steering, residual): SB3's env checker, the base policy recovered exactly, bad
+actions named, SAC runs on them with DUST frozen."""
 
 from __future__ import annotations
 
@@ -7,9 +8,11 @@ import pytest
 import torch
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_checker import check_env
+from tensordict import TensorDict
 
 from dust_rl.agents import make_policy, unwrap
 from dust_rl.env_factory import make_env
+from dust_rl.residual import ResidualEnv
 from dust_rl.rollout_video import episode_generator
 from dust_rl.steering import NoiseSteeringEnv
 
@@ -43,7 +46,7 @@ def test_sb3_accepts_the_steering_env(steering):
 def test_the_policy_own_noise_gives_its_own_chunk(steering):
     env, policy = steering
     obs, _ = env.reset(seed=3)
-    features = env._features
+    features = env.features
     generator = episode_generator(3)
     drawn = torch.randn(1, 4, 7, generator=episode_generator(3))  # the sampler's first draw of the episode
     base = policy.plan_features(features, generator)["action_chunk"][0]
@@ -78,3 +81,54 @@ def test_sac_trains_on_the_steering_env(steering):
     agent.learn(total_timesteps=16)
     assert agent.num_timesteps == 16 and agent.replay_buffer.size() == 16
     assert all(torch.equal(v, before[k]) for k, v in policy.state_dict().items())  # DUST stays frozen
+
+
+@pytest.fixture
+def residual(steering):
+    env, policy = steering
+    wrapped = ResidualEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE}), policy)
+    yield wrapped, policy
+    wrapped.close()
+
+
+def test_zero_residual_is_the_base_policy_episode(residual):
+    env, policy = residual
+    check_env(env)
+    obs, _ = env.reset(seed=5)
+    executed = []
+    for _ in range(5):  # two re-plans with execute_steps 2
+        executed.append(obs["base_action"])
+        obs, *_ = env.step(np.zeros(7, np.float32))
+    # The same episode run directly: receding horizon, noise from the episode's generator.
+    direct = make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE})
+    raw, _ = direct.reset(seed=5)
+    generator, expected = episode_generator(5), []
+    for step in range(5):
+        if step % 2 == 0:
+            chunk = policy.plan(_as_td(raw), generator)["action_chunk"].numpy()
+        expected.append(chunk[step % 2])
+        raw, *_ = direct.step(chunk[step % 2])
+    direct.close()
+    assert all(np.array_equal(a, b) for a, b in zip(executed, expected, strict=True))
+    assert np.array_equal(obs["state"], raw["observation.state"])
+
+
+def test_a_residual_moves_the_executed_action_within_bounds(residual):
+    env, _ = residual
+    obs, _ = env.reset(seed=5)
+    low, high = env.env.action_space.low, env.env.action_space.high
+    expected = np.clip(obs["base_action"] + env.residual_scale, low, high)
+    stepped, *_ = env.step(np.ones(7, np.float32))
+    direct = make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE})
+    direct.reset(seed=5)
+    raw, *_ = direct.step(expected)  # the clipped sum, executed directly
+    direct.close()
+    assert np.array_equal(stepped["state"], raw["observation.state"])
+    assert (env.residual_scale > 0).all() and not np.array_equal(expected, obs["base_action"])
+    with pytest.raises(ValueError, match="residual_scale must be finite"):
+        ResidualEnv(env.env, env.policy, residual_scale=-1.0)
+
+
+def _as_td(obs: dict) -> TensorDict:
+    td = TensorDict({k: torch.as_tensor(v) for k, v in obs.items() if isinstance(v, np.ndarray)})
+    return td.set_non_tensor("language_instruction", obs["language_instruction"])

@@ -1,0 +1,97 @@
+"""What the RL fine-tuning envs share: a dust-rl env, a frozen DUST policy, and an observation SB3 accepts.
+
+RL on top of an imitation policy (:mod:`dust_rl.steering`, :mod:`dust_rl.residual`) keeps the policy's
+weights and changes only what it is fed or what is added to its output, so the base policy stays
+recoverable. Both envs show the RL agent the same observation: the robot state and the frozen backbone
+features the policy itself conditions on, pooled per camera, plus the pooled instruction (SB3 cannot take
+the instruction's text). Both restart the policy's sampling noise from the reset seed, as evaluation does,
+so an episode repeats bit for bit.
+
+========================  =================  ===================================================
+observation               shape              meaning
+========================  =================  ===================================================
+``state``                 [Ds]               the robot state (``observation.state``)
+``features``              [C * Dv + Dt]      per camera the mean of its normalised frozen tokens,
+                                             then the mean of the instruction's tokens
+========================  =================  ===================================================
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium import spaces
+from tensordict import TensorDict
+
+from dust_rl.agents import DustPolicy, pooled_text
+from dust_rl.keys import INSTRUCTION_KEY, STATE_KEY, flat_name
+from dust_rl.rollout_video import episode_generator
+
+STATE_NAME = flat_name(STATE_KEY)
+
+
+class FrozenPolicyEnv(gym.Env):
+    """Base of the fine-tuning envs: subclasses set ``action_space`` and implement ``step``.
+
+    Args:
+        env: a dust-rl gymnasium env in image mode (the policy's cameras, state and instruction).
+        policy: the frozen policy (put in eval mode; its weights are never changed here).
+        execute_steps: env steps per chunk; default: the policy's own.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, env: gym.Env, policy: DustPolicy, execute_steps: int | None = None) -> None:
+        self.env, self.policy = env, policy.eval()
+        self.execute_steps = execute_steps or policy.execute_steps
+        if not 1 <= self.execute_steps <= policy.config.horizon:
+            raise ValueError(f"execute_steps must be in [1, {policy.config.horizon}], got {self.execute_steps}")
+        n_features = len(policy.cameras) * policy.config.vision_dim + policy.backbone.text_dim
+        self.observation_space = spaces.Dict({
+            "state": env.observation_space[STATE_NAME],
+            "features": spaces.Box(-np.inf, np.inf, (n_features,), np.float32),
+        })
+        self.features: TensorDict | None = None  # of the newest observation, for the next plan
+        self.generator = episode_generator(0)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        """Reset the env; the policy's sampling noise restarts from ``seed`` too."""
+        super().reset(seed=seed)
+        obs, info = self.env.reset(seed=seed, options=options)
+        if seed is not None:
+            self.generator = episode_generator(seed)
+        return self.observe(obs), info
+
+    def check_action(self, action: np.ndarray) -> np.ndarray:
+        """``action`` as float32 in [-1, 1] (clipped).
+
+        Raises:
+            ValueError: the action has the wrong shape or holds NaN or infinity.
+            RuntimeError: ``step`` before ``reset``.
+        """
+        action = np.asarray(action, dtype=np.float32)
+        if action.shape != self.action_space.shape:
+            raise ValueError(f"the action must have shape {self.action_space.shape}, got {action.shape}")
+        if not np.isfinite(action).all():
+            raise ValueError("the action holds NaN or infinity")
+        if self.features is None:
+            raise RuntimeError("call reset() before step()")
+        return np.clip(action, -1.0, 1.0)
+
+    def observe(self, obs: dict) -> dict:
+        """The RL agent's view of ``obs`` (and its features, kept for the next plan)."""
+        td = TensorDict({k: torch.as_tensor(v) for k, v in obs.items() if isinstance(v, np.ndarray)})
+        td.set_non_tensor(INSTRUCTION_KEY, obs[INSTRUCTION_KEY])
+        self.features = self.policy.observation_features(td)
+        image = self.policy.normalizer.normalize_vision(self.features.get("image_tokens")).mean(2).flatten(1)
+        text = pooled_text(self.features.get("text_tokens"), self.features.get("text_mask"))
+        features = torch.cat([image, text], dim=-1)[0].numpy().astype(np.float32)
+        return {"state": np.asarray(obs[STATE_NAME], dtype=np.float32), "features": features}
+
+    def plan(self, action_noise: torch.Tensor | None = None) -> torch.Tensor:
+        """The policy's chunk [H, Da] for the newest observation, from the episode's noise generator."""
+        return self.policy.plan_features(self.features, self.generator, action_noise).get("action_chunk")[0]
+
+    def close(self) -> None:
+        self.env.close()
