@@ -204,6 +204,9 @@ TYRO_COMMANDS = {
               "train DUST (or a baseline) by imitation on a dataset (dust-rl train --help)"),
     "eval": ("dust_rl.evaluate", "EvalConfig", "evaluate_command",
              "evaluate a policy in closed loop and write a report (dust-rl eval --help)"),
+    "finetune": ("dust_rl.finetune", "FinetuneConfig", "finetune_command",
+                 "fine-tune a trained policy with RL (stable-baselines3), the policy itself frozen "
+                 "(dust-rl finetune --help)"),
     "quickstart": ("dust_rl.quickstart", "QuickstartConfig", "quickstart",
                    "collect, train, evaluate and report on a small default: the README's main job"),
 }

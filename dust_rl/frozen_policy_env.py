@@ -54,6 +54,7 @@ class FrozenPolicyEnv(gym.Env):
         })
         self.features: TensorDict | None = None  # of the newest observation, for the next plan
         self.generator = episode_generator(0)
+        self.executed: list[np.ndarray] = []  # the env actions of the current episode
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Reset the env; the policy's sampling noise restarts from ``seed`` too."""
@@ -61,7 +62,14 @@ class FrozenPolicyEnv(gym.Env):
         obs, info = self.env.reset(seed=seed, options=options)
         if seed is not None:
             self.generator = episode_generator(seed)
+        self.executed = []
         return self.observe(obs), info
+
+    def env_step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        """One step of the wrapped env, recorded in :attr:`executed`."""
+        action = np.asarray(action, dtype=np.float32)
+        self.executed.append(action)
+        return self.env.step(action)
 
     def check_action(self, action: np.ndarray) -> np.ndarray:
         """``action`` as float32 in [-1, 1] (clipped).
@@ -88,6 +96,10 @@ class FrozenPolicyEnv(gym.Env):
         text = pooled_text(self.features.get("text_tokens"), self.features.get("text_mask"))
         features = torch.cat([image, text], dim=-1)[0].numpy().astype(np.float32)
         return {"state": np.asarray(obs[STATE_NAME], dtype=np.float32), "features": features}
+
+    def step_base(self) -> tuple[dict, float, bool, bool, dict]:
+        """One step in which the base policy acts as it would alone (the RL agent's "off" action)."""
+        raise NotImplementedError
 
     def plan(self, action_noise: torch.Tensor | None = None) -> torch.Tensor:
         """The policy's chunk [H, Da] for the newest observation, from the episode's noise generator."""

@@ -5,7 +5,8 @@ Ankile et al. 2024; Policy Decorator, Yuan et al. 2024): the policy plans
 chunks as it does in evaluation (receding horizon, its own sampling noise
 restarted from the reset seed), and an RL agent adds ``residual_scale`` times
 its action in [-1, 1]^Da to the action about to be executed, clipped to the
-env's action box. A zero residual executes exactly the base policy's episode.
+env's action box. A zero residual executes exactly the base policy's episode
+(a trained policy's chunks already lie in the box: training sets its bounds).
 The agent sees the base action it corrects beside the observation of
 :mod:`dust_rl.frozen_policy_env`.
 """
@@ -55,9 +56,13 @@ class ResidualEnv(FrozenPolicyEnv):
         """
         residual = self.check_action(action) * self.residual_scale
         executed = np.clip(self.base_action + residual, self.env.action_space.low, self.env.action_space.high)
-        obs, reward, terminated, truncated, info = self.env.step(executed.astype(np.float32))
+        obs, reward, terminated, truncated, info = self.env_step(executed)
         self.index += 1
         return self.observe(obs), float(reward), terminated, truncated, info
+
+    def step_base(self) -> tuple[dict, float, bool, bool, dict]:
+        """One step of the base policy (a zero residual)."""
+        return self.step(np.zeros(self.action_space.shape, np.float32))
 
     def observe(self, obs: dict) -> dict:
         """Also re-plan when the chunk's executed part is used up, and show the next base action."""

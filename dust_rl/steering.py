@@ -53,9 +53,18 @@ class NoiseSteeringEnv(FrozenPolicyEnv):
             ValueError, RuntimeError: see :meth:`~dust_rl.frozen_policy_env.FrozenPolicyEnv.check_action`.
         """
         noise = torch.from_numpy(self.check_action(action) * self.noise_bound).view(1, *self.chunk_shape)
+        return self._execute(self.plan(noise))
+
+    def step_base(self) -> tuple[dict, float, bool, bool, dict]:
+        """One step of the base policy: the chunk from the noise it draws itself (which may exceed the bound)."""
+        if self.features is None:
+            raise RuntimeError("call reset() before step_base()")
+        return self._execute(self.plan())
+
+    def _execute(self, chunk: torch.Tensor) -> tuple[dict, float, bool, bool, dict]:
         total, terminated, truncated, info = 0.0, False, False, {}
-        for env_action in self.plan(noise)[:self.execute_steps].numpy():
-            obs, reward, terminated, truncated, info = self.env.step(env_action)
+        for env_action in chunk[:self.execute_steps].numpy():
+            obs, reward, terminated, truncated, info = self.env_step(env_action)
             total += float(reward)
             if terminated or truncated:
                 break

@@ -1,0 +1,56 @@
+"""``dust-rl finetune``: SB3 trains on the steering and residual envs, the base row is the evaluated policy."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, make_policy, save_policy, unwrap
+from dust_rl.agents.checkpoint_io import load_checkpoint
+from dust_rl.errors import ConfigError
+from dust_rl.evaluate import EvalConfig, evaluate
+from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, finetune
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+EPISODE_STEPS = 10
+
+
+@pytest.fixture(scope="module")
+def policy_path(tmp_path_factory, minilm):
+    """A tiny untrained policy for 32 px front + wrist cameras, its weights moved off their initialisation."""
+    encoder = ConvAutoencoder(AutoencoderConfig(image_size=32, dim=16, width=8, max_width=16))
+    policy = make_policy("dust", image_encoder=encoder, text_encoder=minilm, cameras=["front", "wrist"], action_dim=7,
+                         state_dim=17, horizon=4, execute_steps=2, d_model=32, n_heads=2, n_mmdit=2, n_dit=0)
+    inner = unwrap(policy)
+    inner.set_action_bounds(-torch.ones(7), torch.ones(7))  # DustFranka-v0's action box, as training sets it
+    with torch.no_grad():
+        for p in inner.trainable_parameters():
+            p.add_(0.1 * torch.randn(p.shape, generator=torch.Generator().manual_seed(0)))
+    inner.info = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": 32}, "tasks": ["press_button"]}
+    return save_policy(policy, tmp_path_factory.mktemp("policy") / "policy.pt")
+
+
+@pytest.mark.parametrize("method,algorithm", [("steer", "sac"), ("residual", "ppo")])
+def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, algorithm, policy_path, tmp_path):
+    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method=method, algorithm=algorithm, steps=8,
+                            learning_starts=4, batch_size=4, net_arch=(16,), eval_episodes=2,
+                            max_steps=EPISODE_STEPS, progress=False)
+    report = finetune(config, command="dust-rl finetune ...")
+    assert [row["episodes"] for row in report["rows"]] == [2, 2] and report["task"] == "press_button"
+    # The base row is the policy's own evaluation, episode for episode (same seeds, same noise, same actions).
+    evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", episodes=2, workers=1, videos=0,
+                                    max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
+    assert report["per_episode"]["base"] == [list(e) for e in evaluated["tasks"][0]["per_episode"]]
+    agent = load_checkpoint(tmp_path / "ft" / "rl_agent.pt", RL_AGENT_KIND)
+    assert agent["config"]["method"] == method and all(torch.isfinite(v).all() for v in agent["state_dict"].values())
+    assert "| base policy | 2 |" in (tmp_path / "ft" / "report.md").read_text()
+
+
+def test_bad_finetune_settings_are_named(policy_path, tmp_path):
+    with pytest.raises(ConfigError, match="noise_bound"):
+        FinetuneConfig(policy=policy_path, noise_bound=0.0)
+    with pytest.raises(ConfigError, match="net_arch"):
+        FinetuneConfig(policy=policy_path, net_arch=())
+    with pytest.raises(ConfigError, match="no_such_task"):
+        finetune(FinetuneConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
