@@ -64,6 +64,9 @@ class FinetuneConfig:
     """RL agent steps (chunks when steering, env steps for residual)."""
     task: str | None = None
     """Task to fine-tune on; default: the policy's first training task."""
+    reward: Literal["sparse", "dense"] = "sparse"
+    """The env's reward while training: 1 on success only, or the task's staged progress shaping
+    (evaluation counts successes either way)."""
     noise_bound: float = 2.0
     """Steering: the noise magnitude an RL action of +-1 maps to."""
     residual_scale: float = 0.1
@@ -158,7 +161,7 @@ def _env_maker(config: FinetuneConfig, policy: DustPolicy) -> tuple[Callable[[],
     check_tasks(env_id, env_kwargs, [task])
 
     def make() -> FrozenPolicyEnv:
-        env = make_env(env_id, {**env_kwargs, "task": task})
+        env = make_env(env_id, {**env_kwargs, "task": task, "reward_type": config.reward})
         if config.method == "steer":
             return NoiseSteeringEnv(env, policy, noise_bound=config.noise_bound)
         half_width = (env.action_space.high - env.action_space.low) / 2

@@ -31,10 +31,11 @@ def policy_path(tmp_path_factory, minilm):
     return save_policy(policy, tmp_path_factory.mktemp("policy") / "policy.pt")
 
 
-@pytest.mark.parametrize("method,algorithm", [("steer", "sac"), ("residual", "ppo")])
-def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, algorithm, policy_path, tmp_path):
+@pytest.mark.parametrize("method,algorithm,reward", [("steer", "sac", "sparse"), ("residual", "ppo", "dense")])
+def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, algorithm, reward, policy_path,
+                                                                        tmp_path):
     config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method=method, algorithm=algorithm, steps=8,
-                            learning_starts=4, batch_size=4, net_arch=(16,), eval_episodes=2,
+                            reward=reward, learning_starts=4, batch_size=4, net_arch=(16,), eval_episodes=2,
                             max_steps=EPISODE_STEPS, progress=False)
     report = finetune(config, command="dust-rl finetune ...")
     assert [row["episodes"] for row in report["rows"]] == [2, 2] and report["task"] == "press_button"
