@@ -1,0 +1,54 @@
+"""SB3 on the image-mode env: the instruction as an embedding Box, SB3's CNN or DUST's frozen encoder on pixels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.env_checker import check_env
+
+from dust_rl.agents import pooled_text
+from dust_rl.env_factory import make_env
+from dust_rl.sb3 import FrozenBackboneExtractor, SB3Observations
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_the_instruction_becomes_its_frozen_embedding(minilm):
+    env = SB3Observations(make_env("DustFranka-v0", {"task": "press_button", "image_size": 32}), minilm)
+    check_env(env)
+    obs, _ = env.reset(seed=0)
+    raw, _ = env.env.reset(seed=0)
+    with torch.no_grad():
+        tokens, mask = minilm([raw["language_instruction"]])
+    np.testing.assert_array_equal(obs["language_instruction"], pooled_text(tokens, mask)[0].numpy())
+    assert obs["observation/image/front"].dtype == np.uint8  # frames stay pixels for SB3's extractors
+    assert "observation/environment_state" not in obs and "observation.environment_state" in raw  # no peeking
+    oracle = SB3Observations(env.env, minilm, privileged=True)
+    assert "observation/environment_state" in oracle.observation_space.spaces
+    env.close()
+
+
+def test_sac_on_pixels_through_the_frozen_encoder(minilm, tiny_encoder):
+    env = SB3Observations(make_env("DustFranka-v0", {"task": "press_button", "image_size": 32}), minilm)
+    before = {k: v.clone() for k, v in tiny_encoder.state_dict().items()}
+    agent = SAC("MultiInputPolicy", env, learning_starts=8, batch_size=8, buffer_size=64, seed=0, device="cpu",
+                policy_kwargs={"features_extractor_class": FrozenBackboneExtractor, "net_arch": [16],
+                               "features_extractor_kwargs": {"image_encoder": tiny_encoder}})
+    agent.learn(total_timesteps=16)
+    extractor = agent.policy.actor.features_extractor
+    state = env.observation_space["observation/state"].shape[0]
+    assert extractor.features_dim == 2 * tiny_encoder.dim + state + minilm.dim
+    assert agent.num_timesteps == 16
+    assert all(torch.equal(v, before[k]) for k, v in tiny_encoder.state_dict().items())  # the caller's is untouched
+    assert all(torch.equal(v, before[k]) for k, v in extractor.encoder.state_dict().items())  # the actor's is frozen
+    env.close()
+
+
+def test_ppo_on_pixels_with_sb3s_own_cnn(minilm):
+    env = SB3Observations(make_env("DustFranka-v0", {"task": "press_button", "image_size": 64}), minilm)
+    agent = PPO("MultiInputPolicy", env, n_steps=8, batch_size=8, n_epochs=1, seed=0, device="cpu")
+    agent.learn(total_timesteps=8)
+    assert agent.num_timesteps == 8
+    env.close()
