@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.logger import configure as configure_logger
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, load_policy, unwrap
@@ -54,7 +55,7 @@ class FinetuneConfig:
     policy: pathlib.Path
     """Policy file written by ``dust-rl train``."""
     out: pathlib.Path = pathlib.Path("runs/finetune")
-    """Folder for ``rl_agent.pt``, ``report.json`` and ``report.md``."""
+    """Folder for ``rl_agent.pt``, ``report.json``, ``report.md`` and ``logs/`` (SB3's scalars: CSV, TensorBoard)."""
     method: Literal["steer", "residual"] = "steer"
     """``steer``: the RL action is the policy's initial action noise, one step per chunk (DSRL);
     ``residual``: a bounded correction added to every executed action."""
@@ -115,6 +116,7 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
             kwargs = {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
         agent = algorithm("MultiInputPolicy", env, seed=config.seed, device="cpu",
                           policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
+        agent.set_logger(configure_logger(str(config.out / "logs"), ["csv", "tensorboard"]))
         agent.learn(total_timesteps=config.steps, progress_bar=config.progress)
         env.close()
         trained_s = time.perf_counter() - began
@@ -124,6 +126,9 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
         # The base policy and the fine-tuned one on the same held-out seeds.
         base = _run_episodes(make, lambda obs, env: env.step_base(), config)
         tuned = _run_episodes(make, lambda obs, env: env.step(agent.predict(obs, deterministic=True)[0]), config)
+        for name, episodes in (("base", base), ("fine_tuned", tuned)):
+            agent.logger.record(f"eval/success_rate_{name}", summary_row(name, episodes)["success_rate"])
+        agent.logger.dump(agent.num_timesteps)
     report = {
         "policy": str(config.policy), "method": config.method, "algorithm": config.algorithm,
         "task": task, "steps": config.steps, "command": command, "config": config_json(config),

@@ -46,6 +46,7 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
     agent = load_checkpoint(tmp_path / "ft" / "rl_agent.pt", RL_AGENT_KIND)
     assert agent["config"]["method"] == method and all(torch.isfinite(v).all() for v in agent["state_dict"].values())
     assert "| base policy | 2 |" in (tmp_path / "ft" / "report.md").read_text()
+    assert "eval/success_rate_fine_tuned" in (tmp_path / "ft" / "logs" / "progress.csv").read_text()
 
 
 def test_bad_finetune_settings_are_named(policy_path, tmp_path):
