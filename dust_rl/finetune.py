@@ -13,8 +13,11 @@ policy run through the same env with its own noise (steering; the bounded
 action space cannot hold every draw) or a zero residual, which reproduces its
 evaluated episodes exactly (tested).
 
-Not yet: resuming an interrupted run (a re-run starts over), torchrl's SAC
-front-end, and the world model's part (issue 10, item 3).
+Every ``checkpoint_every`` RL steps the whole learning state (networks,
+optimisers, replay buffer, counters, RNG; :mod:`dust_rl.rl_checkpoint`) goes
+to a torchrl ``Checkpoint``; ``--resume`` continues from the newest one.
+
+Not yet: torchrl's SAC front-end, and the world model's part (issue 10, item 3).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import torch
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.logger import configure as configure_logger
+from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, load_policy, unwrap
@@ -41,10 +45,13 @@ from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.evaluate import Episode, summary_row, torch_threads
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
 from dust_rl.residual import ResidualEnv
+from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.rollout_video import episode_digest
+from dust_rl.run_folder import check_run_folder, restore, write_run_config
 from dust_rl.steering import NoiseSteeringEnv
 
 RL_AGENT_KIND = "dust-rl rl agent"
+RESUMABLE_FIELDS = ("resume", "progress", "threads")
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
 
 
@@ -55,7 +62,8 @@ class FinetuneConfig:
     policy: pathlib.Path
     """Policy file written by ``dust-rl train``."""
     out: pathlib.Path = pathlib.Path("runs/finetune")
-    """Folder for ``rl_agent.pt``, ``report.json``, ``report.md`` and ``logs/`` (SB3's scalars: CSV, TensorBoard)."""
+    """Run folder: ``config.json``, ``checkpoints/``, ``rl_agent.pt``, ``report.json``, ``report.md`` and ``logs/``
+    (SB3's scalars: CSV, TensorBoard)."""
     method: Literal["steer", "residual"] = "steer"
     """``steer``: the RL action is the policy's initial action noise, one step per chunk (DSRL);
     ``residual``: a bounded correction added to every executed action."""
@@ -86,13 +94,17 @@ class FinetuneConfig:
     """First evaluation seed (training data: 0 on; validation: 5000 on; held-out: 10000 on)."""
     max_steps: int | None = None
     """Time limit per episode in env steps; default: the task's."""
+    checkpoint_every: int = 5000
+    """RL steps between checkpoints of the whole learning state (one is always written at the end)."""
+    resume: bool = False
+    """Continue the run in ``out`` from its newest checkpoint."""
     threads: int = 1
     """torch threads."""
     progress: bool = True
     """Show progress bars."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "steps", "batch_size", "eval_episodes", "threads", "max_steps")
+        check_at_least(self, 1, "steps", "batch_size", "eval_episodes", "threads", "max_steps", "checkpoint_every")
         check_at_least(self, 0, "learning_starts", "seed", "eval_seed")
         check_finite(self, "noise_bound", "residual_scale", positive=True)
         if not self.net_arch or min(self.net_arch) < 1:
@@ -103,21 +115,23 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     """Fine-tune, save the RL agent, compare with the base policy; returns the report."""
     with torch_threads(config.threads):
         began = time.perf_counter()
+        check_run_folder(config, RESUMABLE_FIELDS)
         policy = unwrap(load_policy(config.policy))
-        make, task = _env_maker(config, policy)
+        make, task = finetune_env_factory(config, policy)
+        if not config.resume:
+            write_run_config(config, command)
 
         # The RL agent, trained on the fine-tuning env; DUST itself is frozen inside it.
         env = make()
-        algorithm = ALGORITHMS[config.algorithm]
-        if algorithm is SAC:
-            kwargs = {"learning_starts": config.learning_starts, "batch_size": config.batch_size}
-        else:  # a rollout no longer than the run, minibatches no larger than a rollout
-            n_steps = min(2048, config.steps)
-            kwargs = {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
-        agent = algorithm("MultiInputPolicy", env, seed=config.seed, device="cpu",
-                          policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
+        agent = build_agent(config, env)
         agent.set_logger(configure_logger(str(config.out / "logs"), ["csv", "tensorboard"]))
-        agent.learn(total_timesteps=config.steps, progress_bar=config.progress)
+        checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=GlobalRNGState())
+        rotation = CheckpointRotation(config.out / "checkpoints", keep_last=2)
+        restore(checkpoint, rotation)
+        while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every steps
+            agent.learn(total_timesteps=min(config.checkpoint_every, config.steps - agent.num_timesteps),
+                        reset_num_timesteps=False, progress_bar=config.progress)
+            rotation.save(checkpoint, step=agent.num_timesteps, metadata={"step": agent.num_timesteps})
         env.close()
         trained_s = time.perf_counter() - began
         save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
@@ -142,6 +156,19 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     return report
 
 
+def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
+    """The SB3 agent ``config`` asks for, on ``env`` (the same settings rebuild it to resume)."""
+    algorithm = ALGORITHMS[config.algorithm]
+    if algorithm is SAC:  # a replay buffer no larger than the run
+        kwargs = {"learning_starts": config.learning_starts, "batch_size": config.batch_size,
+                  "buffer_size": config.steps}
+    else:  # a rollout no longer than the run, minibatches no larger than a rollout
+        n_steps = min(2048, config.steps)
+        kwargs = {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
+    return algorithm("MultiInputPolicy", env, seed=config.seed, device="cpu",
+                     policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
+
+
 def finetune_command(config: FinetuneConfig, command: str | None = None) -> dict:
     """``dust-rl finetune``: fine-tune, print the comparison, say where the files are."""
     report = finetune(config, command)
@@ -152,7 +179,7 @@ def finetune_command(config: FinetuneConfig, command: str | None = None) -> dict
     return report
 
 
-def _env_maker(config: FinetuneConfig, policy: DustPolicy) -> tuple[Callable[[], FrozenPolicyEnv], str]:
+def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Callable[[], FrozenPolicyEnv], str]:
     """A factory of fresh fine-tuning envs for ``config``'s task (checked once, here), and the task."""
     env_id = policy.info.get("env_id")
     if env_id is None:

@@ -23,7 +23,6 @@ weights, so no checkpoint or ``policy.pt`` holds NaN weights.
 
 from __future__ import annotations
 
-import json
 import pathlib
 import time
 from dataclasses import dataclass
@@ -32,23 +31,19 @@ from typing import Literal, get_args
 import torch
 from torch import nn
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
-from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 from torchrl.record.loggers import Logger, get_logger
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
-from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.agents.config import KeypointSource
-from dust_rl.atomic_files import write_json_atomic
 from dust_rl.aux_frames import AuxFrameBatches, render_aux_frames
-from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, DemoWindows
-from dust_rl.data.metadata import package_versions
 from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
 from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats, env_state_width
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.readout_warmup import warm_up_readout
+from dust_rl.run_folder import check_run_folder, restore, write_run_config
 
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
@@ -210,7 +205,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     if config.threads:
         torch.set_num_threads(config.threads)
     out = config.out
-    _check_run_folder(config)
+    check_run_folder(config, RESUMABLE_FIELDS)
 
     # Data, env check, policy (all checked before the run folder is written), cached frozen features.
     dataset = DemoDataset(config.dataset)
@@ -221,7 +216,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     torch.manual_seed(config.seed)
     policy = _build_policy(config, dataset)
     if not config.resume:
-        _write_run_config(config, command)
+        write_run_config(config, command)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
                    "dataset": str(config.dataset), "variant": config.variant, "steps": config.steps}
     features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
@@ -248,7 +243,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     schedule = warmup_cosine(optimizer, config.steps, config.warmup)
     ema = weight_average(trained, config.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
-    start = _restore(checkpoint, rotation) if config.resume else 0
+    start = restore(checkpoint, rotation) if config.resume else 0
 
     # The loop.
     bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc="training",
@@ -314,31 +309,6 @@ def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkp
                              "non-finite values")
 
 
-def _check_run_folder(config: TrainConfig) -> None:
-    """A new run needs an unused ``out``; ``resume`` needs a run there started with the same settings."""
-    saved = config.out / "config.json"
-    if config.resume:
-        if not saved.is_file():
-            raise FileNotFoundError(f"{config.out}: nothing to resume (no config.json); drop --resume to start a run")
-        try:
-            stored = json.loads(saved.read_text())["config"]
-        except (ValueError, KeyError, TypeError) as err:
-            raise ConfigError(f"{saved}: unreadable run config ({err!r}); start a new run with another --out") from err
-        changed = [k for k, v in config_json(config).items() if k not in RESUMABLE_FIELDS and stored.get(k) != v]
-        if changed:
-            raise ConfigError(f"{config.out} was started with other settings ({', '.join(changed)}); "
-                              "resume with the same arguments or use a new --out")
-    elif (config.out / "checkpoints").exists() or saved.exists():
-        raise FileExistsError(f"{config.out} already holds a run; pass --resume to continue it or choose another --out")
-
-
-def _write_run_config(config: TrainConfig, command: str | None) -> None:
-    """``config.json`` of a new run: the full config, the command and package versions."""
-    config.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(config.out / "config.json",
-                      {"config": config_json(config), "command": command, "versions": package_versions()}, indent=2)
-
-
 def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
     try:
         return unwrap(make_policy(
@@ -358,18 +328,6 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                                            policy.cameras, config.aux_frames, env_state_width(dataset),
                                            seed=config.seed, progress=config.progress)
     return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
-
-
-def _restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> int:
-    """Load the newest checkpoint (if any) into the run's objects; returns its step."""
-    latest = rotation.latest()
-    if latest is None:
-        return 0
-    try:
-        checkpoint.load(latest)
-    except (TorchrlCheckpointError, KeyError, ValueError, RuntimeError) as err:
-        raise CheckpointError(f"{latest}: cannot resume from this checkpoint ({err})") from err
-    return int(Checkpoint.manifest(latest)["metadata"]["step"])
 
 
 def _log(loggers: list[Logger], scalars: dict[str, float], step: int) -> None:

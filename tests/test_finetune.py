@@ -2,14 +2,25 @@
 
 from __future__ import annotations
 
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
 import pytest
 import torch
+from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
-from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, make_policy, save_policy, unwrap
+from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import load_checkpoint
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import EvalConfig, evaluate
-from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, finetune
+from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
+from dust_rl.rl_checkpoint import SB3LearningState
+from dust_rl.run_folder import restore
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -56,3 +67,43 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         FinetuneConfig(policy=policy_path, net_arch=())
     with pytest.raises(ConfigError, match="no_such_task"):
         finetune(FinetuneConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
+
+
+def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path):
+    settings = {"steps": 120, "checkpoint_every": 8, "learning_starts": 4, "batch_size": 4, "net_arch": (16,),
+                "eval_episodes": 1, "max_steps": EPISODE_STEPS}
+    reference = FinetuneConfig(policy=policy_path, out=tmp_path / "ref", progress=False, **settings)
+    finetune(reference)
+    out = tmp_path / "killed"
+    args = ["finetune", "--policy", str(policy_path), "--out", str(out), "--no-progress", "--threads", "1"]
+    for key, value in settings.items():
+        args += [f"--{key.replace('_', '-')}", *map(str, value if isinstance(value, tuple) else (value,))]
+    proc = subprocess.Popen([sys.executable, "-m", "dust_rl.cli", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, env=os.environ | {"OMP_NUM_THREADS": "1"})
+    deadline = time.monotonic() + 120
+    while not list((out / "checkpoints").glob("checkpoint-*")) and proc.poll() is None:
+        assert time.monotonic() < deadline, "no checkpoint within 120 s"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    _, stderr = proc.communicate()
+    assert proc.returncode == -signal.SIGKILL, stderr.decode()[-2000:]
+    assert not (out / "rl_agent.pt").exists()
+
+    with pytest.raises(FileExistsError, match="--resume"):
+        finetune(dataclasses.replace(reference, out=out))
+    finetune(dataclasses.replace(reference, out=out, resume=True))
+    states = {}
+    for name in ("ref", "killed"):
+        env = finetune_env_factory(reference, unwrap(load_policy(policy_path)))[0]()
+        state = SB3LearningState(build_agent(reference, env))
+        rotation = CheckpointRotation(tmp_path / name / "checkpoints", keep_last=2)
+        restore(Checkpoint(agent=state, rng=GlobalRNGState()), rotation)
+        states[name] = state.agent
+        env.close()
+    for agent in states.values():
+        assert agent.num_timesteps == 120 and agent.replay_buffer.pos == 120 % agent.replay_buffer.buffer_size
+        assert agent.replay_buffer.full  # 120 transitions in a buffer of 120: none lost, none twice
+    first = 8  # the transitions before the first checkpoint are the same in both runs
+    ref, got = states["ref"].replay_buffer, states["killed"].replay_buffer
+    assert np.array_equal(ref.actions[:first], got.actions[:first])
+    assert np.array_equal(ref.rewards[:first], got.rewards[:first])

@@ -1,0 +1,69 @@
+"""A run folder's rules, shared by ``dust-rl train`` and ``dust-rl finetune``.
+
+A new run needs an unused folder; ``--resume`` needs a run there started with the same settings (only
+the fields a run may change between sittings, such as threads or progress bars, may differ). The run's
+``config.json`` records the full config, the command and package versions, and checkpoints are torchrl
+``Checkpoint`` directories kept by a ``CheckpointRotation``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+
+from torchrl.checkpoint import Checkpoint, CheckpointRotation
+from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
+
+from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.atomic_files import write_json_atomic
+from dust_rl.config_json import config_json
+from dust_rl.data.metadata import package_versions
+from dust_rl.errors import ConfigError
+
+
+def check_run_folder(config, resumable: Iterable[str]) -> None:
+    """Raise unless ``config.out`` suits ``config.resume`` (a dataclass with ``out`` and ``resume``).
+
+    Raises:
+        FileNotFoundError: ``resume`` without a run there.
+        FileExistsError: a new run in a folder that holds one.
+        ConfigError: ``resume`` with settings other than the stored run's (fields not in ``resumable``).
+    """
+    saved = config.out / "config.json"
+    if config.resume:
+        if not saved.is_file():
+            raise FileNotFoundError(f"{config.out}: nothing to resume (no config.json); drop --resume to start a run")
+        try:
+            stored = json.loads(saved.read_text())["config"]
+        except (ValueError, KeyError, TypeError) as err:
+            raise ConfigError(f"{saved}: unreadable run config ({err!r}); start a new run with another --out") from err
+        resumable = set(resumable)
+        changed = [k for k, v in config_json(config).items() if k not in resumable and stored.get(k) != v]
+        if changed:
+            raise ConfigError(f"{config.out} was started with other settings ({', '.join(changed)}); "
+                              "resume with the same arguments or use a new --out")
+    elif (config.out / "checkpoints").exists() or saved.exists():
+        raise FileExistsError(f"{config.out} already holds a run; pass --resume to continue it or choose another --out")
+
+
+def write_run_config(config, command: str | None) -> None:
+    """``config.json`` of a new run: the full config, the command and package versions."""
+    config.out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(config.out / "config.json",
+                      {"config": config_json(config), "command": command, "versions": package_versions()}, indent=2)
+
+
+def restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> int:
+    """Load the newest checkpoint (if any) into the run's objects; returns its step (0: none).
+
+    Raises:
+        CheckpointError: the newest checkpoint does not load into these objects.
+    """
+    latest = rotation.latest()
+    if latest is None:
+        return 0
+    try:
+        checkpoint.load(latest)
+    except (TorchrlCheckpointError, KeyError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"{latest}: cannot resume from this checkpoint ({err})") from err
+    return int(Checkpoint.manifest(latest)["metadata"]["step"])
