@@ -215,7 +215,7 @@ def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, Fro
             obs, _, terminated, truncated, info = step(obs, env)
             done = terminated or truncated
         actions = torch.from_numpy(np.stack(env.executed))
-        digest = episode_digest(actions, torch.from_numpy(obs["state"]))
+        digest = episode_digest(actions, torch.from_numpy(obs["robot_state"]))
         episodes.append(Episode(seed, bool(info.get("is_success", False)), len(env.executed), digest))
     env.close()
     return episodes

@@ -4,13 +4,14 @@ RL on top of an imitation policy (:mod:`dust_rl.steering`, :mod:`dust_rl.residua
 weights and changes only what it is fed or what is added to its output, so the base policy stays
 recoverable. Both envs show the RL agent the same observation: the robot state and the frozen backbone
 features the policy itself conditions on, pooled per camera, plus the pooled instruction (SB3 cannot take
-the instruction's text). Both restart the policy's sampling noise from the reset seed, as evaluation does,
+the instruction's text). The state entry is ``robot_state``: torchrl's ``GymWrapper`` renames an entry
+called ``state``. Both restart the policy's sampling noise from the reset seed, as evaluation does,
 so an episode repeats bit for bit.
 
 ========================  =================  ===================================================
 observation               shape              meaning
 ========================  =================  ===================================================
-``state``                 [Ds]               the robot state (``observation.state``)
+``robot_state``           [Ds]               the robot state (``observation.state``)
 ``features``              [C * Dv + Dt]      per camera the mean of its normalised frozen tokens,
                                              then the mean of the instruction's tokens
 ========================  =================  ===================================================
@@ -49,7 +50,7 @@ class FrozenPolicyEnv(gym.Env):
             raise ValueError(f"execute_steps must be in [1, {policy.config.horizon}], got {self.execute_steps}")
         n_features = len(policy.cameras) * policy.config.vision_dim + policy.backbone.text_dim
         self.observation_space = spaces.Dict({
-            "state": env.observation_space[STATE_NAME],
+            "robot_state": env.observation_space[STATE_NAME],
             "features": spaces.Box(-np.inf, np.inf, (n_features,), np.float32),
         })
         self.features: TensorDict | None = None  # of the newest observation, for the next plan
@@ -95,7 +96,7 @@ class FrozenPolicyEnv(gym.Env):
         image = self.policy.normalizer.normalize_vision(self.features.get("image_tokens")).mean(2).flatten(1)
         text = pooled_text(self.features.get("text_tokens"), self.features.get("text_mask"))
         features = torch.cat([image, text], dim=-1)[0].numpy().astype(np.float32)
-        return {"state": np.asarray(obs[STATE_NAME], dtype=np.float32), "features": features}
+        return {"robot_state": np.asarray(obs[STATE_NAME], dtype=np.float32), "features": features}
 
     def step_base(self) -> tuple[dict, float, bool, bool, dict]:
         """One step in which the base policy acts as it would alone (the RL agent's "off" action)."""

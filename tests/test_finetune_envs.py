@@ -3,6 +3,8 @@ actions named, SAC runs on them with DUST frozen."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -15,6 +17,7 @@ from dust_rl.env_factory import make_env
 from dust_rl.residual import ResidualEnv
 from dust_rl.rollout_video import episode_generator
 from dust_rl.steering import NoiseSteeringEnv
+from dust_rl.torchrl_sac import torchrl_env, train_sac
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -55,11 +58,11 @@ def test_the_policy_own_noise_gives_its_own_chunk(steering):
     steps = [replay.step(a) for a in base[:2].numpy()]  # the base policy's first two actions, run directly
     replay.close()
     obs, reward, *_ = env.step((drawn / 2.0).flatten().numpy())  # steering with the policy's own noise
-    assert np.array_equal(obs["state"], steps[-1][0]["observation.state"])
+    assert np.array_equal(obs["robot_state"], steps[-1][0]["observation.state"])
     assert reward == sum(float(step[1]) for step in steps)
     env.reset(seed=3)
     steered, *_ = env.step((-drawn / 2.0).flatten().numpy())
-    assert not np.array_equal(steered["state"], obs["state"])  # other noise, other chunk
+    assert not np.array_equal(steered["robot_state"], obs["robot_state"])  # other noise, other chunk
 
 
 def test_bad_steering_actions_are_named(steering):
@@ -110,7 +113,7 @@ def test_zero_residual_is_the_base_policy_episode(residual):
         raw, *_ = direct.step(chunk[step % 2])
     direct.close()
     assert all(np.array_equal(a, b) for a, b in zip(executed, expected, strict=True))
-    assert np.array_equal(obs["state"], raw["observation.state"])
+    assert np.array_equal(obs["robot_state"], raw["observation.state"])
 
 
 def test_a_residual_moves_the_executed_action_within_bounds(residual):
@@ -123,7 +126,7 @@ def test_a_residual_moves_the_executed_action_within_bounds(residual):
     direct.reset(seed=5)
     raw, *_ = direct.step(expected)  # the clipped sum, executed directly
     direct.close()
-    assert np.array_equal(stepped["state"], raw["observation.state"])
+    assert np.array_equal(stepped["robot_state"], raw["observation.state"])
     assert (env.residual_scale > 0).all() and not np.array_equal(expected, obs["base_action"])
     with pytest.raises(ValueError, match="residual_scale must be finite"):
         ResidualEnv(env.env, env.policy, residual_scale=-1.0)
@@ -132,3 +135,19 @@ def test_a_residual_moves_the_executed_action_within_bounds(residual):
 def _as_td(obs: dict) -> TensorDict:
     td = TensorDict({k: torch.as_tensor(v) for k, v in obs.items() if isinstance(v, np.ndarray)})
     return td.set_non_tensor("language_instruction", obs["language_instruction"])
+
+
+def test_torchrl_sac_trains_on_the_steering_env(steering):
+    env, policy = steering
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    logged = []
+    actor = train_sac(lambda: NoiseSteeringEnv(make_env("DustFranka-v0", {"task": "press_button",
+                                                                           "image_size": IMAGE}), policy),
+                      steps=24, learning_starts=8, batch_size=8, net_arch=(16,), progress=False,
+                      log=lambda scalars, frames: logged.append((frames, scalars)))
+    assert [frames for frames, _ in logged] == list(range(8, 25))  # one update per frame once learning starts
+    assert all(math.isfinite(v) for _, scalars in logged for v in scalars.values())
+    obs, _ = env.reset(seed=0)
+    td = torchrl_env(env).reset()
+    assert actor(td)["action"].shape == (28,) and (actor(td)["action"].abs() <= 1).all()
+    assert all(torch.equal(v, before[k]) for k, v in policy.state_dict().items())  # DUST stays frozen

@@ -1,0 +1,91 @@
+"""SAC from torchrl's own parts on the fine-tuning envs: the same training for users of torchrl rather than SB3.
+
+The steering and residual envs (:mod:`dust_rl.steering`, :mod:`dust_rl.residual`) are gymnasium envs, so
+torchrl's ``GymWrapper`` takes them as they are; their two observation entries are concatenated into one
+``observation`` vector. The rest is torchrl: a ``ProbabilisticActor`` with a ``TanhNormal`` head inside the
+action box, two Q networks (``ValueOperator``), ``SACLoss`` with a learned temperature, ``SoftUpdate`` target
+networks, a ``Collector`` that takes uniformly random actions for the first ``learning_starts`` frames, and a
+``ReplayBuffer`` on ``LazyTensorStorage``. Read top to bottom, CleanRL style.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import gymnasium as gym
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import CatTensors, GymWrapper, TransformedEnv
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import SACLoss, SoftUpdate
+from tqdm.auto import tqdm
+
+OBSERVATION_ENTRIES = ("robot_state", "features")  # of the fine-tuning envs' observation dict
+
+
+def torchrl_env(env: gym.Env) -> TransformedEnv:
+    """A fine-tuning env as a torchrl env with one ``observation`` vector (state, then features)."""
+    return TransformedEnv(GymWrapper(env), CatTensors(list(OBSERVATION_ENTRIES), "observation", del_keys=False))
+
+
+def sac_actor(env: TransformedEnv, net_arch: tuple[int, ...]) -> ProbabilisticActor:
+    """A tanh-squashed Gaussian policy over ``env``'s action box."""
+    action_dim = env.action_spec.shape[-1]
+    net = nn.Sequential(MLP(out_features=2 * action_dim, num_cells=list(net_arch)), NormalParamExtractor())
+    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    space = env.action_spec.space
+    return ProbabilisticActor(module, in_keys=["loc", "scale"], spec=env.action_spec, distribution_class=TanhNormal,
+                              distribution_kwargs={"low": space.low, "high": space.high}, return_log_prob=False)
+
+
+def train_sac(make_env: Callable[[], gym.Env], steps: int, *, learning_starts: int = 1000, batch_size: int = 256,
+              net_arch: tuple[int, ...] = (256, 256), lr: float = 3e-4, gamma: float = 0.99, tau: float = 0.005,
+              seed: int = 0, progress: bool = True,
+              log: Callable[[dict[str, float], int], None] | None = None) -> ProbabilisticActor:
+    """Train SAC for ``steps`` env steps of ``make_env()``; returns the actor (its mean is the greedy policy).
+
+    Args:
+        make_env: builds a fine-tuning env (gymnasium).
+        steps: frames to collect (one per RL step).
+        learning_starts: frames of uniformly random actions before the first update.
+        batch_size, net_arch, lr, gamma, tau: SAC's minibatch size, hidden layers, Adam rate, discount, and
+            target-network rate.
+        seed: seeds torch and the env.
+        progress: show a progress bar.
+        log: receives the losses and temperature after each update, with the frame count.
+    """
+    torch.manual_seed(seed)
+    env = torchrl_env(make_env())
+    env.set_seed(seed)
+    actor = sac_actor(env, net_arch)
+    qvalue = ValueOperator(MLP(out_features=1, num_cells=list(net_arch)), in_keys=["observation", "action"])
+    with torch.no_grad():  # materialise the lazy layers on one real step
+        qvalue(actor(env.reset()))
+    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=env.action_spec)
+    loss.make_value_estimator(gamma=gamma)
+    target_update = SoftUpdate(loss, tau=tau)
+    optimizer = torch.optim.Adam(loss.parameters(), lr=lr)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(steps), batch_size=batch_size)
+    collector = Collector(env, actor, frames_per_batch=1, total_frames=steps, init_random_frames=learning_starts,
+                          auto_register_policy_transforms=False)  # the actor needs no InitTracker
+
+    frames = 0
+    for data in tqdm(collector, total=steps, desc="SAC (torchrl)", disable=not progress):
+        buffer.extend(data.reshape(-1))
+        frames += data.numel()
+        if frames < learning_starts or len(buffer) < batch_size:
+            continue
+        losses = loss(buffer.sample())
+        total = losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_alpha"]
+        optimizer.zero_grad()
+        total.backward()
+        optimizer.step()
+        target_update.step()
+        if log is not None:
+            log({k: losses[k].item() for k in ("loss_actor", "loss_qvalue", "loss_alpha", "alpha")}, frames)
+    collector.shutdown()
+    env.close()
+    return actor
