@@ -6,12 +6,17 @@ newest observation (paper and GR00T: execute part of each chunk). The
 wrapper caches the chunk in the rollout's TensorDict and re-queries the
 policy when its step counter reaches ``execute_steps`` or the env was reset
 (``is_init``, from torchrl's ``InitTracker`` transform, which the env needs).
+With a vision stream the predicted future is cached the same way, so every
+executed step carries ``("dust", "future_tokens")``: the future predicted at
+its latest re-plan.
 """
 
 from __future__ import annotations
 
 from tensordict import TensorDictBase
 from torchrl.modules import MultiStepActorWrapper
+
+from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, FUTURE_CHUNK_KEY, PREDICTED_FUTURE_KEY
 
 from .policy import DustPolicy
 
@@ -28,7 +33,11 @@ class ChunkExecutor(MultiStepActorWrapper):
     """
 
     def __init__(self, policy: DustPolicy, execute_steps: int) -> None:
-        super().__init__(policy, n_steps=policy.chunk_size, replan_interval=execute_steps)
+        keys = {}
+        if policy.writes_future:  # the predicted future travels with the chunk (see DustPolicy.forward)
+            keys = {"action_keys": [ACTION_KEY, PREDICTED_FUTURE_KEY],
+                    "chunk_keys": [ACTION_CHUNK_KEY, FUTURE_CHUNK_KEY]}
+        super().__init__(policy, n_steps=policy.chunk_size, replan_interval=execute_steps, **keys)
 
     @property
     def policy(self) -> DustPolicy:

@@ -43,7 +43,14 @@ from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
 from torchrl.modules.vla import VLAWrapperBase
 
-from dust_rl.keys import ACTION_KEY, ACTION_NOISE_KEY, IMAGE_KEY, PREDICTED_FUTURE_KEY, flat_name
+from dust_rl.keys import (
+    ACTION_KEY,
+    ACTION_NOISE_KEY,
+    FUTURE_CHUNK_KEY,
+    IMAGE_KEY,
+    PREDICTED_FUTURE_KEY,
+    flat_name,
+)
 
 from .backbone import FrozenBackbone
 from .condition import ConditionProjector
@@ -131,7 +138,7 @@ class DustPolicy(VLAWrapperBase):
         self.in_keys = [(*image, cam) for cam in self.cameras] + [k for k in self.in_keys if k != image]
         self.out_keys = [*self.out_keys, ACTION_KEY]
         if self.writes_future:
-            self.out_keys.append(PREDICTED_FUTURE_KEY)
+            self.out_keys += [PREDICTED_FUTURE_KEY, FUTURE_CHUNK_KEY]
 
     def set_action_bounds(self, low: Tensor, high: Tensor) -> None:
         """Clamp sampled actions to the env's action box."""
@@ -342,15 +349,20 @@ class DustPolicy(VLAWrapperBase):
         """Write ``("vla_action", "chunk")``, ``action`` (the chunk's first step) and, with a vision stream,
         the sampled future tokens (``PREDICTED_FUTURE_KEY``, [*B, N_o, Dv] in the encoder's units).
 
-        One joint sample gives both, so collectors and RL see the future that came with the chunk. An
-        ``ACTION_NOISE_KEY`` entry [*B, H, Da] in ``tensordict`` sets the initial action noise (:meth:`plan`).
+        One joint sample gives both, so collectors and RL see the future that came with the chunk. The future
+        is also written repeated along the chunk (``FUTURE_CHUNK_KEY``, [*B, H, N_o, Dv], a view), so that
+        :class:`~.execution.ChunkExecutor` caches and refreshes it with the chunk and every executed step
+        carries the future of its latest plan. An ``ACTION_NOISE_KEY`` entry [*B, H, Da] in ``tensordict``
+        sets the initial action noise (:meth:`plan`).
         """
         planned = self.plan(tensordict, action_noise=tensordict.get(ACTION_NOISE_KEY, None))
         chunk = planned.get("action_chunk")
         out = TensorDict({ACTION_KEY: chunk[..., 0, :]}, batch_size=chunk.shape[:-2], device=chunk.device)
         self._set_action(out, chunk=chunk)
         if self.writes_future:
-            out.set(PREDICTED_FUTURE_KEY, planned.get("future_tokens"))
+            future = planned.get("future_tokens")
+            out.set(PREDICTED_FUTURE_KEY, future)
+            out.set(FUTURE_CHUNK_KEY, future.unsqueeze(-3).expand(*chunk.shape[:-1], *future.shape[-2:]))
         return self._output_tensordict(tensordict, out, tensordict_out)
 
 

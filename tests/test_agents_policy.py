@@ -187,6 +187,10 @@ def test_receding_horizon_in_a_collector(tiny_encoder, minilm):
     # Each executed action is the chunk entry its counter points at.
     chunk = batch["vla_action", "chunk"]
     torch.testing.assert_close(batch["action"], chunk[torch.arange(10), batch["counter"].squeeze(-1) - 1])
+    # Every step carries the future predicted at its latest re-plan, refreshed with the chunk.
+    future = batch[PREDICTED_FUTURE_KEY]
+    assert future.shape == (10, inner.config.n_vision_tokens, inner.config.vision_dim)
+    assert all(torch.equal(future[i], future[i - 1]) == (counter[i] != 1) for i in range(1, 10))
     assert len(plans) <= 4  # 3 chunks for 10 steps (+ the collector's spec probe)
 
 
