@@ -95,7 +95,8 @@ class FinetuneConfig:
     max_steps: int | None = None
     """Time limit per episode in env steps; default: the task's."""
     checkpoint_every: int = 5000
-    """RL steps between checkpoints of the whole learning state (one is always written at the end)."""
+    """RL steps between checkpoints of the whole learning state (one is always written at the end; PPO rounds
+    each sitting up to whole rollouts of up to 2048 steps)."""
     resume: bool = False
     """Continue the run in ``out`` from its newest checkpoint."""
     threads: int = 1
