@@ -16,7 +16,8 @@ settings) is checked in this process before any worker starts. A
 ``max_steps`` reaches the env's own time limit (:func:`~dust_rl.env_factory.make_env`),
 above the task's default as well as below it. The report (JSON, markdown, success
 plot, loss curves of the training run) is written by :mod:`dust_rl.report`;
-videos of the first episodes of each task by :mod:`dust_rl.rollout_video`.
+videos of the first episodes of each task by :mod:`dust_rl.rollout_video`, from
+the evaluated trajectories themselves.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.keys import SEED_KEY, STATE_KEY, SUCCESS_KEY
 from dust_rl.report import plot_loss_curves, write_report
-from dust_rl.rollout_video import episode_digest, episode_generator, record_videos
+from dust_rl.rollout_video import episode_digest, episode_generator, write_episode_video
 
 
 @dataclass
@@ -120,6 +121,7 @@ class EvalSetup:
     tasks: tuple[str, ...]
     sampler: SamplerChoice
     execute_steps: int
+    fps: int  # of the env's control loop: the videos' frame rate
 
 
 class Episode(NamedTuple):
@@ -227,6 +229,7 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
     probe = make_eval_env(env_id, {**env_kwargs, "task": tasks[0]}, SeedSchedule(config.seed))
     try:
         check_fits_env(policy, probe, config.policy)
+        fps = probe.base_env.metadata["render_fps"]
     finally:
         probe.close()
     sampler = resolve_sampler(policy.config, config)
@@ -234,7 +237,7 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
         sampler.apply(policy)
     except ValueError as err:  # the policy's own config check (e.g. async sampling of a shared-timestep variant)
         raise ConfigError(f"{config.policy}: sampler {sampler.describe()} does not apply: {err}") from err
-    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps)
+    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps)
 
 
 def make_eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: int, seed: int,
@@ -269,21 +272,26 @@ def episode_of(trajectory: TensorDictBase) -> Episode:
     return Episode(int(seeds[0]), success, len(done), digest)
 
 
-def run_task(collector: BaseCollector, seeds: range, bar: tqdm) -> list[Episode]:
-    """The episodes of exactly ``seeds``, in seed order, from a collector (shut down afterwards)."""
+def run_task(collector: BaseCollector, seeds: range, bar: tqdm,
+             keep: int = 0) -> tuple[list[Episode], dict[int, TensorDictBase]]:
+    """The episodes of exactly ``seeds``, in seed order, from a collector (shut down afterwards), and the
+    trajectories of the first ``keep`` seeds by seed (for videos)."""
     episodes: dict[int, Episode] = {}
+    kept: dict[int, TensorDictBase] = {}
     try:
         for trajectory in collector:
             episode = episode_of(trajectory)
             if episode.seed in seeds and episode.seed not in episodes:
                 episodes[episode.seed] = episode
+                if episode.seed in seeds[:keep]:
+                    kept[episode.seed] = trajectory
                 bar.update(1)
                 bar.set_postfix(success=sum(e.success for e in episodes.values()))
                 if len(episodes) == len(seeds):
                     break
     finally:
         collector.shutdown()
-    return [episodes[seed] for seed in seeds]
+    return [episodes[seed] for seed in seeds], kept
 
 
 def summary_row(name: str, episodes: Sequence[Episode]) -> dict:
@@ -304,27 +312,31 @@ def task_row(task: str, episodes: Sequence[Episode], videos: list[dict]) -> dict
 
 
 def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy,
-                  config: EvalConfig) -> tuple[list[Episode], float, float]:
-    """The episodes of ``task``, the collector's start-up seconds and the seconds spent running episodes."""
+                  config: EvalConfig) -> tuple[list[Episode], dict[int, TensorDictBase], float, float]:
+    """The episodes of ``task``, the trajectories of the first ``config.videos`` of them, the collector's
+    start-up seconds and the seconds spent running episodes."""
     start = time.perf_counter()
     collector = make_eval_collector(setup, task, policy, config.workers, config.seed, config.threads)
     started = time.perf_counter()
     with tqdm(total=config.episodes, desc=f"eval {task}", disable=not config.progress) as bar:
-        episodes = run_task(collector, range(config.seed, config.seed + config.episodes), bar)
+        episodes, kept = run_task(collector, range(config.seed, config.seed + config.episodes), bar, config.videos)
     # A multi-process collector's shutdown raises this process's thread count; more threads than
     # cores next to the renderer's own threads slow torch down many times over.
     torch.set_num_threads(config.threads)
-    return episodes, started - start, time.perf_counter() - started
+    return episodes, kept, started - start, time.perf_counter() - started
 
 
-def task_videos(setup: EvalSetup, task: str, policy: DustPolicy, config: EvalConfig) -> list[dict]:
-    """Videos of the first ``config.videos`` evaluated episodes of ``task`` (same seeds, same episodes)."""
-    env = make_eval_env(setup.env_id, {**setup.env_kwargs, "task": task}, SeedSchedule(config.seed))
-    try:
-        return record_videos(env, policy, min(config.videos, config.episodes), config.out / "videos", task,
-                             env.base_env.metadata["render_fps"], config.progress)
-    finally:
-        env.close()
+def task_videos(task: str, episodes: Sequence[Episode], trajectories: dict[int, TensorDictBase],
+                policy: DustPolicy, config: EvalConfig, fps: int) -> list[dict]:
+    """``<out>/videos/<task>_seed<seed>.mp4`` of the kept evaluated episodes; one ``{"seed", "success", "length",
+    "digest", "path"}`` each."""
+    rows = []
+    for episode in episodes:
+        if episode.seed in trajectories:
+            path = config.out / "videos" / f"{task}_seed{episode.seed}.mp4"
+            write_episode_video(trajectories[episode.seed], policy, path, fps)
+            rows.append({**episode._asdict(), "path": str(path)})
+    return rows
 
 
 def evaluate(config: EvalConfig, command: str | None = None) -> dict:
@@ -347,8 +359,9 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
     with torch_threads(config.threads):
         policy, setup = prepare(config)
         for task in setup.tasks:
-            episodes, task_startup, task_running = evaluate_task(setup, task, policy, config)
-            rows.append(task_row(task, episodes, task_videos(setup, task, policy, config)))
+            episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config)
+            videos = task_videos(task, episodes, kept, policy, config, setup.fps)
+            rows.append(task_row(task, episodes, videos))
             startup, running = startup + task_startup, running + task_running
     steps = sum(e[2] for row in rows for e in row["per_episode"])
     loss_plot = plot_loss_curves(config.train_dir or config.policy.parent, config.out / "loss.png")

@@ -14,15 +14,15 @@ are missing when the policy cannot show a prediction (no vision stream, the
 action-only sampler, or an image encoder without a decoder). A video has one
 frame per observation, the last one included.
 
-A recorded episode is the evaluated episode of the same seed, bit for bit:
-the env resets from the same seed schedule, the policy re-plans on the same
-steps as torchrl's ``MultiStepActorWrapper`` (every ``execute_steps``), and its
-sampling noise comes from :func:`episode_generator` in both places.
+A video is drawn from the evaluated episode itself: the collector's
+trajectory holds every observation, the executor's step counter (which step
+of the chunk ran, so when the policy last re-planned) and the future the
+policy predicted at that re-plan (``("dust", "future_tokens")``, cached with
+the chunk by :class:`~dust_rl.agents.ChunkExecutor`). Nothing is run again.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import pathlib
 from collections.abc import Callable
@@ -33,13 +33,10 @@ import torch.nn.functional as F
 from PIL import Image, ImageDraw
 from tensordict import TensorDictBase
 from torch import Tensor
-from torchrl.envs import EnvBase
-from torchrl.envs.utils import step_mdp
-from tqdm import tqdm
 
 from dust_rl.agents import DustPolicy
 from dust_rl.expert_rollouts import write_video
-from dust_rl.keys import IMAGE_KEY, SEED_KEY, STATE_KEY, SUCCESS_KEY
+from dust_rl.keys import IMAGE_KEY, PREDICTED_FUTURE_KEY
 
 LABEL_HEIGHT = 12
 Decoder = Callable[[Tensor], Tensor]
@@ -101,63 +98,26 @@ def video_frame(td: TensorDictBase, policy: DustPolicy, predicted: Tensor | None
     return labelled_row(panels)
 
 
-@dataclasses.dataclass
-class RecordedEpisode:
-    """One recorded episode: its seed, outcome, :func:`episode_digest`, and frames (T + 1)."""
-
-    seed: int
-    success: bool
-    length: int
-    digest: str
-    frames: list[np.ndarray] = dataclasses.field(repr=False)
-
-
-@torch.no_grad()
-def record_episode(env: EnvBase, policy: DustPolicy) -> RecordedEpisode:
-    """Run one episode of ``env`` (its next seed) with receding-horizon re-planning, keeping every frame.
-
-    ``env`` must report ``episode_seed`` and ``is_success`` (:class:`~dust_rl.data.seeding.EpisodeSeedWrapper`).
-    """
+def episode_frames(trajectory: TensorDictBase, policy: DustPolicy) -> list[np.ndarray]:
+    """The video frames of one evaluated episode (a collector trajectory ``[T]``): T + 1, the last observation
+    included."""
     decoder = future_decoder(policy)
-    td = env.reset()
-    seed = int(td.get(SEED_KEY))
-    generator = episode_generator(seed)
-    observations, predictions, plan_steps, actions, t = [], [], [], [], 0
-    while True:
-        if t % policy.execute_steps == 0:  # when MultiStepActorWrapper re-plans; it plans on a batch of one
-            plan = policy.plan(td.unsqueeze(0), generator)[0]
-            predicted = decoder(plan.get("future_tokens")[None])[0] if decoder is not None else None
-            planned_at = t
-        observations.append(td.exclude("next"))
-        predictions.append(predicted)
-        plan_steps.append(planned_at)
-        actions.append(plan.get("action_chunk")[t % policy.execute_steps])
-        td = env.step(td.set("action", actions[-1]))
-        if td.get(("next", "done")).any():
-            observations.append(td.get("next"))
-            predictions.append(predicted)
-            plan_steps.append(planned_at)
-            last, horizon = len(observations) - 1, policy.config.horizon
-            frames = [video_frame(obs, policy, prediction, observations[min(t0 + horizon, last)])
-                      for obs, prediction, t0 in zip(observations, predictions, plan_steps)]
-            success = bool(td.get(("next", SUCCESS_KEY)).any())
-            digest = episode_digest(torch.stack(actions), td.get(("next", *STATE_KEY)))
-            return RecordedEpisode(seed, success, t + 1, digest, frames)
-        td, t = step_mdp(td), t + 1
+    last, horizon = trajectory.shape[0], policy.config.horizon
+    observations = [trajectory[t] for t in range(last)] + [trajectory[last - 1].get("next")]
+    counters = trajectory.get("counter").reshape(-1).tolist()
+    frames, decoded = [], {}
+    for t, obs in enumerate(observations):
+        step = min(t, last - 1)  # the final observation shows the last plan's prediction
+        planned_at = step - (counters[step] - 1)
+        if decoder is not None and planned_at not in decoded:
+            with torch.no_grad():
+                decoded[planned_at] = decoder(trajectory[step].get(PREDICTED_FUTURE_KEY)[None])[0]
+        frames.append(video_frame(obs, policy, decoded.get(planned_at),
+                                  observations[min(planned_at + horizon, last)]))
+    return frames
 
 
-def record_videos(env: EnvBase, policy: DustPolicy, episodes: int, out_dir: pathlib.Path, prefix: str,
-                  fps: int, progress: bool = True) -> list[dict]:
-    """Record the next ``episodes`` episodes of ``env`` as ``<out_dir>/<prefix>_seed<seed>.mp4``.
-
-    Returns:
-        One ``{"seed", "success", "length", "digest", "path"}`` per episode.
-    """
-    rows = []
-    for _ in tqdm(range(episodes), desc=f"videos {prefix}", disable=not progress, leave=False):
-        episode = record_episode(env, policy)
-        path = out_dir / f"{prefix}_seed{episode.seed}.mp4"
-        write_video(path, episode.frames, fps)
-        rows.append({"seed": episode.seed, "success": episode.success, "length": episode.length,
-                     "digest": episode.digest, "path": str(path)})
-    return rows
+def write_episode_video(trajectory: TensorDictBase, policy: DustPolicy, path: pathlib.Path, fps: int) -> pathlib.Path:
+    """``path``: the MP4 of one evaluated episode (:func:`episode_frames`)."""
+    write_video(path, episode_frames(trajectory, policy), fps)
+    return path
