@@ -36,9 +36,10 @@ def _tasks(robot: str, task: str) -> list[str]:
 def _demo(args: argparse.Namespace) -> None:
     """Run the scripted expert in closed loop with cameras and save an MP4 per task."""
     from dust_rl.atomic_files import write_json_atomic
+    from dust_rl.data.video import write_mp4
     from dust_rl.env_factory import check_tasks, make_env
     from dust_rl.errors import check_at_least
-    from dust_rl.expert_rollouts import run_expert_episode, write_video
+    from dust_rl.expert_rollouts import run_expert_episode
 
     out = pathlib.Path(args.out)
     tasks = _tasks(args.robot, args.task)
@@ -56,7 +57,7 @@ def _demo(args: argparse.Namespace) -> None:
             print(f"{task} seed {seed}: success={result.success} steps={result.length} "
                   f"instruction={result.instruction!r}")
         video = out / f"{task}.mp4"
-        write_video(video, frames, fps=env.metadata["render_fps"])
+        write_mp4(video, frames, env.metadata["render_fps"], pad_odd=True)
         env.close()
         summary.append({"task": task, "episodes": len(results),
                         "successes": sum(r.success for r in results), "video": str(video)})

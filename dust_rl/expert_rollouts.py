@@ -8,10 +8,8 @@ table and produces the demo video.
 from __future__ import annotations
 
 import dataclasses
-import pathlib
 from collections.abc import Iterable
 
-import imageio.v3 as iio
 import numpy as np
 from tqdm import tqdm
 
@@ -81,9 +79,3 @@ def format_table(rows: list[dict]) -> str:
     lines += [f"| {r['task']} | {r['category']} | {r['episodes']} | {100 * r['success_rate']:.0f}% | "
               f"{r['mean_length']:.0f} |" for r in rows]
     return "\n".join(lines)
-
-
-def write_video(path: pathlib.Path, frames: list[np.ndarray], fps: int) -> None:
-    """Write an MP4 (H.264) through imageio's bundled ffmpeg."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, np.stack(frames), fps=fps, codec="libx264", macro_block_size=1)

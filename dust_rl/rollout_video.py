@@ -35,7 +35,7 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from dust_rl.agents import DustPolicy
-from dust_rl.expert_rollouts import write_video
+from dust_rl.data.video import write_mp4
 from dust_rl.keys import IMAGE_KEY, PREDICTED_FUTURE_KEY
 
 LABEL_HEIGHT = 12
@@ -119,5 +119,5 @@ def episode_frames(trajectory: TensorDictBase, policy: DustPolicy) -> list[np.nd
 
 def write_episode_video(trajectory: TensorDictBase, policy: DustPolicy, path: pathlib.Path, fps: int) -> pathlib.Path:
     """``path``: the MP4 of one evaluated episode (:func:`episode_frames`)."""
-    write_video(path, episode_frames(trajectory, policy), fps)
+    write_mp4(path, episode_frames(trajectory, policy), fps, pad_odd=True)
     return path

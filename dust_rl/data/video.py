@@ -15,16 +15,21 @@ VIDEO_CODEC = "h264"  # the stream format it writes
 PIX_FMT = "yuv420p"
 
 
-def write_mp4(path: pathlib.Path, frames: Iterable[np.ndarray], fps: int, crf: int = 18) -> int:
+def write_mp4(path: pathlib.Path, frames: Iterable[np.ndarray], fps: int, crf: int = 18,
+              pad_odd: bool = False) -> int:
     """Encode RGB uint8 frames ``[H, W, 3]`` (even H and W) as one H.264 stream; returns the frame count.
 
     Frame ``i`` gets presentation time ``i / fps``, so a frame's index is its timestamp times ``fps``.
+    With ``pad_odd`` (videos to watch, not data) an odd height or width gets one more row or column,
+    repeated from the edge.
     """
     path.parent.mkdir(parents=True, exist_ok=True)
     count = 0
     with av.open(str(path), "w") as container:
         stream = None
         for frame in frames:
+            if pad_odd:
+                frame = np.pad(frame, ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0)), mode="edge")
             if stream is None:
                 height, width = frame.shape[:2]
                 if height % 2 or width % 2:
