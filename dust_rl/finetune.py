@@ -224,8 +224,8 @@ def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, Fro
 
 def _markdown(report: dict) -> str:
     lines = [f"# RL fine-tuning: {report['policy']}", "",
-             f"- task `{report['task']}`, method `{report['method']}`, {report['algorithm']}, {report['steps']} RL steps "
-             f"({report['train_seconds']:.0f} s), {report['config']['reward']} reward",
+             f"- task `{report['task']}`, method `{report['method']}`, {report['algorithm']}, "
+             f"{report['steps']} RL steps ({report['train_seconds']:.0f} s), {report['config']['reward']} reward",
              f"- seeds {report['seeds'][0]}..{report['seeds'][1]}; the imitation policy stays frozen", "",
              "| policy | episodes | success | 95% CI |", "|---|---|---|---|"]
     lines += [f"| {row['task']} | {row['episodes']} | {100 * row['success_rate']:.0f}% | "

@@ -32,25 +32,28 @@ from dust_rl.aux_frames import AuxFrameBatches
 LOG_EVERY = 100
 
 
-def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase], aux: AuxFrameBatches, steps: int,
-                    lr: float, log: Callable[[dict[str, float], int], None], progress: bool = True) -> None:
+def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase] | None, aux: AuxFrameBatches,
+                    steps: int, lr: float, log: Callable[[dict[str, float], int], None], batch_size: int = 64,
+                    progress: bool = True) -> None:
     """Fit ``policy``'s pixel keypoints and read-out for ``steps`` steps, then freeze them.
 
     Args:
         policy: a policy with a read-out on pixel keypoints, in training mode (frames are shifted at random).
-        demo_batch: draws a feature batch of demonstration rows (with ``pixels`` and ``env_state``).
-        aux: aux frames; each step draws as many as ``demo_batch`` holds.
+        demo_batch: draws a feature batch of demonstration rows (with ``pixels`` and ``env_state``); None: aux
+            frames only.
+        aux: aux frames; each step draws ``batch_size`` of them.
         steps: optimiser steps (AdamW at the constant rate ``lr``).
-        log: receives ``warmup/loss_aux`` and ``warmup/loss_aux_frames`` every :data:`LOG_EVERY` steps.
+        log: receives ``warmup/loss_aux_frames`` (and ``warmup/loss_aux`` on demonstration rows) every
+            :data:`LOG_EVERY` steps.
         progress: show a progress bar.
     """
     modules = policy.readout_modules()
     modules.requires_grad_(True)
     optimizer = torch.optim.AdamW(modules.parameters(), lr=lr)
     for step in tqdm(range(1, steps + 1), desc="read-out warm-up", disable=not progress):
-        rows = demo_batch()
-        losses = {"warmup/loss_aux": policy.readout_loss(rows),
-                  "warmup/loss_aux_frames": policy.readout_loss(aux.sample(rows.batch_size[0]))}
+        losses = {"warmup/loss_aux_frames": policy.readout_loss(aux.sample(batch_size))}
+        if demo_batch is not None:
+            losses["warmup/loss_aux"] = policy.readout_loss(demo_batch())
         optimizer.zero_grad(set_to_none=True)
         sum(losses.values()).backward()
         optimizer.step()

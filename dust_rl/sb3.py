@@ -7,10 +7,11 @@ with its frozen embedding (the text encoder's tokens averaged, a float Box;
 each distinct instruction is encoded once), drops the privileged object
 state, writes the entries' dots as slashes (SB3 keeps one torch module per
 entry, and module names cannot hold dots) and leaves the camera frames as
-uint8 Boxes, so SB3's own CNN extractors run on pixels. :class:`FrozenBackboneExtractor` maps each camera through a frozen
-image encoder instead (the same encoders DUST conditions on; tokens averaged
-per camera), beside the other entries flattened: no convolution to train,
-which matters on a CPU.
+uint8 Boxes, so SB3's own CNN extractors run on pixels.
+:class:`FrozenBackboneExtractor` maps each camera through a frozen image
+encoder instead (the same encoders DUST conditions on; tokens averaged per
+camera), beside the other entries flattened: no convolution to train, which
+matters on a CPU.
 
 Use: ``SAC("MultiInputPolicy", SB3Observations(env), policy_kwargs={"features_extractor_class":
 FrozenBackboneExtractor, "features_extractor_kwargs": {"image_encoder": "efficientnet-lite0"}})``.

@@ -124,6 +124,8 @@ class TrainConfig:
     the policy trains; they are then frozen (:mod:`dust_rl.readout_warmup`). Needs ``aux_frames``; 0: off."""
     readout_lr: float = 1e-3
     """Learning rate of that warm-up (constant)."""
+    readout_demos: bool = True
+    """Also fit the warm-up on demonstration rows (half of each batch); without them it sees aux frames only."""
     augment_views: int = 1
     """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
     (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
@@ -232,8 +234,9 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
         if config.resume and rotation.latest() is not None:
             policy.readout_modules().requires_grad_(False)
         else:
-            warm_up_readout(policy, lambda: features.batch(windows.sample()), aux, config.readout_warmup,
-                            config.readout_lr, lambda scalars, step: _log(loggers, scalars, step), config.progress)
+            demos = (lambda: features.batch(windows.sample())) if config.readout_demos else None
+            warm_up_readout(policy, demos, aux, config.readout_warmup, config.readout_lr,
+                            lambda scalars, step: _log(loggers, scalars, step), config.batch_size, config.progress)
         aux = None  # its frames trained the read-out, which the policy's loss no longer moves
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).

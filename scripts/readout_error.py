@@ -6,7 +6,9 @@ cube for most of an episode, so an estimate that merely follows the gripper
 scores well on average; this table separates the steps where the gripper is
 still far from the target (the ones that decide where the arm goes) from the
 rest. The first columns of ``observation.environment_state`` must be the
-named object's xyz (true of the Franka pick and place tasks).
+named object's xyz, then the other cube's (true of the Franka pick and place
+tasks); the last two columns tell a read-out that finds the cubes but not
+which one is named (its target estimate then sits near the other cube).
 
     .venv/bin/python scripts/readout_error.py --policy runs/train/T/policy.pt --dataset runs/data/T_val
 """
@@ -24,6 +26,7 @@ from dust_rl.keys import ENV_STATE_KEY, STATE_KEY
 
 STEP_BUCKETS = ((0, 1), (1, 10), (10, 30), (30, 60), (60, 10**6))
 EE_BLOCK = 8  # the state ends with the end effector's position, quaternion and opening (envs/env.py)
+TARGET_XY, OTHER_XY = slice(0, 2), slice(3, 5)  # the named cube's and the other cube's xy in the object state
 
 
 def main() -> None:
@@ -38,11 +41,13 @@ def main() -> None:
     cache = FeatureCache(dataset, policy, progress=False)
     windows = list(DemoWindows(dataset, horizon=policy.config.horizon, images=False).iterate(512))
     estimate = torch.cat([policy.estimate_env_state(cache.batch(w)) for w in windows]) * std + mean
-    target = torch.cat([w.get(ENV_STATE_KEY) for w in windows]).float()[:, :2]
+    objects = torch.cat([w.get(ENV_STATE_KEY) for w in windows]).float()
+    target, other = objects[:, TARGET_XY], objects[:, OTHER_XY]
     gripper = torch.cat([w.get(STATE_KEY) for w in windows]).float()[:, -EE_BLOCK:-EE_BLOCK + 2]
     step = torch.arange(len(dataset)) - torch.repeat_interleave(dataset.episode_starts, dataset.lengths)
-    print("| steps | rows | estimate to target (cm) | estimate to gripper (cm) | gripper to target (cm) |")
-    print("|---|---|---|---|---|")
+    print("| steps | rows | estimate to target (cm) | estimate to gripper (cm) | gripper to target (cm) | "
+          "estimate to the other cube (cm) | other cube's estimate to it (cm) |")
+    print("|---|---|---|---|---|---|---|")
     for low, high in STEP_BUCKETS:
         m = (step >= low) & (step < high)
         if m.any():
@@ -50,8 +55,9 @@ def main() -> None:
                 return 100 * (a[m] - b[m]).norm(dim=1).mean().item()
 
             name = f"{low}+" if high > 10**5 else str(low) if high == low + 1 else f"{low}-{high - 1}"
-            print(f"| {name} | {int(m.sum())} | {cm(estimate[:, :2], target):.1f} | "
-                  f"{cm(estimate[:, :2], gripper):.1f} | {cm(gripper, target):.1f} |")
+            print(f"| {name} | {int(m.sum())} | {cm(estimate[:, TARGET_XY], target):.1f} | "
+                  f"{cm(estimate[:, TARGET_XY], gripper):.1f} | {cm(gripper, target):.1f} | "
+                  f"{cm(estimate[:, TARGET_XY], other):.1f} | {cm(estimate[:, OTHER_XY], other):.1f} |")
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ from dust_rl.readout_warmup import warm_up_readout
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def test_warm_up_fits_the_readout_alone_then_freezes_it(demo_dir, tiny_encoder, minilm):
+@pytest.mark.parametrize("with_demos", [True, False])
+def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, tiny_encoder, minilm):
     dataset = DemoDataset(demo_dir)
     width = env_state_width(dataset)
     torch.manual_seed(0)
@@ -28,10 +29,11 @@ def test_warm_up_fits_the_readout_alone_then_freezes_it(demo_dir, tiny_encoder, 
     before = policy.readout_loss(frames).item()
     agent = {k: v.clone() for k, v in policy.agent.state_dict().items()}
     logged = {}
-    warm_up_readout(policy, lambda: frames, aux, 100, 3e-3, lambda scalars, step: logged.update({step: scalars}),
-                    progress=False)
+    warm_up_readout(policy, (lambda: frames) if with_demos else None, aux, 100, 3e-3,
+                    lambda scalars, step: logged.update({step: scalars}), batch_size=8, progress=False)
     assert policy.readout_loss(frames).item() < 0.5 * before
-    assert sorted(logged) == [100] and set(logged[100]) == {"warmup/loss_aux", "warmup/loss_aux_frames"}
+    expected = {"warmup/loss_aux_frames", "warmup/loss_aux"} if with_demos else {"warmup/loss_aux_frames"}
+    assert sorted(logged) == [100] and set(logged[100]) == expected
     assert not any(p.requires_grad or p.grad is not None for p in policy.readout_modules().parameters())
     assert all(p.requires_grad for p in policy.agent.parameters())
     assert all(torch.equal(v, agent[k]) for k, v in policy.agent.state_dict().items())
