@@ -3,6 +3,12 @@
 from __future__ import annotations
 
 import math
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -150,3 +156,16 @@ def assert_same_observations(a: list[dict], b: list[dict]) -> None:
                 assert obs_a[key].tobytes() == obs_b[key].tobytes(), key
             else:
                 assert obs_a[key] == obs_b[key], key
+
+
+def kill_after_first_checkpoint(cli_args: list[str], out: pathlib.Path) -> None:
+    """Run ``dust-rl <cli_args>`` in a subprocess and ``kill -9`` it once ``out/checkpoints`` holds a checkpoint."""
+    proc = subprocess.Popen([sys.executable, "-m", "dust_rl.cli", *cli_args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, env=os.environ | {"OMP_NUM_THREADS": "1"})
+    deadline = time.monotonic() + 120
+    while not list((out / "checkpoints").glob("checkpoint-*")) and proc.poll() is None:
+        assert time.monotonic() < deadline, "no checkpoint within 120 s"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    _, stderr = proc.communicate()
+    assert proc.returncode == -signal.SIGKILL, stderr.decode()[-2000:]

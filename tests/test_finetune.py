@@ -3,15 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
-import os
-import signal
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
 import torch
+from conftest import kill_after_first_checkpoint
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy, unwrap
@@ -78,15 +74,7 @@ def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path):
     args = ["finetune", "--policy", str(policy_path), "--out", str(out), "--no-progress", "--threads", "1"]
     for key, value in settings.items():
         args += [f"--{key.replace('_', '-')}", *map(str, value if isinstance(value, tuple) else (value,))]
-    proc = subprocess.Popen([sys.executable, "-m", "dust_rl.cli", *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, env=os.environ | {"OMP_NUM_THREADS": "1"})
-    deadline = time.monotonic() + 120
-    while not list((out / "checkpoints").glob("checkpoint-*")) and proc.poll() is None:
-        assert time.monotonic() < deadline, "no checkpoint within 120 s"
-        time.sleep(0.02)
-    proc.send_signal(signal.SIGKILL)
-    _, stderr = proc.communicate()
-    assert proc.returncode == -signal.SIGKILL, stderr.decode()[-2000:]
+    kill_after_first_checkpoint(args, out)
     assert not (out / "rl_agent.pt").exists()
 
     with pytest.raises(FileExistsError, match="--resume"):

@@ -4,15 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
-import signal
-import subprocess
-import sys
-import time
 
 import pytest
 import torch
+from conftest import kill_after_first_checkpoint
 
 from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
@@ -160,15 +156,7 @@ def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
     args = ["train", "--dataset", str(dataset), "--out", str(out), "--image-encoder", str(encoder),
             "--steps", str(steps), "--checkpoint-every", "50", "--log-every", "3", "--threads", "1", "--no-progress"]
     args += [f"--{k.replace('_', '-')}={v}" for k, v in TINY_MODEL.items()]
-    proc = subprocess.Popen([sys.executable, "-m", "dust_rl.cli", *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, env=os.environ | {"OMP_NUM_THREADS": "1"})
-    deadline = time.monotonic() + 120
-    while not list((out / "checkpoints").glob("checkpoint-*")) and proc.poll() is None:
-        assert time.monotonic() < deadline, "no checkpoint within 120 s"
-        time.sleep(0.02)
-    proc.send_signal(signal.SIGKILL)
-    _, stderr = proc.communicate()
-    assert proc.returncode == -signal.SIGKILL, stderr.decode()[-2000:]
+    kill_after_first_checkpoint(args, out)
     assert not (out / "policy.pt").exists()
 
     with pytest.raises(FileExistsError, match="--resume"):
