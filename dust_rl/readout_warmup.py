@@ -7,11 +7,15 @@ episodes (pick_place; README). The same network trained on nothing but the
 read-out error, at lr 1e-3, keeps improving for thousands of steps
 (``scripts/pixel_probe.py``: 12.2 cm after 500 steps, 4.1 cm after 3,000,
 still falling). So ``--readout-warmup N`` first fits the keypoint networks and
-the read-out for N steps on aux frames and demonstration rows (half of each
-batch: the frames break the "target = gripper" shortcut, the rows are the
-views the policy will act on), then freezes them: a locator trained on the
-simulator's labels, as a pose-estimation stage would be, whose keypoints and
-estimate (``--aux-state-input``) the policy reads but cannot move.
+the read-out for N steps on aux frames (and, unless ``--no-readout-demos``,
+demonstration rows in half of each batch), then freezes them: a locator
+trained on the simulator's labels, as a pose-estimation stage would be, whose
+keypoints and estimate (``--aux-state-input``) the policy reads but cannot
+move. Measured on pick_place validation episodes (README): with demonstration
+rows the 200 training layouts are learnt by heart and the estimate is 8 cm
+off at step 0; on aux frames alone 4.4 cm, but 12-15 cm once the cube is
+lifted (random arm motions never lift it). Neither run's policy grasped
+(2/20 and 0/20).
 
 A resumed run skips the warm-up (its checkpoint holds the warmed weights); a
 run stopped during the warm-up repeats it from the start, which gives the same
