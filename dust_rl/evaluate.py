@@ -5,7 +5,7 @@ processes when ``workers > 1``, each building the policy from the checkpoint
 file), which yields one whole episode at a time. Episode ``k`` of every task
 resets from seed ``seed + k`` (workers share the seeds through
 :class:`~dust_rl.data.seeding.SeedSchedule`), and the policy's sampling noise
-is seeded by the episode seed too (:func:`~dust_rl.rollout_video.episode_generator`),
+is seeded by the episode seed too (:func:`~dust_rl.data.seeding.episode_generator`),
 so an episode's outcome depends on its seed only: the same config gives the
 same episodes, bit for bit, with any number of workers. Exactly ``episodes``
 seeds count per task; episodes the workers start past them are dropped.
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import hashlib
 import math
 import pathlib
 import time
@@ -42,13 +43,13 @@ from tqdm import tqdm
 from dust_rl.agents import ChunkExecutor, DustConfig, DustPolicy, load_policy, unwrap
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.config_json import config_json
-from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule
+from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule, episode_generator
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.keys import SEED_KEY, STATE_KEY, SUCCESS_KEY
 from dust_rl.report import plot_loss_curves, write_report
-from dust_rl.rollout_video import episode_digest, episode_generator, write_episode_video
+from dust_rl.rollout_video import write_episode_video
 
 
 @dataclass
@@ -124,8 +125,14 @@ class EvalSetup:
     fps: int  # of the env's control loop: the videos' frame rate
 
 
+def episode_digest(actions: torch.Tensor, final_state: torch.Tensor) -> str:
+    """A fingerprint of an episode (its executed actions [T, Da] and last state): equal digests, same episode."""
+    data = actions.detach().cpu().contiguous().numpy().tobytes() + final_state.detach().cpu().numpy().tobytes()
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
 class Episode(NamedTuple):
-    """One evaluated episode; equal ``digest`` (:func:`~dust_rl.rollout_video.episode_digest`): same episode."""
+    """One evaluated episode; equal ``digest`` (:func:`episode_digest`): same episode."""
 
     seed: int
     success: bool

@@ -42,11 +42,10 @@ from dust_rl.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.config_json import config_json
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.errors import ConfigError, check_at_least, check_finite
-from dust_rl.evaluate import Episode, summary_row, torch_threads
+from dust_rl.evaluate import Episode, episode_digest, summary_row, torch_threads
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
-from dust_rl.rollout_video import episode_digest
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
 from dust_rl.steering import NoiseSteeringEnv
 

@@ -26,10 +26,16 @@ from gymnasium import spaces
 from tensordict import TensorDict
 
 from dust_rl.agents import DustPolicy, pooled_text
+from dust_rl.data.seeding import episode_generator
 from dust_rl.keys import INSTRUCTION_KEY, STATE_KEY, flat_name
-from dust_rl.rollout_video import episode_generator
 
 STATE_NAME = flat_name(STATE_KEY)
+
+
+def observation_td(obs: dict) -> TensorDict:
+    """A dust-rl gymnasium observation as the TensorDict a :class:`~dust_rl.agents.DustPolicy` plans from."""
+    td = TensorDict({k: torch.as_tensor(v) for k, v in obs.items() if isinstance(v, np.ndarray)})
+    return td.set_non_tensor(INSTRUCTION_KEY, obs[INSTRUCTION_KEY])
 
 
 class FrozenPolicyEnv(gym.Env):
@@ -90,9 +96,7 @@ class FrozenPolicyEnv(gym.Env):
 
     def observe(self, obs: dict) -> dict:
         """The RL agent's view of ``obs`` (and its features, kept for the next plan)."""
-        td = TensorDict({k: torch.as_tensor(v) for k, v in obs.items() if isinstance(v, np.ndarray)})
-        td.set_non_tensor(INSTRUCTION_KEY, obs[INSTRUCTION_KEY])
-        self.features = self.policy.observation_features(td)
+        self.features = self.policy.observation_features(observation_td(obs))
         image = self.policy.normalizer.normalize_vision(self.features.get("image_tokens")).mean(2).flatten(1)
         text = pooled_text(self.features.get("text_tokens"), self.features.get("text_mask"))
         features = torch.cat([image, text], dim=-1)[0].numpy().astype(np.float32)

@@ -13,7 +13,7 @@ trained on the simulator's labels, as a pose-estimation stage would be, whose
 keypoints and estimate (``--aux-state-input``) the policy reads but cannot
 move. Measured on pick_place validation episodes (README): with demonstration
 rows the 200 training layouts are learnt by heart and the estimate is 8 cm
-off at step 0; on aux frames alone 4.4 cm, but 12-15 cm once the cube is
+off at step 0; on aux frames alone 3.1 cm, but 12-15 cm once the cube is
 lifted (random arm motions never lift it). Neither run's policy grasped
 (2/20 and 0/20).
 

@@ -23,7 +23,6 @@ the chunk by :class:`~dust_rl.agents.ChunkExecutor`). Nothing is run again.
 
 from __future__ import annotations
 
-import hashlib
 import pathlib
 from collections.abc import Callable
 
@@ -40,21 +39,6 @@ from dust_rl.keys import IMAGE_KEY, PREDICTED_FUTURE_KEY
 
 LABEL_HEIGHT = 12
 Decoder = Callable[[Tensor], Tensor]
-
-
-def episode_generator(seed: int) -> torch.Generator:
-    """The sampling-noise generator of the episode reset with ``seed``.
-
-    Seeding the noise per episode (not per process) makes an episode's outcome depend on its seed
-    only, whatever the number of env processes and the order they ran their episodes in.
-    """
-    return torch.Generator().manual_seed(int(seed))
-
-
-def episode_digest(actions: Tensor, final_state: Tensor) -> str:
-    """A fingerprint of an episode (its executed actions [T, Da] and last state): equal digests, same episode."""
-    data = actions.detach().cpu().contiguous().numpy().tobytes() + final_state.detach().cpu().numpy().tobytes()
-    return hashlib.sha256(data).hexdigest()[:16]
 
 
 def future_decoder(policy: DustPolicy) -> Decoder | None:

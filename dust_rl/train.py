@@ -224,20 +224,22 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
     policy.normalizer.set_vision_stats(features.image_tokens)
     windows = DemoWindows(dataset, horizon=config.horizon, batch_size=config.batch_size, images=False)
-    aux = _aux_frame_batches(config, dataset, policy) if config.aux_frames else None
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
     loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers]
     policy.train()
 
-    # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it).
+    # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it, so
+    # its aux frames are not rendered again); otherwise the aux frames join every step's loss.
+    aux = None
     if config.readout_warmup:
-        if config.resume and rotation.latest() is not None:
-            policy.readout_modules().requires_grad_(False)
-        else:
+        if not (config.resume and rotation.latest() is not None):
             demos = (lambda: features.batch(windows.sample())) if config.readout_demos else None
-            warm_up_readout(policy, demos, aux, config.readout_warmup, config.readout_lr,
-                            lambda scalars, step: _log(loggers, scalars, step), config.batch_size, config.progress)
-        aux = None  # its frames trained the read-out, which the policy's loss no longer moves
+            warm_up_readout(policy, demos, _aux_frame_batches(config, dataset, policy), config.readout_warmup,
+                            config.readout_lr, lambda scalars, step: _log(loggers, scalars, step),
+                            config.batch_size, config.progress)
+        policy.readout_modules().requires_grad_(False)
+    elif config.aux_frames:
+        aux = _aux_frame_batches(config, dataset, policy)
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
     trained = policy.trainable_modules()

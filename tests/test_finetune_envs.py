@@ -10,12 +10,12 @@ import pytest
 import torch
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_checker import check_env
-from tensordict import TensorDict
 
 from dust_rl.agents import make_policy, unwrap
+from dust_rl.data.seeding import episode_generator
 from dust_rl.env_factory import make_env
+from dust_rl.frozen_policy_env import observation_td
 from dust_rl.residual import ResidualEnv
-from dust_rl.rollout_video import episode_generator
 from dust_rl.steering import NoiseSteeringEnv
 from dust_rl.torchrl_sac import torchrl_env, train_sac
 
@@ -108,7 +108,7 @@ def test_zero_residual_is_the_base_policy_episode(residual):
     generator, expected = episode_generator(5), []
     for step in range(5):
         if step % 2 == 0:
-            chunk = policy.plan(_as_td(raw), generator)["action_chunk"].numpy()
+            chunk = policy.plan(observation_td(raw), generator)["action_chunk"].numpy()
         expected.append(chunk[step % 2])
         raw, *_ = direct.step(chunk[step % 2])
     direct.close()
@@ -132,10 +132,6 @@ def test_a_residual_moves_the_executed_action_within_bounds(residual):
         ResidualEnv(env.env, env.policy, residual_scale=-1.0)
 
 
-def _as_td(obs: dict) -> TensorDict:
-    td = TensorDict({k: torch.as_tensor(v) for k, v in obs.items() if isinstance(v, np.ndarray)})
-    return td.set_non_tensor("language_instruction", obs["language_instruction"])
-
 
 def test_torchrl_sac_trains_on_the_steering_env(steering):
     env, policy = steering
@@ -147,7 +143,6 @@ def test_torchrl_sac_trains_on_the_steering_env(steering):
                       log=lambda scalars, frames: logged.append((frames, scalars)))
     assert [frames for frames, _ in logged] == list(range(8, 25))  # one update per frame once learning starts
     assert all(math.isfinite(v) for _, scalars in logged for v in scalars.values())
-    obs, _ = env.reset(seed=0)
     td = torchrl_env(env).reset()
     assert actor(td)["action"].shape == (28,) and (actor(td)["action"].abs() <= 1).all()
     assert all(torch.equal(v, before[k]) for k, v in policy.state_dict().items())  # DUST stays frozen
