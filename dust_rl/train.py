@@ -119,6 +119,9 @@ class TrainConfig:
     :mod:`dust_rl.aux_frames`) rendered once at the start; every step adds the read-out's error on a batch
     of them to the loss (weight ``lambda_aux``), so the read-out cannot settle for "the target is where the
     gripper is". Needs ``lambda_aux`` and ``keypoint_source pixels``; 0: off."""
+    aux_expert_fraction: float = 0.0
+    """Share of the aux frames taken from the scripted expert's motion (a random number of steps into an expert
+    episode on a fresh layout) instead of random actions, so the read-out also sees objects held and carried."""
     readout_warmup: int = 0
     """Steps that fit the pixel keypoints and the read-out alone (on aux frames and demonstration rows) before
     the policy trains; they are then frozen (:mod:`dust_rl.readout_warmup`). Needs ``aux_frames``; 0: off."""
@@ -166,6 +169,10 @@ class TrainConfig:
         if self.aux_frames and not (self.lambda_aux and self.keypoint_source == "pixels"):
             raise ConfigError("aux_frames needs --lambda-aux > 0 and --keypoint-source pixels: the frames train "
                               "the read-out of the pixel keypoints")
+        if not 0 <= self.aux_expert_fraction <= 1:
+            raise ConfigError(f"aux_expert_fraction must be in [0, 1], got {self.aux_expert_fraction}")
+        if self.aux_expert_fraction and not self.aux_frames:
+            raise ConfigError("aux_expert_fraction needs --aux-frames > 0: it is a share of those frames")
         if self.readout_warmup and not self.aux_frames:
             raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
                               "is where the gripper is' (dust_rl.aux_frames)")
@@ -331,7 +338,8 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
     """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed)."""
     rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
                                            policy.cameras, config.aux_frames, env_state_width(dataset),
-                                           seed=config.seed, progress=config.progress)
+                                           seed=config.seed, expert_fraction=config.aux_expert_fraction,
+                                           progress=config.progress)
     return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
 
 

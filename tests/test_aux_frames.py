@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from conftest import DEMO_ENV_KWARGS
 
 from dust_rl.agents import make_policy, unwrap
-from dust_rl.aux_frames import FIRST_SEED, AuxFrameBatches, render_aux_frames
+from dust_rl.aux_frames import FIRST_SEED, MAX_EXPERT_STEPS, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset
 from dust_rl.env_factory import make_env
 from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
@@ -34,6 +35,25 @@ def test_frames_are_seeded_padded_and_show_the_reset_objects():
     reset_state = torch.from_numpy(obs["observation.environment_state"])
     plate = slice(6, 9)  # the plate is a mocap body: random actions never move it
     assert torch.equal(state[0, plate], reset_state[plate]) and not state[0, 9:].any()  # zero padding
+
+
+def test_expert_frames_are_taken_along_the_scripted_experts_episode():
+    rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 2, 9, expert_fraction=1.0,
+                                progress=False)
+    random_rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 2, 9, progress=False)
+    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
+    for i in range(2):
+        rng = np.random.default_rng(FIRST_SEED + i)
+        rng.random()  # the draw that chose an expert frame
+        obs, _ = env.reset(seed=FIRST_SEED + i)
+        expert = env.unwrapped.make_expert()
+        for _ in range(rng.integers(0, MAX_EXPERT_STEPS)):
+            obs, _, terminated, truncated, _ = env.step(expert.act())
+            if terminated or truncated:
+                break
+        assert torch.equal(rows.get(ENV_STATE_KEY)[i], torch.from_numpy(obs["observation.environment_state"]))
+    env.close()
+    assert not torch.equal(rows.get((*IMAGE_KEY, "front")), random_rows.get((*IMAGE_KEY, "front")))
 
 
 def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm):

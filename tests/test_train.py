@@ -125,6 +125,11 @@ def test_training_logs_the_aux_frame_loss(run_inputs, tmp_path):
     assert int(step) == 2 and float(value) > 0
     with pytest.raises(ConfigError, match="aux_frames needs --lambda-aux > 0 and --keypoint-source pixels"):
         tiny_config(run_inputs, out, keypoints=2, lambda_aux=1.0, aux_frames=3)
+    pixels = {"keypoints": 2, "keypoint_source": "pixels", "lambda_aux": 1.0}
+    with pytest.raises(ConfigError, match="aux_expert_fraction needs --aux-frames"):
+        tiny_config(run_inputs, out, aux_expert_fraction=0.5, **pixels)
+    with pytest.raises(ConfigError, match=r"aux_expert_fraction must be in \[0, 1\], got 1.5"):
+        tiny_config(run_inputs, out, aux_frames=3, aux_expert_fraction=1.5, **pixels)
 
 
 def test_readout_warmup_freezes_the_readout_and_resumes(run_inputs, tmp_path):
