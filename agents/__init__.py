@@ -4,7 +4,7 @@ from .autoencoder import AutoencoderConfig, ConvAutoencoder
 from .backbone import FrozenBackbone, load_image_encoder, save_image_encoder
 from .batch import random_batch
 from .checkpoint_io import CheckpointError
-from .config import VARIANTS, DustConfig
+from .config import VARIANTS, DustConfig, ModelConfig, PolicyConfig, SamplerConfig
 from .dust_agent import DustAgent
 from .dust_model import ChunkContext, DustModel
 from .execution import ChunkExecutor
@@ -28,6 +28,9 @@ __all__ = [
     "DustConfig",
     "DustModel",
     "DustPolicy",
+    "ModelConfig",
+    "PolicyConfig",
+    "SamplerConfig",
     "FrozenBackbone",
     "ImageEncoder",
     "TextEncoder",

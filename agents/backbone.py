@@ -143,7 +143,7 @@ def save_image_encoder(encoder: ImageEncoder, path: str | pathlib.Path, info: di
                             "info": info or {}}, path, IMAGE_ENCODER_KIND)
 
 
-# Image encoders chosen by name (``--image-encoder``); anything else names a file from ``save_image_encoder``.
+# Image encoders chosen by name (``--policy.image-encoder``); anything else names a file from ``save_image_encoder``.
 NAMED_IMAGE_ENCODERS = {
     "conv-ae": lambda: load_image_encoder(DEFAULT_IMAGE_ENCODER_FILE),
     **{f"efficientnet-{lite}{suffix}": (lambda lite=lite, stride=stride: EfficientNetLite(lite, stride))

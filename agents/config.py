@@ -1,7 +1,13 @@
 """Configuration of the DUST agent and its baselines.
 
-One dataclass selects the variant, the trunk size, the flow-matching loss and
-the sampler, so that every baseline is the same code at the same depth/width.
+Each setting is declared once, in the dataclass of whoever chooses it:
+:class:`SamplerConfig` (how a chunk is sampled: chosen when acting, by
+``dust-rl eval --sampling.*``), :class:`ModelConfig` (variant, trunk size,
+losses: chosen for training, ``dust-rl train --policy.*``, with
+:class:`PolicyConfig` adding the image encoder and the executed steps) and
+:class:`DustConfig`, which joins the two and adds the sizes the data and
+the frozen backbone fix. Every baseline is the same code at the same
+depth and width.
 
 Variants (paper's comparison set, docs/algorithm.md):
 
@@ -18,15 +24,16 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
-from typing import Literal
+from dataclasses import dataclass, fields
+from typing import Literal, get_args
 
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 SamplerName = Literal["async", "sync", "action_only"]
 KeypointSource = Literal["features", "pixels"]
 
-VARIANTS: tuple[str, ...] = ("dust", "mmdit_shared", "decoupled", "joint", "action_only")
-KEYPOINT_SOURCES: tuple[str, ...] = ("features", "pixels")
+VARIANTS: tuple[str, ...] = get_args(Variant)
+KEYPOINT_SOURCES: tuple[str, ...] = get_args(KeypointSource)
+SAMPLERS: tuple[str, ...] = get_args(SamplerName)
 
 # Caps on sizes, checked before anything is allocated: a policy file names its sizes, and a file
 # from elsewhere must not make loading reserve terabytes or loop over millions of blocks.
@@ -53,107 +60,86 @@ def check_size(name: str, value: object, maximum: int, minimum: int = 1) -> None
 
 
 @dataclass(frozen=True)
-class DustConfig:
-    """Sizes, variant and sampling settings of a DUST agent.
+class SamplerConfig:
+    """How a chunk is sampled: chosen when acting, not when training (the loss does not depend on it).
 
-    Attributes:
-        variant: which model of the comparison set to build (see module doc).
-        action_dim: size of one action vector.
-        horizon: action chunk length H.
-        state_dim: size of the (normalised) proprioceptive state vector.
-        vision_dim: feature size of one future-vision token.
-        vision_grid: (rows, cols) of the future-vision token grid; N_o = rows*cols.
-        cond_grid: (rows, cols) of the condition tokens per camera (the paper conditions on many more
-            backbone tokens than it predicts); None: ``vision_grid``. The future target is the
-            condition grid pooled to ``vision_grid``, so each side must be a multiple of it.
-        cond_dim: feature size of the backbone condition tokens.
-        keypoints: trainable spatial-softmax keypoints per camera, each one more condition token; 0: none.
-        keypoint_source: what the keypoints' heat maps are computed from: ``"features"``, the frozen
-            condition grid (:mod:`.keypoints`), or ``"pixels"``, a small network trained end to end on
-            the raw frames (:mod:`.pixel_keypoints`; feature batches then carry ``pixels``).
-        aux_state_dim: size of the privileged environment state (object positions) that the keypoints learn
-            to predict during training, an auxiliary loss (:meth:`~.policy.DustPolicy.compute_loss`); the
-            policy never reads it when acting. 0: no such loss. Needs ``keypoints``.
-        lambda_aux: weight of that auxiliary loss.
-        aux_state_input: also give the trunk that read-out's estimate, beside the robot state (the state
-            token then embeds ``state_dim + aux_state_dim`` numbers): the estimated object positions reach
-            the actions as the privileged-state oracle's true ones do.
-        d_model: trunk width.
-        n_heads: attention heads.
-        n_mmdit: dual-stream MMDiT blocks (single-stream variants use the same count of shared blocks).
-        n_dit: per-stream DiT blocks after the MMDiT blocks.
-        mlp_ratio: MLP hidden size over d_model.
-        lambda_wm: weight of the vision (world-model) loss.
-        tau_s: GR00T's s in tau = (s - u) / s.
-        tau_alpha: alpha of u ~ Beta(alpha, 1).
-        sampler: ``"async"``, ``"sync"`` or ``"action_only"``; None picks the variant's natural one.
-        n_action_steps: N_A, action denoising steps per chunk.
-        vision_step_ratio: q, so that the vision stream takes N_o = q * N_A steps (async only).
+    A policy file stores the settings it acts with by default; ``dust-rl eval --sampling.*`` sets them per
+    evaluation. With q > 1 the vision stream takes N_o = q * N_A steps (async only).
     """
 
-    variant: Variant = "dust"
-    action_dim: int = 7
-    horizon: int = 16
-    state_dim: int = 8
-    vision_dim: int = 64
-    vision_grid: tuple[int, int] = (4, 4)
-    cond_grid: tuple[int, int] | None = None
-    cond_dim: int = 384
-    keypoints: int = 0
-    keypoint_source: KeypointSource = "features"
-    aux_state_dim: int = 0
-    lambda_aux: float = 1.0
-    aux_state_input: bool = False
-    d_model: int = 128
-    n_heads: int = 4
-    n_mmdit: int = 4
-    n_dit: int = 2
-    mlp_ratio: float = 4.0
-    lambda_wm: float = 1.0
-    tau_s: float = 0.999
-    tau_alpha: float = 1.5
     sampler: SamplerName | None = None
+    """``async``, ``sync`` or ``action_only``; None: the variant's natural one (DUST: async)."""
     n_action_steps: int = 4
+    """N_A, action denoising steps per chunk (paper: 4)."""
     vision_step_ratio: int = 1
+    """q, vision denoising steps per action step (async only: N_o = q * N_A)."""
+
+    def __post_init__(self) -> None:
+        if self.sampler is not None and self.sampler not in SAMPLERS:
+            raise ValueError(f"unknown sampler {self.sampler!r}; expected one of {SAMPLERS} or None")
+        check_size("n_action_steps", self.n_action_steps, MAX_STEPS)
+        check_size("vision_step_ratio", self.vision_step_ratio, MAX_STEPS)
+
+    @property
+    def sampler_settings(self) -> SamplerConfig:
+        """Just the sampler fields (of a :class:`DustConfig` too)."""
+        return SamplerConfig(**{f.name: getattr(self, f.name) for f in fields(SamplerConfig)})
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The model settings a user chooses (``dust-rl train --policy.*``); the data fixes the rest (DustConfig)."""
+
+    variant: Variant = "dust"
+    """Model: DUST or one of the paper's baselines at the same depth and width (module doc; single-stream variants
+    then hold about half the trunk parameters of the two-stream ones; evaluation reports count them)."""
+    horizon: int = 16
+    """Action chunk length H (paper: 16); the world-model target is the frame at t+H."""
+    vision_grid: tuple[int, int] = (4, 4)
+    """(rows, cols) of the future-vision token grid; N_o tokens = rows * cols."""
+    cond_grid: tuple[int, int] | None = None
+    """Condition tokens per camera (rows, cols); the paper conditions on many more backbone tokens than it
+    predicts, and the future target is this grid pooled to ``vision_grid`` (a multiple of it). None: the image
+    encoder's own grid (EfficientNet-Lite0 at 128 px: 8x8; conv-ae: 4x4)."""
+    keypoints: int = 0
+    """Trainable spatial-softmax keypoints per camera, each one more condition token: positions finer than the
+    grid, for grasping small objects. 0: none."""
+    keypoint_source: KeypointSource = "features"
+    """What the keypoints' heat maps come from: ``features`` (the frozen condition grid, :mod:`.keypoints`) or
+    ``pixels`` (a small network on the raw frames trained with the policy, :mod:`.pixel_keypoints`)."""
+    lambda_aux: float = 0.0
+    """Weight of an auxiliary loss that teaches the keypoints the objects' positions from the privileged
+    environment state (:mod:`.state_readout`; training only, the policy never reads that state). 0: off."""
+    aux_state_input: bool = False
+    """Also feed that read-out's estimate of the object state to the trunk beside the robot state (as the
+    privileged-state oracle's true one); needs ``lambda_aux``."""
+    d_model: int = 128
+    """Trunk width."""
+    n_heads: int = 4
+    """Attention heads."""
+    n_mmdit: int = 4
+    """Dual-stream MMDiT blocks, alternating cross-attention (even) and joint attention (odd); two-stream variants
+    need at least 2, or the streams never meet; single-stream variants get as many shared blocks."""
+    n_dit: int = 2
+    """Per-stream DiT blocks after the MMDiT blocks."""
+    mlp_ratio: float = 4.0
+    """MLP hidden size over d_model."""
+    lambda_wm: float = 1.0
+    """Weight of the world-model (future vision) loss (paper: 1.0)."""
+    tau_s: float = 0.999
+    """GR00T's s in tau = (s - u) / s."""
+    tau_alpha: float = 1.5
+    """alpha of u ~ Beta(alpha, 1)."""
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
-        self._check_sizes()
-        if self.d_model % self.n_heads:
-            raise ValueError("d_model must be divisible by n_heads")
-        if self.two_streams and self.n_mmdit < 2:
-            raise ValueError(f"variant {self.variant!r} needs n_mmdit >= 2: MMDiT blocks alternate cross-attention "
-                             f"(even) and joint attention (odd), and with n_mmdit={self.n_mmdit} the two streams "
-                             "would never meet")
-        if any(c % v for c, v in zip(self.condition_grid, self.vision_grid)):
-            raise ValueError(f"cond_grid {self.condition_grid} must be a multiple of vision_grid {self.vision_grid}")
-        if self.keypoint_source not in KEYPOINT_SOURCES:
-            raise ValueError(f"unknown keypoint_source {self.keypoint_source!r}; expected one of {KEYPOINT_SOURCES}")
-        if self.keypoint_source == "pixels" and not self.keypoints:
-            raise ValueError("keypoint_source 'pixels' needs keypoints > 0")
-        if self.aux_state_dim and not self.keypoints:
-            raise ValueError("aux_state_dim needs keypoints > 0: the auxiliary loss is read off the keypoints")
-        if self.aux_state_input and not self.aux_state_dim:
-            raise ValueError("aux_state_input needs aux_state_dim > 0: there is no state estimate to feed")
-        sampler = self.sampler_name
-        if not self.has_vision and sampler != "action_only":
-            raise ValueError("the action_only variant has no vision stream; use sampler='action_only'")
-        if not self.decoupled and (sampler == "action_only" or self.vision_step_ratio != 1):
-            raise ValueError(f"variant {self.variant!r} shares one timestep: only synchronous sampling applies")
-
-    def _check_sizes(self) -> None:
-        """Every size in range and the trunk under :data:`MAX_PARAMETERS`, before any module exists."""
-        for name in ("action_dim", "state_dim", "vision_dim", "cond_dim", "d_model"):
-            check_size(name, getattr(self, name), MAX_WIDTH)
+        check_size("d_model", self.d_model, MAX_WIDTH)
         check_size("horizon", self.horizon, MAX_HORIZON)
         check_size("keypoints", self.keypoints, MAX_KEYPOINTS, minimum=0)
-        check_size("aux_state_dim", self.aux_state_dim, MAX_WIDTH, minimum=0)
         check_size("n_heads", self.n_heads, self.d_model)
         check_size("n_mmdit", self.n_mmdit, MAX_BLOCKS, minimum=0)
         check_size("n_dit", self.n_dit, MAX_BLOCKS - self.n_mmdit, minimum=0)
-        check_size("n_action_steps", self.n_action_steps, MAX_STEPS)
-        check_size("vision_step_ratio", self.vision_step_ratio, MAX_STEPS)
         for name in ("vision_grid", "cond_grid"):
             grid = getattr(self, name)
             if grid is None and name == "cond_grid":
@@ -169,6 +155,109 @@ class DustConfig:
                     and (value >= 0 if low is None else value > low) and value <= high):
                 bounds = "[0, inf)" if low is None else f"({low}, {high}]"
                 raise ValueError(f"{name} must be a finite number in {bounds}, got {value!r}")
+        if self.d_model % self.n_heads:
+            raise ValueError("d_model must be divisible by n_heads")
+        if self.two_streams and self.n_mmdit < 2:
+            raise ValueError(f"variant {self.variant!r} needs n_mmdit >= 2: MMDiT blocks alternate cross-attention "
+                             f"(even) and joint attention (odd), and with n_mmdit={self.n_mmdit} the two streams "
+                             "would never meet")
+        if self.cond_grid is not None and any(c % v for c, v in zip(self.cond_grid, self.vision_grid)):
+            raise ValueError(f"cond_grid {tuple(self.cond_grid)} must be a multiple of vision_grid "
+                             f"{tuple(self.vision_grid)}")
+        if self.keypoint_source not in KEYPOINT_SOURCES:
+            raise ValueError(f"unknown keypoint_source {self.keypoint_source!r}; expected one of {KEYPOINT_SOURCES}")
+        if self.keypoint_source == "pixels" and not self.keypoints:
+            raise ValueError("keypoint_source 'pixels' needs keypoints > 0")
+
+    @property
+    def two_streams(self) -> bool:
+        """Whether actions and vision keep separate weights (MMDiT)."""
+        return self.variant in ("dust", "mmdit_shared")
+
+    @property
+    def decoupled(self) -> bool:
+        """Whether each modality has its own timestep."""
+        return self.variant in ("dust", "decoupled", "action_only")
+
+    @property
+    def has_vision(self) -> bool:
+        """Whether the model predicts future-vision tokens."""
+        return self.variant != "action_only"
+
+
+@dataclass(frozen=True)
+class PolicyConfig(ModelConfig):
+    """A policy as training builds it: the model settings, its frozen image encoder and how many actions it
+    executes per chunk (``dust-rl train --policy.*``)."""
+
+    image_encoder: str | None = None
+    """Frozen image encoder: a name (``efficientnet-lite0``: ImageNet EfficientNet-Lite0 to stride 16,
+    ``-s8``/``-s32`` variants, ``lite1``/``lite2``; ``conv-ae``: the committed Franka autoencoder, the default)
+    or a file from ``dust-rl pretrain-encoder``."""
+    execute_steps: int | None = None
+    """Actions executed per chunk before re-planning (receding horizon, 1..H); None: H // 2."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        # Here, not in ModelConfig: policy files written when lambda_aux defaulted to 1 store it without keypoints.
+        if self.lambda_aux and not self.keypoints:
+            raise ValueError("lambda_aux needs keypoints > 0: the auxiliary loss is read off the keypoints")
+        if self.aux_state_input and not self.lambda_aux:
+            raise ValueError("aux_state_input needs lambda_aux > 0: it feeds that read-out's estimate")
+        if self.execute_steps is not None and not 1 <= self.execute_steps <= self.horizon:
+            raise ValueError(f"execute_steps must be in [1, horizon={self.horizon}], got {self.execute_steps}")
+
+    def model_settings(self) -> dict:
+        """The :class:`ModelConfig` fields as keyword arguments (of :func:`~.factory.make_policy`)."""
+        return {f.name: getattr(self, f.name) for f in fields(ModelConfig)}
+
+
+@dataclass(frozen=True)
+class DustConfig(ModelConfig, SamplerConfig):
+    """Everything that builds a DUST agent: the chosen model and sampler settings and the sizes the data and
+    the frozen backbone fix. A policy file stores it flat (every field by name).
+
+    Attributes:
+        action_dim: size of one action vector.
+        state_dim: size of the (normalised) proprioceptive state vector.
+        vision_dim: feature size of one future-vision token.
+        cond_dim: feature size of the backbone condition tokens.
+        aux_state_dim: size of the privileged environment state the auxiliary read-out predicts (training only;
+            0: no read-out). Needs ``lambda_aux``.
+    """
+
+    action_dim: int = 7
+    state_dim: int = 8
+    vision_dim: int = 64
+    cond_dim: int = 384
+    aux_state_dim: int = 0
+
+    def __post_init__(self) -> None:
+        SamplerConfig.__post_init__(self)
+        ModelConfig.__post_init__(self)
+        self._check_sizes()
+        if self.aux_state_dim and not self.keypoints:
+            raise ValueError("aux_state_dim needs keypoints > 0: the auxiliary loss is read off the keypoints")
+        if self.aux_state_dim and not self.lambda_aux:
+            raise ValueError("aux_state_dim needs lambda_aux > 0: a read-out nothing trains")
+        if self.aux_state_input and not self.aux_state_dim:
+            raise ValueError("aux_state_input needs aux_state_dim > 0: there is no state estimate to feed")
+        sampler = self.sampler_name
+        if not self.has_vision and sampler != "action_only":
+            raise ValueError("the action_only variant has no vision stream; use sampler='action_only'")
+        if not self.decoupled and (sampler == "action_only" or self.vision_step_ratio != 1):
+            raise ValueError(f"variant {self.variant!r} shares one timestep: only synchronous sampling applies")
+        if sampler != "async" and self.vision_step_ratio != 1:
+            raise ValueError(f"vision_step_ratio (N_o = q * N_A) applies to the async sampler only; the sampler is "
+                             f"{sampler!r}")
+
+    def _check_sizes(self) -> None:
+        """The data's sizes in range and the trunk under :data:`MAX_PARAMETERS`, before any module exists."""
+        for name in ("action_dim", "state_dim", "vision_dim", "cond_dim"):
+            check_size(name, getattr(self, name), MAX_WIDTH)
+        check_size("aux_state_dim", self.aux_state_dim, MAX_WIDTH, minimum=0)
+        if any(c % v for c, v in zip(self.condition_grid, self.vision_grid)):
+            raise ValueError(f"cond_grid {self.condition_grid} must be a multiple of vision_grid {self.vision_grid}")
         if self.n_parameters > MAX_PARAMETERS:
             raise ValueError(f"the trunk would have {self.n_parameters:.3g} parameters, more than the cap of "
                              f"{MAX_PARAMETERS:.3g}; reduce d_model, the block counts or mlp_ratio")
@@ -195,21 +284,6 @@ class DustConfig:
     def trunk_state_dim(self) -> int:
         """Numbers the state token embeds: the robot state, then the estimated object state if fed."""
         return self.state_dim + (self.aux_state_dim if self.aux_state_input else 0)
-
-    @property
-    def two_streams(self) -> bool:
-        """Whether actions and vision keep separate weights (MMDiT)."""
-        return self.variant in ("dust", "mmdit_shared")
-
-    @property
-    def decoupled(self) -> bool:
-        """Whether each modality has its own timestep."""
-        return self.variant in ("dust", "decoupled", "action_only")
-
-    @property
-    def has_vision(self) -> bool:
-        """Whether the model predicts future-vision tokens."""
-        return self.variant != "action_only"
 
     @property
     def n_vision_tokens(self) -> int:

@@ -10,7 +10,8 @@ torchrl's :class:`~torchrl.modules.MultiStepActorWrapper` (see
 :mod:`.execution`).
 
 Training runs on features, so the frozen backbone runs once per dataset row.
-Feature batches (B = batch size) hold:
+Feature batches (B = batch size), built by :meth:`DustPolicy.feature_batch` from
+observations or from cached tokens alike, hold:
 
 =====================  =======================  ==========================================
 key                    shape                    meaning
@@ -54,7 +55,7 @@ from dust_rl.keys import (
 
 from .backbone import FrozenBackbone
 from .condition import ConditionProjector
-from .config import DustConfig, SamplerName
+from .config import DustConfig, SamplerConfig
 from .dust_agent import DustAgent
 from .image_encoder import pool_tokens
 from .normalizer import Normalizer
@@ -145,12 +146,13 @@ class DustPolicy(VLAWrapperBase):
         self.action_low.copy_(torch.as_tensor(low, dtype=torch.float32))
         self.action_high.copy_(torch.as_tensor(high, dtype=torch.float32))
 
-    def set_sampler(self, sampler: SamplerName, n_action_steps: int | None = None,
-                    vision_step_ratio: int | None = None) -> None:
-        """Switch between synchronous, asynchronous (N_o = q * N_A) and action-only sampling."""
-        cfg = self.agent.config
-        cfg = dataclasses.replace(cfg, sampler=sampler, n_action_steps=n_action_steps or cfg.n_action_steps,
-                                  vision_step_ratio=vision_step_ratio or cfg.vision_step_ratio)
+    def set_sampler(self, sampler: SamplerConfig) -> None:
+        """Switch between synchronous, asynchronous (N_o = q * N_A) and action-only sampling.
+
+        Raises:
+            ValueError: the sampler does not apply to the variant (e.g. async sampling of one shared timestep).
+        """
+        cfg = dataclasses.replace(self.agent.config, **dataclasses.asdict(sampler))
         self.agent.config, self.agent.schedule = cfg, schedule_for(cfg)
 
     def trainable_parameters(self) -> list[torch.nn.Parameter]:
@@ -175,8 +177,8 @@ class DustPolicy(VLAWrapperBase):
 
     def _check_pixel_readout(self) -> None:
         if not (self.config.aux_state_dim and self.reads_pixels):
-            raise ValueError("this needs a state read-out on pixel keypoints (--lambda-aux with "
-                             "--keypoint-source pixels)")
+            raise ValueError("this needs a state read-out on pixel keypoints (--policy.lambda-aux with "
+                             "--policy.keypoint-source pixels)")
 
     # -- features ----------------------------------------------------------
     def canonical_view(self, td: TensorDictBase) -> TensorDictBase:
@@ -234,14 +236,34 @@ class DustPolicy(VLAWrapperBase):
         frames = self.frames(td)
         frames = frames.reshape(-1, *frames.shape[-4:])
         image = self._frame_tokens(frames)
-        n = image.shape[0]
-        text, mask = self.backbone.text_tokens(instruction_list(td.get(self.tensor_keys.instruction), n))
-        state = self.normalizer.normalize_state(td.get(self.tensor_keys.state).reshape(n, -1).float())
-        out = TensorDict({"image_tokens": image, "text_tokens": text, "text_mask": mask, "state": state},
-                         batch_size=[n])
+        text, mask = self.backbone.text_tokens(instruction_list(td.get(self.tensor_keys.instruction), image.shape[0]))
+        return self.feature_batch(image, text, mask, td.get(self.tensor_keys.state).reshape(image.shape[0], -1), frames)
+
+    def feature_batch(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor, state: Tensor,
+                      frames: Tensor | None = None, *, action_chunk: Tensor | None = None,
+                      future_image_tokens: Tensor | None = None, labels: dict | None = None) -> TensorDict:
+        """The one place a feature batch (module doc) is built, for acting and for training alike.
+
+        Args:
+            image_tokens: [B, C, N, Dv] frozen tokens (from frames, or a feature cache).
+            text_tokens, text_mask: the instruction's tokens and mask.
+            state: [B, Ds] robot state in env units (normalised here).
+            frames: [B, C, 3, H, W] uint8, kept when the keypoints read pixels.
+            action_chunk: [B, H, Da] in env units (training; normalised here).
+            future_image_tokens: [B, C, N, Dv] tokens at t+H (training; pooled to the world-model target here).
+            labels: entries stored as they are (``action_is_pad``, ``future_is_clamped``, ``env_state``).
+        """
+        batch = TensorDict({"image_tokens": image_tokens, "text_tokens": text_tokens, "text_mask": text_mask,
+                            "state": self.normalizer.normalize_state(state.float())}, batch_size=state.shape[:1])
         if self.reads_pixels:
-            out.set("pixels", frames)
-        return out
+            batch.set("pixels", frames)
+        if action_chunk is not None:
+            batch.set("action_chunk", self.normalizer.normalize_action(action_chunk))
+        if future_image_tokens is not None:
+            batch.set("future_tokens", self.future_targets(future_image_tokens))
+        for key, value in (labels or {}).items():
+            batch.set(key, value)
+        return batch
 
     def _agent_batch(self, features: TensorDictBase, augment: bool = False,
                      generator: torch.Generator | None = None) -> TensorDictBase:
@@ -269,7 +291,7 @@ class DustPolicy(VLAWrapperBase):
             ValueError: the policy was trained without the auxiliary state loss.
         """
         if not self.config.aux_state_dim:
-            raise ValueError("this policy has no state read-out (trained without --lambda-aux)")
+            raise ValueError("this policy has no state read-out (trained without --policy.lambda-aux)")
         return self._state_estimate(self._agent_batch(features), features)
 
     def _state_estimate(self, agent_batch: TensorDictBase, features: TensorDictBase) -> Tensor:

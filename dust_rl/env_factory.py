@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import gymnasium as gym
 
-from dust_rl.envs import make_task
+from dust_rl.envs import list_tasks, make_task
 from dust_rl.envs.registration import ENV_IDS
 from dust_rl.errors import ConfigError
 
@@ -24,6 +24,22 @@ def env_spec_of(env_id: str) -> gym.envs.registration.EnvSpec:
         return gym.spec(env_id)
     except gym.error.Error as err:
         raise ConfigError(f"unknown env id {env_id!r} ({err}); dust-rl registers {list(ENV_IDS)}") from err
+
+
+DEFAULT_ENV_ID = "DustFranka-v0"
+
+
+def robot_of(env_id: str, env_kwargs: dict | None = None) -> str:
+    """The robot whose suite an env runs: it follows from the env id (or an explicit ``robot`` kwarg)."""
+    return {**env_spec_of(env_id).kwargs, **(env_kwargs or {})}.get("robot", "franka")
+
+
+def env_tasks(env_id: str, task: str) -> list[str]:
+    """A command's ``--task``: ``all`` (the suite of the env's robot), one name or comma-separated names,
+    each checked (:class:`ConfigError` listing the suite otherwise)."""
+    tasks = list_tasks(robot_of(env_id)) if task == "all" else [name.strip() for name in task.split(",")]
+    check_tasks(env_id, {}, tasks)
+    return tasks
 
 
 def make_env(env_id: str, env_kwargs: dict) -> gym.Env:
@@ -43,7 +59,7 @@ def check_tasks(env_id: str, env_kwargs: dict, tasks: Sequence[str]) -> None:
     """Raise :class:`ConfigError` (listing the suite) unless every task exists, without building envs."""
     if not tasks:
         raise ConfigError("no tasks given")
-    robot = {**env_spec_of(env_id).kwargs, **env_kwargs}.get("robot", "franka")
+    robot = robot_of(env_id, env_kwargs)
     for task in tasks:
         try:
             make_task(task, robot)

@@ -30,8 +30,8 @@ import pathlib
 import time
 import warnings
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
-from typing import Literal, NamedTuple
+from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import torch
 from tensordict import TensorDictBase
@@ -40,7 +40,7 @@ from torchrl.collectors import BaseCollector, Collector
 from torchrl.envs import InitTracker, TransformedEnv
 from tqdm import tqdm
 
-from dust_rl.agents import ChunkExecutor, DustConfig, DustPolicy, load_policy, unwrap
+from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy, unwrap
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.config_json import config_json
 from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule, episode_generator
@@ -70,12 +70,10 @@ class EvalConfig:
     """Env processes per task (1 runs in this process)."""
     seed: int = 10_000
     """Episode k of a task resets from seed + k (training data uses seeds from 0 on)."""
-    sampler: Literal["default", "sync", "async", "action_only"] = "default"
-    """Joint sampler: the policy's own (default), synchronous, asynchronous, or actions only."""
-    n_action_steps: int | None = None
-    """N_A, action denoising steps per chunk; default: the policy's."""
-    vision_steps: int | None = None
-    """N_o, vision denoising steps per chunk (async sampler only; a multiple of N_A)."""
+    sampling: SamplerConfig = field(default_factory=SamplerConfig)
+    """How chunks are sampled (``--sampling.sampler sync``, ``--sampling.n-action-steps 8``,
+    ``--sampling.vision-step-ratio 4`` for N_o = 4 N_A); the defaults are what every trained policy stores: the
+    variant's natural sampler at N_A = 4, N_o = N_A."""
     execute_steps: int | None = None
     """Actions executed per chunk before re-planning (1..H); default: the policy's (training's)."""
     max_steps: int | None = None
@@ -90,26 +88,15 @@ class EvalConfig:
     """Show progress bars."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "episodes", "workers", "threads", "max_steps", "n_action_steps", "vision_steps",
-                       "execute_steps")
+        check_at_least(self, 1, "episodes", "workers", "threads", "max_steps", "execute_steps")
         check_at_least(self, 0, "videos", "seed")
 
 
-@dataclass(frozen=True)
-class SamplerChoice:
-    """A joint sampler with its step counts; picklable, so workers set up the same one."""
-
-    name: Literal["sync", "async", "action_only"]
-    n_action_steps: int
-    vision_step_ratio: int
-
-    def apply(self, policy: DustPolicy) -> None:
-        policy.set_sampler(self.name, self.n_action_steps, self.vision_step_ratio)
-
-    def describe(self) -> dict:
-        """Name, N_A and N_o (vision Euler steps: q * N_A async, N_A sync, none action-only)."""
-        vision = {"async": self.n_action_steps * self.vision_step_ratio, "sync": self.n_action_steps}
-        return {"name": self.name, "n_action_steps": self.n_action_steps, "vision_steps": vision.get(self.name, 0)}
+def describe_sampler(sampler: SamplerConfig) -> dict:
+    """Name, N_A and N_o (vision Euler steps: q * N_A async, N_A sync, none action-only) of a resolved sampler."""
+    vision = {"async": sampler.n_action_steps * sampler.vision_step_ratio, "sync": sampler.n_action_steps}
+    return {"name": sampler.sampler, "n_action_steps": sampler.n_action_steps,
+            "vision_steps": vision.get(sampler.sampler, 0)}
 
 
 @dataclass(frozen=True)
@@ -120,7 +107,7 @@ class EvalSetup:
     env_id: str
     env_kwargs: dict
     tasks: tuple[str, ...]
-    sampler: SamplerChoice
+    sampler: SamplerConfig  # resolved: its name is set
     execute_steps: int
     fps: int  # of the env's control loop: the videos' frame rate
 
@@ -188,7 +175,7 @@ def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> Tran
 def make_eval_policy(setup: EvalSetup) -> EpisodeSeededPolicy:
     """The policy of one worker process, built from the checkpoint file (a live policy is not pickled)."""
     executor = load_policy(setup.policy_path, execute_steps=setup.execute_steps)
-    setup.sampler.apply(unwrap(executor))
+    unwrap(executor).set_sampler(setup.sampler)
     return EpisodeSeededPolicy(executor)
 
 
@@ -201,20 +188,6 @@ def torch_threads(n: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(previous)
-
-
-def resolve_sampler(policy_config: DustConfig, config: EvalConfig) -> SamplerChoice:
-    """The sampler the config asks for, defaulting to the policy's; checks N_o against N_A."""
-    name = policy_config.sampler_name if config.sampler == "default" else config.sampler
-    n_action_steps = config.n_action_steps or policy_config.n_action_steps
-    if config.vision_steps is None:
-        return SamplerChoice(name, n_action_steps, policy_config.vision_step_ratio if name == "async" else 1)
-    if name != "async":
-        raise ConfigError(f"vision_steps (N_o) applies to the async sampler only; the sampler is {name!r}")
-    if config.vision_steps < n_action_steps or config.vision_steps % n_action_steps:
-        raise ConfigError(f"vision_steps (N_o) must be a positive multiple of n_action_steps (N_A = "
-                          f"{n_action_steps}), got {config.vision_steps}")
-    return SamplerChoice(name, n_action_steps, config.vision_steps // n_action_steps)
 
 
 def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
@@ -239,11 +212,11 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
         fps = probe.base_env.metadata["render_fps"]
     finally:
         probe.close()
-    sampler = resolve_sampler(policy.config, config)
     try:
-        sampler.apply(policy)
+        policy.set_sampler(config.sampling)
     except ValueError as err:  # the policy's own config check (e.g. async sampling of a shared-timestep variant)
-        raise ConfigError(f"{config.policy}: sampler {sampler.describe()} does not apply: {err}") from err
+        raise ConfigError(f"{config.policy}: sampling {config_json(config.sampling)} does not apply: {err}") from err
+    sampler = replace(policy.config.sampler_settings, sampler=policy.config.sampler_name)
     return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps)
 
 
@@ -376,7 +349,7 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
         "policy": str(config.policy), "variant": policy.config.variant,
         "trainable_parameters": sum(p.numel() for p in policy.trainable_modules().parameters()),
         "env_id": setup.env_id,
-        "env_kwargs": setup.env_kwargs, "sampler": setup.sampler.describe(),
+        "env_kwargs": setup.env_kwargs, "sampler": describe_sampler(setup.sampler),
         "execute_steps": setup.execute_steps, "command": command,
         "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],
         "noise_seeding": "the policy's sampling noise restarts from the episode seed at every reset",

@@ -127,26 +127,20 @@ class FeatureCache:
     def batch(self, windows: TensorDictBase) -> TensorDict:
         """The policy's feature batch (see :mod:`dust_rl.agents.policy`) for a ``DemoWindows`` batch."""
         rows, instructions = windows.get("index"), windows.get("instruction_index")
-        normalizer = self.policy.normalizer
         views = self.views.shape[0]  # one cached view per window
         view = torch.randint(0, views, rows.shape) if views > 1 else torch.zeros_like(rows)
-        batch = TensorDict({
-            "image_tokens": self.views[view, rows].float(),
-            "text_tokens": self.text_tokens[instructions],
-            "text_mask": self.text_mask[instructions],
-            "state": normalizer.normalize_state(windows.get(STATE_KEY)),
-            "action_chunk": normalizer.normalize_action(windows.get(ACTION_CHUNK_KEY)),
-            ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY),
-            "future_tokens": self.policy.future_targets(self.image_tokens[windows.get((FUTURE_KEY, "index"))].float()),
-            "future_is_clamped": windows.get((FUTURE_KEY, "is_clamped")),
-        }, batch_size=windows.batch_size)
-        if self.policy.reads_pixels:  # read from the dataset's memmap per batch (the OS caches the pages)
-            frames = self.dataset.data.select(*self._image_keys())[rows]
-            batch.set("pixels", self.policy.frames(frames))
+        labels = {ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY),
+                  "future_is_clamped": windows.get((FUTURE_KEY, "is_clamped"))}
         if self.env_state_stats is not None:
             mean, std = self.env_state_stats
-            batch.set("env_state", (windows.get(ENV_STATE_KEY).float() - mean) / std)
-        return batch
+            labels["env_state"] = (windows.get(ENV_STATE_KEY).float() - mean) / std
+        frames = None
+        if self.policy.reads_pixels:  # read from the dataset's memmap per batch (the OS caches the pages)
+            frames = self.policy.frames(self.dataset.data.select(*self._image_keys())[rows])
+        return self.policy.feature_batch(
+            self.views[view, rows].float(), self.text_tokens[instructions], self.text_mask[instructions],
+            windows.get(STATE_KEY), frames, action_chunk=windows.get(ACTION_CHUNK_KEY),
+            future_image_tokens=self.image_tokens[windows.get((FUTURE_KEY, "index"))].float(), labels=labels)
 
 
 def env_state_width(dataset: DemoDataset) -> int:

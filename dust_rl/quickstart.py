@@ -16,15 +16,16 @@ from __future__ import annotations
 
 import pathlib
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 from dust_rl.agents.backbone import check_image_encoder
 from dust_rl.atomic_files import write_json_atomic
 from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, collect_demos
-from dust_rl.errors import check_at_least, check_finite
+from dust_rl.env_factory import DEFAULT_ENV_ID
+from dust_rl.errors import check_at_least
 from dust_rl.evaluate import EvalConfig, evaluate
-from dust_rl.train import TrainConfig, Variant, train
+from dust_rl.train import TrainConfig, TrainSettings, train
 
 
 @dataclass
@@ -37,49 +38,35 @@ class QuickstartConfig:
     """Franka task (`dust_rl.envs.list_tasks("franka")`)."""
     demos: int = 200
     """Successful expert demonstrations to collect."""
-    variant: Variant = "dust"
-    """Model: DUST or one of the paper's baselines."""
-    steps: int = 3000
-    """Training steps."""
-    batch_size: int = 64
-    """Training windows per step."""
-    lr: float = 3e-4
-    """Peak learning rate (higher than the paper's 1e-4: a small model trained for minutes)."""
     eval_episodes: int = 20
     """Closed-loop evaluation episodes."""
     workers: int = 1
     """Env processes for collection and evaluation (on 2 cores one is fastest: rendering uses both)."""
     image_size: int = 128
     """Camera resolution (the default image encoder was pretrained at 128 px)."""
-    image_encoder: str | None = None
-    """Frozen image encoder: a name (``efficientnet-lite0``, ``conv-ae``) or a file (see ``dust-rl train --help``)."""
-    seed: int = 0
-    """Training seed."""
-    threads: int | None = None
-    """torch threads for training (default: torch's choice)."""
     progress: bool = True
     """Show progress bars."""
+    train: TrainSettings = field(default_factory=lambda: TrainSettings(lr=3e-4))
+    """Training (``--train.steps``, ``--train.policy.variant`` ...; as ``dust-rl train``, but lr 3e-4, higher
+    than the paper's 1e-4: a small model trained for minutes)."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "demos", "steps", "batch_size", "eval_episodes", "workers", "image_size", "threads")
-        check_finite(self, "lr", positive=True)
+        check_at_least(self, 1, "demos", "eval_episodes", "workers", "image_size")
 
 
 def quickstart(config: QuickstartConfig, command: str | None = None) -> dict:
     """Run the whole pipeline; returns the evaluation report."""
     began = time.perf_counter()
     data, train_dir, eval_dir = config.out / "data", config.out / "train", config.out / "eval"
-    check_image_encoder(config.image_encoder)
-    train_config = TrainConfig(
-        dataset=data, out=train_dir, variant=config.variant, steps=config.steps, batch_size=config.batch_size,
-        lr=config.lr, image_encoder=config.image_encoder, seed=config.seed, threads=config.threads,
-        resume=(train_dir / "config.json").is_file(), progress=config.progress)
+    check_image_encoder(config.train.policy.image_encoder)
+    train_config = TrainConfig.from_settings(replace(config.train, progress=config.progress), dataset=data,
+                                             out=train_dir, resume=(train_dir / "config.json").is_file())
     eval_config = EvalConfig(policy=train_dir / "policy.pt", out=eval_dir, episodes=config.eval_episodes,
                              workers=config.workers, train_dir=train_dir, progress=config.progress)
     stages = {}
 
     tick = time.perf_counter()
-    collect_demos(data, "DustFranka-v0", [config.task], config.demos, env_kwargs={"image_size": config.image_size},
+    collect_demos(data, DEFAULT_ENV_ID, [config.task], config.demos, env_kwargs={"image_size": config.image_size},
                   workers=config.workers, progress=config.progress)
     stages["collect"] = time.perf_counter() - tick
 

@@ -10,7 +10,7 @@ still falling). So ``--readout-warmup N`` first fits the keypoint networks and
 the read-out for N steps on aux frames (and, unless ``--no-readout-demos``,
 demonstration rows in half of each batch), then freezes them: a locator
 trained on the simulator's labels, as a pose-estimation stage would be, whose
-keypoints and estimate (``--aux-state-input``) the policy reads but cannot
+keypoints and estimate (``--policy.aux-state-input``) the policy reads but cannot
 move. Measured on pick_place validation episodes (README): with demonstration
 rows the 200 training layouts are learnt by heart and the estimate is 8 cm
 off at step 0; on aux frames alone 3.1 cm, but 12-15 cm once the cube is

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import pathlib
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from typing import Literal, get_args
 
 import torch
@@ -35,7 +35,7 @@ from torchrl.record.loggers import Logger, get_logger
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
-from dust_rl.agents.config import KeypointSource
+from dust_rl.agents.config import PolicyConfig
 from dust_rl.aux_frames import AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.env_factory import make_env
@@ -45,23 +45,18 @@ from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.readout_warmup import warm_up_readout
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
 
-Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 # Fields that may differ between a run and its resumption.
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "eval_every", "eval_episodes", "eval_workers", "loggers")
 
 
-@dataclass
-class TrainConfig:
-    """Imitation training of a DUST policy on a demonstration dataset."""
+@dataclass(kw_only=True)
+class TrainSettings:
+    """How to train a policy by imitation, wherever the data and the run folder are (``dust-rl quickstart
+    --train.*`` nests these)."""
 
-    dataset: pathlib.Path
-    """Dataset folder written by ``dust-rl collect`` (or ``dust-rl dataset import``)."""
-    out: pathlib.Path = pathlib.Path("runs/train")
-    """Run folder: config, checkpoints, logs, ``policy.pt``."""
-    variant: Variant = "dust"
-    """Model: DUST or one of the paper's baselines at the same depth and width (single-stream variants then hold
-    about half the trunk parameters of the two-stream ones; the evaluation report counts them)."""
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    """The policy to build: variant, trunk size, losses, image encoder (``--policy.d-model`` ...)."""
     steps: int = 3000
     """Optimiser steps."""
     batch_size: int = 64
@@ -78,42 +73,6 @@ class TrainConfig:
     """Gradient-norm clipping threshold."""
     ema_decay: float = 0.999
     """Decay of the exponential moving average of the weights (the saved policy uses the average)."""
-    horizon: int = 16
-    """Action chunk length H (paper: 16); the world-model target is the frame at t+H."""
-    execute_steps: int = 8
-    """Actions executed per chunk before re-planning (receding horizon)."""
-    d_model: int = 128
-    """Trunk width."""
-    n_heads: int = 4
-    """Attention heads."""
-    n_mmdit: int = 4
-    """Dual-stream MMDiT blocks, alternating cross-attention and joint attention (two-stream variants need
-    at least 2, or the streams never meet; single-stream variants get as many shared blocks)."""
-    n_dit: int = 2
-    """Per-stream DiT blocks after the MMDiT blocks."""
-    lambda_wm: float = 1.0
-    """Weight of the world-model (future vision) loss (paper: 1.0)."""
-    image_encoder: str | None = None
-    """Frozen image encoder: a name (``efficientnet-lite0``: ImageNet EfficientNet-Lite0 to stride 16,
-    ``-s8``/``-s32`` variants, ``lite1``/``lite2``; ``conv-ae``: the committed Franka autoencoder, the
-    default) or a file from ``dust-rl pretrain-encoder``."""
-    cond_grid: tuple[int, int] | None = None
-    """Condition tokens per camera (rows, cols); default: the image encoder's own grid (EfficientNet-Lite0 at
-    128 px: 8x8; conv-ae: 4x4). Coarser grids are average-pooled and train faster."""
-    keypoints: int = 0
-    """Trainable spatial-softmax keypoints per camera, each one more condition token: positions finer than
-    the grid, for grasping small objects."""
-    keypoint_source: KeypointSource = "features"
-    """What the keypoints are computed from: ``features`` (the frozen condition grid,
-    :mod:`dust_rl.agents.keypoints`) or ``pixels`` (a small network on the raw frames trained with the policy,
-    :mod:`dust_rl.agents.pixel_keypoints`; each step then runs it on the batch's frames)."""
-    lambda_aux: float = 0.0
-    """Weight of an auxiliary loss that teaches the keypoints the objects' positions from the dataset's
-    privileged ``observation.environment_state`` (:mod:`dust_rl.agents.state_readout`; training only, the
-    policy never reads that state); 0: off. Needs ``keypoints``."""
-    aux_state_input: bool = False
-    """Also feed that auxiliary read-out's estimate of the object state to the trunk beside the robot state
-    (needs ``lambda_aux``)."""
     aux_frames: int = 0
     """Frames of random resets and random arm motions (objects independent of the arm,
     :mod:`dust_rl.aux_frames`) rendered once at the start; every step adds the read-out's error on a batch
@@ -147,28 +106,20 @@ class TrainConfig:
     """Env processes of each periodic evaluation."""
     threads: int | None = None
     """torch threads (default: torch's choice)."""
-    resume: bool = False
-    """Continue the run in ``out`` from its newest checkpoint."""
     progress: bool = True
     """Show a progress bar."""
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
     """Where the scalars go, each through torchrl's ``get_logger`` into ``out/logs`` (experiment ``train``);
     ``wandb`` and ``mlflow`` need their package installed. ``loss.png`` is drawn from the CSV files."""
-
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "steps", "batch_size", "horizon", "execute_steps", "d_model", "n_heads",
-                       "augment_views", "log_every", "checkpoint_every", "eval_episodes", "eval_workers", "threads")
-        check_at_least(self, 0, "n_mmdit", "n_dit", "eval_every", "keypoints", "aux_frames",
-                       "readout_warmup")
+        check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
+                       "eval_episodes", "eval_workers", "threads")
+        check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup")
         check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
-        check_finite(self, "weight_decay", "lambda_wm", "lambda_aux")
-        if self.lambda_aux and not self.keypoints:
-            raise ConfigError("lambda_aux needs --keypoints: the auxiliary loss is read off the keypoints")
-        if self.aux_state_input and not self.lambda_aux:
-            raise ConfigError("aux_state_input needs --lambda-aux > 0: it feeds that read-out's estimate")
-        if self.aux_frames and not (self.lambda_aux and self.keypoint_source == "pixels"):
-            raise ConfigError("aux_frames needs --lambda-aux > 0 and --keypoint-source pixels: the frames train "
-                              "the read-out of the pixel keypoints")
+        check_finite(self, "weight_decay")
+        if self.aux_frames and not (self.policy.lambda_aux and self.policy.keypoint_source == "pixels"):
+            raise ConfigError("aux_frames needs --policy.lambda-aux > 0 and --policy.keypoint-source pixels: the "
+                              "frames train the read-out of the pixel keypoints")
         if not 0 <= self.aux_expert_fraction <= 1:
             raise ConfigError(f"aux_expert_fraction must be in [0, 1], got {self.aux_expert_fraction}")
         if self.aux_expert_fraction and not self.aux_frames:
@@ -182,8 +133,23 @@ class TrainConfig:
             raise ConfigError(f"unknown loggers {sorted(unknown)}; choose from {list(get_args(LoggerKind))}")
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
-        if self.execute_steps > self.horizon:
-            raise ConfigError(f"execute_steps must be in [1, horizon={self.horizon}], got {self.execute_steps}")
+
+
+@dataclass(kw_only=True)
+class TrainConfig(TrainSettings):
+    """Imitation training of a DUST policy on a demonstration dataset."""
+
+    dataset: pathlib.Path
+    """Dataset folder written by ``dust-rl collect`` (or ``dust-rl dataset import``)."""
+    out: pathlib.Path = pathlib.Path("runs/train")
+    """Run folder: config, checkpoints, logs, ``policy.pt``."""
+    resume: bool = False
+    """Continue the run in ``out`` from its newest checkpoint."""
+
+    @classmethod
+    def from_settings(cls, settings: TrainSettings, **where) -> TrainConfig:
+        """``settings`` with ``dataset``, ``out`` and ``resume`` (``where``) added."""
+        return cls(**{f.name: getattr(settings, f.name) for f in fields(TrainSettings)}, **where)
 
 
 class NonFiniteLossError(UserError):
@@ -227,10 +193,10 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     if not config.resume:
         write_run_config(config, command)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
-                   "dataset": str(config.dataset), "variant": config.variant, "steps": config.steps}
+                   "dataset": str(config.dataset), "variant": config.policy.variant, "steps": config.steps}
     features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
     policy.normalizer.set_vision_stats(features.image_tokens)
-    windows = DemoWindows(dataset, horizon=config.horizon, batch_size=config.batch_size, images=False)
+    windows = DemoWindows(dataset, horizon=config.policy.horizon, batch_size=config.batch_size, images=False)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
     loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers]
     policy.train()
@@ -266,7 +232,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
         losses = policy.compute_loss(features.batch(windows.sample()))
         if aux is not None:
             losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.batch_size)))
-            losses.set("loss", losses.get("loss") + config.lambda_aux * losses.get("loss_aux_frames"))
+            losses.set("loss", losses.get("loss") + config.policy.lambda_aux * losses.get("loss_aux_frames"))
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.grad_clip)
@@ -323,13 +289,11 @@ def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkp
 
 def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
     try:
-        return unwrap(make_policy(
-            config.variant, image_encoder=config.image_encoder, execute_steps=config.execute_steps,
-            horizon=config.horizon, cond_grid=config.cond_grid, keypoints=config.keypoints,
-            keypoint_source=config.keypoint_source,
-            aux_state_dim=env_state_width(dataset) if config.lambda_aux else 0, lambda_aux=config.lambda_aux,
-            aux_state_input=config.aux_state_input, d_model=config.d_model, n_heads=config.n_heads,
-            n_mmdit=config.n_mmdit, n_dit=config.n_dit, lambda_wm=config.lambda_wm, **dataset_policy_kwargs(dataset)))
+        settings = config.policy
+        return unwrap(make_policy(**settings.model_settings(), image_encoder=settings.image_encoder,
+                                  execute_steps=settings.execute_steps,
+                                  aux_state_dim=env_state_width(dataset) if settings.lambda_aux else 0,
+                                  **dataset_policy_kwargs(dataset)))
     except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)
         raise ConfigError(f"invalid model settings: {err}") from err
 

@@ -25,7 +25,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDict
 
-from dust_rl.agents import DustAgent, DustConfig, make_policy, random_batch, unwrap
+from dust_rl.agents import DustAgent, DustConfig, SamplerConfig, make_policy, random_batch, unwrap
 
 N_COND_TOKENS = 40
 CAMERAS = ("front", "wrist")
@@ -71,7 +71,7 @@ def policy_latency_ms(repeats: int, image_encoder: str) -> list[tuple[str, float
     rows.append((f"{image_encoder} ({grid}/camera): 2 cameras 128 px", wall, cpu))
     for name, sampler, ratio in [("N_A=4, N_o=4", "async", 1), ("N_A=4, N_o=16", "async", 4),
                                  ("sync 4 steps", "sync", 1), ("action-only 4 steps", "action_only", 1)]:
-        policy.set_sampler(sampler, 4, ratio)
+        policy.set_sampler(SamplerConfig(sampler, 4, ratio))
         wall, cpu = timed(lambda: policy.plan(obs, generator), repeats)
         rows.append((f"  policy {name} (ms/chunk)", wall, cpu))
     return [(name, 1e3 * statistics.median(w), 1e3 * min(w), 1e3 * statistics.median(c)) for name, w, c in rows]

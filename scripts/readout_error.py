@@ -1,6 +1,6 @@
 """How far is a policy's object-state read-out from the truth, by time in the episode?
 
-A policy trained with ``--lambda-aux`` estimates the privileged object state
+A policy trained with ``--policy.lambda-aux`` estimates the privileged object state
 from its keypoints. On expert demonstrations the gripper sits on the target
 cube for most of an episode, so an estimate that merely follows the gripper
 scores well on average; this table separates the steps where the gripper is
@@ -31,7 +31,7 @@ TARGET_XY, OTHER_XY = slice(0, 2), slice(3, 5)  # the named cube's and the other
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--policy", required=True, help="policy.pt trained with --lambda-aux")
+    parser.add_argument("--policy", required=True, help="policy.pt trained with --policy.lambda-aux")
     parser.add_argument("--dataset", required=True, help="demonstrations from other seeds than the training data")
     args = parser.parse_args()
     torch.set_num_threads(1)

@@ -82,15 +82,18 @@ def test_config_checks_keypoint_settings():
         DustConfig(keypoint_source="pixels")
     with pytest.raises(ValueError, match="unknown keypoint_source 'depth'"):
         DustConfig(keypoints=4, keypoint_source="depth")
-    fed = DustConfig(state_dim=8, keypoints=4, aux_state_dim=3, aux_state_input=True)
-    assert fed.trunk_state_dim == 11 and DustConfig(state_dim=8, keypoints=4, aux_state_dim=3).trunk_state_dim == 8
+    with pytest.raises(ValueError, match="aux_state_dim needs lambda_aux > 0"):
+        DustConfig(keypoints=4, aux_state_dim=3)
+    read_out = {"state_dim": 8, "keypoints": 4, "aux_state_dim": 3, "lambda_aux": 1.0}
+    fed = DustConfig(**read_out, aux_state_input=True)
+    assert fed.trunk_state_dim == 11 and DustConfig(**read_out).trunk_state_dim == 8
 
 
 @pytest.mark.parametrize(("source", "aux_state_input"), [("features", False), ("features", True), ("pixels", True)])
 def test_keypoint_policy_round_trips_and_its_heads_get_gradients(source, aux_state_input, tiny_encoder, minilm,
                                                                  tmp_path):
     policy = unwrap(tiny_policy("dust", tiny_encoder, minilm, keypoints=3, keypoint_source=source, aux_state_dim=4,
-                                aux_state_input=aux_state_input))
+                                lambda_aux=1.0, aux_state_input=aux_state_input))
     perturb(policy)
     features = policy.observation_features(observation())
     batch = features.set("action_chunk", torch.randn(2, 6, 3)).set(
@@ -126,7 +129,7 @@ def test_feature_batches_carry_the_normalised_environment_state(demo_dir, tiny_e
     width = len(dataset.meta["stats"]["observation.environment_state"]["mean"])
     policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                                 horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                aux_state_dim=width))
+                                aux_state_dim=width, lambda_aux=1.0))
     cache = FeatureCache(dataset, policy, progress=False)
     windows = DemoWindows(dataset, horizon=6, batch_size=5).sample()
     mean, std = env_state_stats(dataset)

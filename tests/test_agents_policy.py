@@ -13,6 +13,7 @@ from dust_rl.agents import (
     CheckpointError,
     ChunkExecutor,
     DustPolicy,
+    SamplerConfig,
     env_spec,
     load_policy,
     make_policy,
@@ -108,10 +109,10 @@ def test_normalisation_and_bounds_map_chunks_to_env_units(tiny_encoder, minilm):
 
 
 @pytest.mark.parametrize("sampler,n_action_steps,ratio,evaluations", [
-    ("async", 2, 4, 8), ("sync", 3, None, 3), ("action_only", 4, None, 4)])
+    ("async", 2, 4, 8), ("sync", 3, 1, 3), ("action_only", 4, 1, 4)])
 def test_sampler_options(sampler, n_action_steps, ratio, evaluations, tiny_encoder, minilm):
     policy = unwrap(tiny_policy("dust", tiny_encoder, minilm))
-    policy.set_sampler(sampler, n_action_steps, ratio)
+    policy.set_sampler(SamplerConfig(sampler, n_action_steps, ratio))
     calls = []
     policy.agent.model.register_forward_hook(lambda *args: calls.append(1))
     policy(observation())
@@ -119,7 +120,7 @@ def test_sampler_options(sampler, n_action_steps, ratio, evaluations, tiny_encod
     joint = unwrap(tiny_policy("joint", tiny_encoder, minilm))
     if sampler != "sync":
         with pytest.raises(ValueError, match="shares one timestep"):
-            joint.set_sampler(sampler, n_action_steps, ratio)
+            joint.set_sampler(SamplerConfig(sampler, n_action_steps, ratio))
 
 
 def test_checkpoint_round_trip_gives_identical_outputs(tiny_encoder, minilm, tmp_path):
@@ -129,7 +130,7 @@ def test_checkpoint_round_trip_gives_identical_outputs(tiny_encoder, minilm, tmp
     with torch.no_grad():
         inner.normalizer.set_stats({"state": {"mean": [1.0] * 5, "std": [2.0] * 5},
                                     "action": {"mean": [0.5, 0, 0], "std": [3.0, 1, 1]}})
-    inner.set_sampler("async", 2, 2)
+    inner.set_sampler(SamplerConfig("async", 2, 2))
     inner.info = {"env_id": "DustFranka-v0", "tasks": ["pick_place"]}
     path = save_policy(policy, tmp_path / "policy.pt")
     loaded = load_policy(path)

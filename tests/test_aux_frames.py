@@ -61,7 +61,7 @@ def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm)
     width = env_state_width(dataset)
     policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                                 horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                keypoint_source="pixels", aux_state_dim=width))
+                                keypoint_source="pixels", aux_state_dim=width, lambda_aux=1.0))
     rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
                                            width, progress=False)
     batches = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
@@ -73,7 +73,7 @@ def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm)
     assert all(p.grad is not None for p in policy.state_readout.parameters())
     on_features = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                                      horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                     aux_state_dim=width))
+                                     aux_state_dim=width, lambda_aux=1.0))
     with pytest.raises(ValueError, match="needs a state read-out on pixel keypoints"):
         on_features.readout_loss(frames)
 

@@ -11,11 +11,14 @@ import pytest
 import torch
 from tensordict import TensorDict
 from test_evaluate import tiny_policy_file
-from test_train import TINY_MODEL
+from test_train import TINY_ARGS
 
 from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
+from dust_rl.env_factory import env_tasks
+from dust_rl.envs import list_tasks
+from dust_rl.errors import ConfigError
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -60,8 +63,8 @@ def test_bad_task_list_writes_nothing(dataset_copy, tmp_path):
     main(collect_args(dataset_copy))  # later collects into the folder still work
     new = tmp_path / "new"
     for args in (collect_args(new, task="nope"), collect_args(new, episodes=0),
-                 [*collect_args(new), "--cameras", "front,nope"], ["collect", "--env", "Nope-v0", "--out", str(new)],
-                 ["collect", "--task", "all", "--robot", "spider", "--out", str(new)]):
+                 [*collect_args(new), "--cameras", "front", "nope"], ["collect", "--env", "Nope-v0", "--out", str(new)],
+                 ["collect", "--task", "all", "--env", "Nope-v0", "--out", str(new)]):
         error_of(args)
     assert not new.exists()
 
@@ -105,18 +108,23 @@ def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
 @pytest.fixture
 def train_args(dataset_copy, tiny_encoder, tmp_path):
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
-    return ["train", "--dataset", str(dataset_copy), "--image-encoder", str(encoder), "--threads", "1",
-            "--no-progress", "--log-every", "1", "--checkpoint-every", "1",
-            *[f"--{k.replace('_', '-')}={v}" for k, v in TINY_MODEL.items()]]
+    return ["train", "--dataset", str(dataset_copy), "--policy.image-encoder", str(encoder), "--threads", "1",
+            "--no-progress", "--log-every", "1", "--checkpoint-every", "1", *TINY_ARGS]
 
 
-def test_train_refuses_bad_settings_before_writing(train_args, tmp_path):
+def test_train_refuses_bad_settings_before_writing(train_args, tmp_path, capsys):
     out = tmp_path / "run"
     for flags, field in ((["--lr", "inf"], "lr"), (["--grad-clip", "nan"], "grad_clip"), (["--lr", "0"], "lr"),
                          (["--steps", "0"], "steps"), (["--batch-size", "0"], "batch_size"),
-                         (["--execute-steps", "9"], "execute_steps"), (["--warmup", "1"], "warmup"),
-                         (["--n-heads", "3"], "d_model must be divisible by n_heads")):
+                         (["--warmup", "1"], "warmup")):
         assert field in error_of([*train_args, "--out", str(out), *flags])
+    # The nested policy settings are checked while tyro parses: a usage error (exit 2) naming the group and rule.
+    for flags, reason in ((["--policy.execute-steps", "9"], "execute_steps must be in [1, horizon=4], got 9"),
+                          (["--policy.n-heads", "3"], "d_model must be divisible by n_heads")):
+        with pytest.raises(SystemExit) as exit_info:
+            main([*train_args, "--out", str(out), *flags])
+        stderr = " ".join(capsys.readouterr().err.split())
+        assert exit_info.value.code == 2 and "Error parsing policy:" in stderr and reason in stderr, stderr
     assert "not a dust-rl dataset" in error_of(["train", "--dataset", str(tmp_path / "none"), "--out", str(out)])
     assert not out.exists()
 
@@ -143,3 +151,10 @@ def test_collect_privileged_state_reaches_the_env_and_the_dataset(tmp_path):
     rows = dataset.episode(0)
     objects = rows.get(("observation", "environment_state"))
     torch.testing.assert_close(rows.get(("observation", "state"))[:, -objects.shape[-1]:], objects, rtol=0, atol=0)
+
+
+def test_task_all_is_the_suite_of_the_env_ids_robot():
+    assert env_tasks("DustHumanoid-v0", "all") == list_tasks("humanoid") != list_tasks("franka")
+    assert env_tasks("DustFranka-v0", "press_button, open_drawer") == ["press_button", "open_drawer"]
+    with pytest.raises(ConfigError, match="unknown humanoid task 'press_button'"):
+        env_tasks("DustHumanoid-v0", "press_button")

@@ -11,7 +11,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
-from test_train import TINY_MODEL
+from test_train import tiny_policy
 
 from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
@@ -143,8 +143,8 @@ def test_training_runs_on_a_plain_lerobot_import(plain_import, tiny_encoder, tmp
     windows = DemoWindows(DemoDataset(imported), horizon=4, batch_size=8)
     assert windows.sample()["vla_action", "chunk"].shape == (8, 4, 7)
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
-    result = train(TrainConfig(dataset=imported, out=tmp_path / "run", image_encoder=str(encoder), steps=2,
-                               log_every=1, checkpoint_every=2, threads=1, progress=False, **TINY_MODEL))
+    result = train(TrainConfig(dataset=imported, out=tmp_path / "run", policy=tiny_policy(encoder), steps=2,
+                               batch_size=8, log_every=1, checkpoint_every=2, threads=1, progress=False))
     assert np.isfinite(result.final_loss)
     policy = unwrap(load_policy(result.policy))
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button"]

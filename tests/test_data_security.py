@@ -20,7 +20,16 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from dust_rl.agents import VARIANTS, CheckpointError, DustConfig, DustModel, load_policy, make_policy, save_policy
+from dust_rl.agents import (
+    VARIANTS,
+    CheckpointError,
+    DustConfig,
+    DustModel,
+    PolicyConfig,
+    load_policy,
+    make_policy,
+    save_policy,
+)
 from dust_rl.agents.hf_vision import build_transformers_config
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, collect_demos
@@ -96,8 +105,8 @@ CRAFTS = {"entry": _graft_entry, "disguised-subfolder": _disguise_subfolder, "ro
 def _read_with(entry: str, root: pathlib.Path, tmp_path: pathlib.Path, encoder: pathlib.Path) -> None:
     """Read the dataset at ``root`` the way one of the package's entry points does."""
     if entry == "train":
-        train(TrainConfig(dataset=root, out=tmp_path / "run", image_encoder=str(encoder), steps=1, threads=1,
-                          progress=False))
+        train(TrainConfig(dataset=root, out=tmp_path / "run", policy=PolicyConfig(image_encoder=str(encoder)), steps=1,
+                          threads=1, progress=False))
     elif entry == "collect-resume":  # one more episode, then the consolidated rows are read back
         collect_demos(root, tasks=["press_button"], episodes=4, env_kwargs={"image_size": 32}, progress=False)
     else:
@@ -306,7 +315,7 @@ def test_config_sizes_are_capped_before_anything_is_built(sizes, problem):
 def test_the_parameter_cap_counts_what_the_trunk_allocates(variant):
     config = DustConfig(variant=variant, d_model=48, n_heads=3, n_mmdit=3, n_dit=2, mlp_ratio=2.5, horizon=5,
                         vision_grid=(2, 3), state_dim=4, action_dim=3, vision_dim=7, cond_dim=20,
-                        keypoints=2, aux_state_dim=5, aux_state_input=variant == "dust")
+                        keypoints=2, aux_state_dim=5, lambda_aux=1.0, aux_state_input=variant == "dust")
     assert config.n_parameters == sum(p.numel() for p in DustModel(config).parameters())
 
 

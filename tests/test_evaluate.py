@@ -12,7 +12,7 @@ from dust_rl.agents import (
     AutoencoderConfig,
     CheckpointError,
     ConvAutoencoder,
-    DustConfig,
+    SamplerConfig,
     load_policy,
     make_policy,
     save_policy,
@@ -20,7 +20,7 @@ from dust_rl.agents import (
 )
 from dust_rl.data.video import read_mp4
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate import EvalConfig, evaluate, resolve_sampler, wilson_interval
+from dust_rl.evaluate import EvalConfig, describe_sampler, evaluate, wilson_interval
 from dust_rl.report import plot_loss_curves, read_scalar_csv
 from dust_rl.rollout_video import LABEL_HEIGHT, future_decoder
 
@@ -142,10 +142,8 @@ def test_bad_tasks_and_sampler_settings_fail_before_any_episode(policy_path, tmp
     config = EvalConfig(policy=policy_path, out=tmp_path / "eval")
     with pytest.raises(ConfigError, match="unknown franka task 'fly'.*press_button"):
         evaluate(dataclasses.replace(config, tasks=("press_button", "fly")))
-    with pytest.raises(ConfigError, match="multiple of n_action_steps"):
-        evaluate(dataclasses.replace(config, sampler="async", vision_steps=6))
     with pytest.raises(ConfigError, match="async sampler only"):
-        evaluate(dataclasses.replace(config, sampler="sync", vision_steps=8))
+        evaluate(dataclasses.replace(config, sampling=SamplerConfig("sync", vision_step_ratio=2)))
     with pytest.raises(ConfigError, match="episodes must be >= 1"):
         evaluate(dataclasses.replace(config, episodes=0))
     bare = tiny_policy_file(tmp_path / "bare.pt", minilm, info={})
@@ -154,20 +152,16 @@ def test_bad_tasks_and_sampler_settings_fail_before_any_episode(policy_path, tmp
     assert not (tmp_path / "eval").exists()
 
 
-def test_sampler_choice():
-    policy = DustConfig(n_action_steps=4, vision_step_ratio=2)
-    base = EvalConfig(policy=pathlib.Path("p.pt"))
-    assert resolve_sampler(policy, base).describe() == {"name": "async", "n_action_steps": 4, "vision_steps": 8}
-    scaled = dataclasses.replace(base, n_action_steps=2, vision_steps=16)
-    assert resolve_sampler(policy, scaled).vision_step_ratio == 8
-    assert resolve_sampler(policy, dataclasses.replace(base, sampler="sync")).describe()["vision_steps"] == 4
-    assert resolve_sampler(policy, dataclasses.replace(base, sampler="action_only")).describe()["vision_steps"] == 0
+def test_sampler_description_counts_vision_steps():
+    assert describe_sampler(SamplerConfig("async", 4, 2)) == {"name": "async", "n_action_steps": 4, "vision_steps": 8}
+    assert describe_sampler(SamplerConfig("sync", 4))["vision_steps"] == 4
+    assert describe_sampler(SamplerConfig("action_only", 4))["vision_steps"] == 0
 
 
 def test_no_predicted_future_without_a_prediction_or_a_decoder(policy_path):
     policy = unwrap(load_policy(policy_path))
     assert future_decoder(policy) is not None
-    policy.set_sampler("action_only")
+    policy.set_sampler(SamplerConfig("action_only"))
     assert future_decoder(policy) is None
 
 

@@ -21,7 +21,7 @@ def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, ti
     torch.manual_seed(0)
     policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                                 horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                keypoint_source="pixels", aux_state_dim=width))
+                                keypoint_source="pixels", aux_state_dim=width, lambda_aux=1.0))
     rows, instructions = render_aux_frames("DustFranka-v0", dataset.meta["env_kwargs"], dataset.tasks,
                                            policy.cameras, 4, width, progress=False)
     aux = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))

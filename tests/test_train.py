@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -10,7 +11,7 @@ import pytest
 import torch
 from conftest import kill_after_first_checkpoint
 
-from dust_rl.agents import load_policy, save_image_encoder, unwrap
+from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.data import DatasetError
 from dust_rl.errors import ConfigError
@@ -19,8 +20,9 @@ from dust_rl.train import TrainConfig, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-TINY_MODEL = {"horizon": 4, "execute_steps": 2, "d_model": 32, "n_heads": 2, "n_mmdit": 2, "n_dit": 0,
-              "batch_size": 8}
+TINY_POLICY = {"horizon": 4, "execute_steps": 2, "d_model": 32, "n_heads": 2, "n_mmdit": 2, "n_dit": 0}
+TINY_ARGS = ["--batch-size=8", *[f"--policy.{k.replace('_', '-')}={v}" for k, v in TINY_POLICY.items()]]
+POLICY_FIELDS = {f.name for f in dataclasses.fields(PolicyConfig)}
 
 
 @pytest.fixture
@@ -30,10 +32,17 @@ def run_inputs(demo_dir, tiny_encoder, tmp_path):
     return dataset, save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
 
 
+def tiny_policy(encoder, **overrides) -> PolicyConfig:
+    return PolicyConfig(**{**TINY_POLICY, "image_encoder": str(encoder), **overrides})
+
+
 def tiny_config(run_inputs, out, **overrides) -> TrainConfig:
+    """A tiny run; overrides naming a :class:`PolicyConfig` field go to the policy."""
     dataset, encoder = run_inputs
-    fields = {**TINY_MODEL, "steps": 12, "log_every": 3, "checkpoint_every": 4, "threads": 1, "progress": False}
-    return TrainConfig(dataset=dataset, out=out, image_encoder=encoder, **(fields | overrides))
+    fields = {"batch_size": 8, "steps": 12, "log_every": 3, "checkpoint_every": 4, "threads": 1,
+              "progress": False} | {k: v for k, v in overrides.items() if k not in POLICY_FIELDS}
+    policy = tiny_policy(encoder, **{k: v for k, v in overrides.items() if k in POLICY_FIELDS})
+    return TrainConfig(dataset=dataset, out=out, policy=policy, **fields)
 
 
 def trained_weights(path) -> dict[str, torch.Tensor]:
@@ -123,7 +132,7 @@ def test_training_logs_the_aux_frame_loss(run_inputs, tmp_path):
                       aux_frames=3))
     step, value = (out / "logs" / "train" / "scalars" / "train" / "loss_aux_frames.csv").read_text().split(",")
     assert int(step) == 2 and float(value) > 0
-    with pytest.raises(ConfigError, match="aux_frames needs --lambda-aux > 0 and --keypoint-source pixels"):
+    with pytest.raises(ConfigError, match="aux_frames needs --policy.lambda-aux > 0 and --policy.keypoint-source"):
         tiny_config(run_inputs, out, keypoints=2, lambda_aux=1.0, aux_frames=3)
     pixels = {"keypoints": 2, "keypoint_source": "pixels", "lambda_aux": 1.0}
     with pytest.raises(ConfigError, match="aux_expert_fraction needs --aux-frames"):
@@ -158,9 +167,9 @@ def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
     reference = train(tiny_config(run_inputs, tmp_path / "ref", steps=steps, checkpoint_every=50))
     out = tmp_path / "killed"
     dataset, encoder = run_inputs
-    args = ["train", "--dataset", str(dataset), "--out", str(out), "--image-encoder", str(encoder),
-            "--steps", str(steps), "--checkpoint-every", "50", "--log-every", "3", "--threads", "1", "--no-progress"]
-    args += [f"--{k.replace('_', '-')}={v}" for k, v in TINY_MODEL.items()]
+    args = ["train", "--dataset", str(dataset), "--out", str(out), "--policy.image-encoder", str(encoder),
+            "--steps", str(steps), "--checkpoint-every", "50", "--log-every", "3", "--threads", "1", "--no-progress",
+            *TINY_ARGS]
     kill_after_first_checkpoint(args, out)
     assert not (out / "policy.pt").exists()
 
@@ -186,9 +195,9 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
 
 
 def test_bad_training_input_is_named(run_inputs, tmp_path):
-    with pytest.raises(ConfigError, match=r"execute_steps must be in \[1, horizon=4\], got 9"):
-        train(tiny_config(run_inputs, tmp_path / "a", execute_steps=9))
-    with pytest.raises(ConfigError, match="lambda_aux needs --keypoints"):
+    with pytest.raises(ValueError, match=r"execute_steps must be in \[1, horizon=4\], got 9"):
+        tiny_config(run_inputs, tmp_path / "a", execute_steps=9)
+    with pytest.raises(ValueError, match="lambda_aux needs keypoints"):
         tiny_config(run_inputs, tmp_path / "a", lambda_aux=1.0)
     dataset, _ = run_inputs
     meta = json.loads((dataset / "meta.json").read_text())

@@ -185,3 +185,11 @@ def test_encoder_check_command_writes_probe_per_camera(demo_dir, tmp_path, capsy
         assert result["heldout_rows"] > 0 and result["train_rows"] > result["heldout_rows"]
     assert (tmp_path / "check" / "probe.png").stat().st_size > 0
     assert "front: held-out R^2" in capsys.readouterr().out
+
+
+def test_encoder_info_command_reports_the_grid_and_cache_size(capsys):
+    main(["encoder", "info", "--image-encoder", "efficientnet-lite0", "--frames", "2"])
+    printed = capsys.readouterr().out
+    # 8x8 tokens of 112 channels in float16: 1,000 frames hold 1000 * 64 * 112 * 2 bytes = 13.7 MiB.
+    assert "128 px -> 8x8 tokens of 112" in printed and "13.7 MiB per 1,000 frames" in printed
+    assert float(printed.split(" ms/frame")[0].rsplit(" ", 1)[-1]) > 0

@@ -1,0 +1,358 @@
+"""The data and encoder commands of ``dust-rl``: one dataclass of arguments per command, and its runner.
+
+Training, evaluation, fine-tuning and the quickstart keep their configs beside their code
+(:mod:`dust_rl.train`, :mod:`dust_rl.evaluate`, :mod:`dust_rl.finetune`, :mod:`dust_rl.quickstart`);
+:mod:`dust_rl.cli` parses all of them with tyro. A task list is a name, comma-separated names or
+``all``, the suite of the env's robot (the env id implies the robot).
+"""
+
+from __future__ import annotations
+
+import pathlib
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+import tyro
+
+from dust_rl.env_factory import DEFAULT_ENV_ID, env_tasks
+from dust_rl.errors import ConfigError, check_at_least
+
+
+@dataclass
+class DemoCommand:
+    """Run the scripted expert in closed loop with cameras and save an MP4 per task."""
+
+    env: str = DEFAULT_ENV_ID
+    """Gymnasium env id (its robot's suite is what ``--task all`` means)."""
+    task: str = "pick_place"
+    """Task name, comma-separated names, or ``all``."""
+    episodes: int = 2
+    """Episodes per task."""
+    seed: int = 0
+    """Seed of the first episode."""
+    image_size: int = 128
+    """Camera resolution."""
+    out: pathlib.Path = pathlib.Path("runs/demo")
+    """Folder for one MP4 per task and summary.json."""
+
+
+def run_demo(config: DemoCommand, command_line: str) -> None:
+    from dust_rl.atomic_files import write_json_atomic
+    from dust_rl.data.video import write_mp4
+    from dust_rl.env_factory import make_env
+    from dust_rl.expert_rollouts import run_expert_episode
+
+    check_at_least(config, 1, "episodes")
+    check_at_least(config, 0, "seed")
+    summary = []
+    for task in env_tasks(config.env, config.task):
+        env = make_env(config.env, {"task": task, "image_size": config.image_size}).unwrapped
+        frames, results = [], []
+        for seed in range(config.seed, config.seed + config.episodes):
+            result = run_expert_episode(env, seed, record=True)
+            frames += result.frames
+            results.append(result)
+            print(f"{task} seed {seed}: success={result.success} steps={result.length} "
+                  f"instruction={result.instruction!r}")
+        video = config.out / f"{task}.mp4"
+        write_mp4(video, frames, env.metadata["render_fps"], pad_odd=True)
+        env.close()
+        summary.append({"task": task, "episodes": len(results),
+                        "successes": sum(r.success for r in results), "video": str(video)})
+    write_json_atomic(config.out / "summary.json", summary, indent=2)
+    for row in summary:
+        print(f"{row['task']}: {row['successes']}/{row['episodes']} successful; video: {row['video']}")
+    print(f"summary: {config.out / 'summary.json'}")
+
+
+@dataclass
+class ExpertTableCommand:
+    """Measure every task's scripted expert over many seeds and print a markdown table."""
+
+    env: str = DEFAULT_ENV_ID
+    """Gymnasium env id."""
+    task: str = "all"
+    """Task name, comma-separated names, or ``all``."""
+    seeds: int = 50
+    """Episodes (seeds 0..N-1) per task."""
+    out: pathlib.Path | None = None
+    """Also write the table (.md) and rows (.json) here."""
+
+
+def run_expert_table(config: ExpertTableCommand, command_line: str) -> None:
+    from dust_rl.atomic_files import write_json_atomic, write_text_atomic
+    from dust_rl.expert_rollouts import expert_success_table, format_table
+
+    check_at_least(config, 1, "seeds")
+    rows = expert_success_table(config.env, env_tasks(config.env, config.task), config.seeds)
+    table = format_table(rows)
+    print(table)
+    if config.out:
+        write_text_atomic(config.out, table + "\n")
+        write_json_atomic(config.out.with_suffix(".json"), rows, indent=2)
+
+
+@dataclass
+class CollectCommand:
+    """Collect scripted-expert demonstrations into a dataset folder (re-run the same command to resume)."""
+
+    out: pathlib.Path
+    """Dataset folder (an existing one is resumed)."""
+    env: str = DEFAULT_ENV_ID
+    """Gymnasium env id."""
+    task: str = "pick_place"
+    """Task name, comma-separated names, or ``all``."""
+    episodes: int = 100
+    """Successful episodes per task."""
+    workers: int = 1
+    """Env processes."""
+    seed: int = 0
+    """First episode seed of every task."""
+    image_size: int = 128
+    """Camera resolution."""
+    cameras: tuple[str, ...] = ()
+    """Cameras to record (default: all of the robot's)."""
+    noise_std: float = 0.0
+    """DART: Gaussian noise on the executed action; the label stays the expert's."""
+    keep_failed: bool = False
+    """Also store failed episodes."""
+    privileged_state: bool = False
+    """Append the objects' state to observation.state: an oracle (policies trained on it need not see the
+    objects; compare with an image-only dataset to measure what perception costs)."""
+
+
+def run_collect(config: CollectCommand, command_line: str) -> None:
+    from dust_rl.data import DemoDataset, collect_demos
+    from dust_rl.data.tools import dataset_summary
+
+    env_kwargs: dict = {"image_size": config.image_size}
+    if config.cameras:
+        env_kwargs["cameras"] = list(config.cameras)
+    if config.privileged_state:
+        env_kwargs["privileged_state"] = True
+    collect_demos(config.out, config.env, env_tasks(config.env, config.task), config.episodes,
+                  env_kwargs=env_kwargs, workers=config.workers, start_seed=config.seed, noise_std=config.noise_std,
+                  keep_failed=config.keep_failed)
+    print(dataset_summary(DemoDataset(config.out)))
+
+
+@dataclass
+class DatasetInfo:
+    """Summarise a dataset: episodes, tasks, lengths, success, sizes."""
+
+    dir: tyro.conf.Positional[pathlib.Path]
+    """Dataset folder."""
+
+    def run(self) -> None:
+        from dust_rl.data import DemoDataset
+        from dust_rl.data.tools import dataset_summary
+
+        print(dataset_summary(DemoDataset(self.dir)))
+
+
+@dataclass
+class DatasetVideo:
+    """Write an MP4 grid of a dataset's episodes."""
+
+    dir: tyro.conf.Positional[pathlib.Path]
+    """Dataset folder."""
+    out: pathlib.Path
+    """MP4 file."""
+    episodes: int = 16
+    """Show the first N episodes."""
+    columns: int = 4
+    """Episodes side by side."""
+
+    def run(self) -> None:
+        from dust_rl.data import DemoDataset
+        from dust_rl.data.tools import write_episode_grid
+
+        check_at_least(self, 1, "episodes", "columns")
+        dataset = DemoDataset(self.dir)
+        print(write_episode_grid(dataset, self.out, range(min(self.episodes, dataset.num_episodes)),
+                                 columns=self.columns))
+
+
+@dataclass
+class DatasetExport:
+    """Export a dataset to another format (LeRobotDataset v3.0)."""
+
+    dir: tyro.conf.Positional[pathlib.Path]
+    """Dataset folder."""
+    out: pathlib.Path
+    """New folder."""
+    format: Literal["lerobot"] = "lerobot"
+    """Target format."""
+    crf: int = 18
+    """H.264 quality (0 = lossless luma, 18 = near-transparent)."""
+
+    def run(self) -> None:
+        from dust_rl.data import DemoDataset
+        from dust_rl.data.lerobot_export import export_lerobot
+
+        if not 0 <= self.crf <= 51:
+            raise ConfigError(f"crf must be in [0, 51] (H.264 quality), got {self.crf}")
+        print(export_lerobot(DemoDataset(self.dir), self.out, crf=self.crf))
+
+
+@dataclass
+class DatasetImport:
+    """Import a LeRobotDataset v3.0 folder as a new dataset."""
+
+    source: tyro.conf.Positional[pathlib.Path]
+    """LeRobotDataset v3.0 folder."""
+    out: pathlib.Path
+    """New dataset folder."""
+    env: str | None = None
+    """Env the data was recorded in (needed without meta/dust_rl.json)."""
+    task: str | None = None
+    """The env task of every episode (with --env)."""
+    image_size: int | None = None
+    """Env image size matching the videos (with --env)."""
+    cameras: tuple[str, ...] = ()
+    """Env cameras matching the videos (with --env)."""
+
+    def run(self) -> None:
+        from dust_rl.data.lerobot_import import import_lerobot
+
+        env_kwargs: dict = {} if self.image_size is None else {"image_size": self.image_size}
+        if self.cameras:
+            env_kwargs["cameras"] = list(self.cameras)
+        import_lerobot(self.source, self.out, env_id=self.env, task=self.task, env_kwargs=env_kwargs)
+        print(self.out)
+
+
+@dataclass
+class DatasetCommand:
+    """Inspect, export and import demonstration datasets."""
+
+    action: (Annotated[DatasetInfo, tyro.conf.subcommand("info")]
+             | Annotated[DatasetVideo, tyro.conf.subcommand("video")]
+             | Annotated[DatasetExport, tyro.conf.subcommand("export")]
+             | Annotated[DatasetImport, tyro.conf.subcommand("import")])
+    """What to do with the dataset."""
+
+
+def run_dataset(config: DatasetCommand, command_line: str) -> None:
+    config.action.run()
+
+
+@dataclass
+class PretrainEncoderCommand:
+    """Pretrain the frozen image encoder (conv autoencoder) on dataset frames and write it to one file."""
+
+    dataset: tuple[pathlib.Path, ...]
+    """Dataset folders."""
+    out: pathlib.Path
+    """Encoder file (written atomically)."""
+    steps: int = 3000
+    """Optimiser steps."""
+    batch_size: int = 64
+    """Frames per step."""
+    lr: float = 2e-3
+    """Learning rate."""
+    seed: int = 0
+    """Seed of the weights and batches."""
+    image_size: int = 128
+    """Frames are resized to this."""
+    grid: int = 4
+    """Latent token grid side."""
+    dim: int = 64
+    """Token size."""
+    width: int = 16
+    """Channels of the first conv stage."""
+
+
+def run_pretrain_encoder(config: PretrainEncoderCommand, command_line: str) -> None:
+    from dust_rl.agents import AutoencoderConfig
+    from dust_rl.data import DemoDataset
+    from dust_rl.pretrain_encoder import pretrain_encoder
+
+    if not config.dataset:
+        raise ConfigError("give at least one --dataset folder")
+    encoder = AutoencoderConfig(image_size=config.image_size, latent_grid=config.grid, dim=config.dim,
+                                width=config.width)
+    report = pretrain_encoder([DemoDataset(d) for d in config.dataset], config.out, encoder, steps=config.steps,
+                              batch_size=config.batch_size, lr=config.lr, seed=config.seed, command=command_line)
+    heldout = "n/a" if report.heldout_loss is None else f"{report.heldout_loss:.5f}"
+    print(f"{report.path}: {report.steps} steps in {report.seconds:.0f} s on {report.train_frames} frames; "
+          f"pixel MSE train {report.train_loss:.5f}, held-out {heldout}")
+
+
+@dataclass
+class EncoderCheck:
+    """Linear probes: how well each camera's frozen tokens give the objects' positions (probe.json, probe.png)."""
+
+    dataset: pathlib.Path
+    """Dataset folder (its rows hold the objects' positions)."""
+    image_encoder: str | None = None
+    """Encoder name or file (default: the policies' default)."""
+    grid: tuple[int, int] | None = None
+    """Token grid (default: the encoder's own)."""
+    every: int = 8
+    """Probe every n-th row."""
+    out: pathlib.Path = pathlib.Path("runs/encoder_check")
+    """Folder for probe.json and probe.png."""
+
+    def run(self) -> None:
+        from dust_rl.agents.backbone import resolve_image_encoder
+        from dust_rl.data import DemoDataset
+        from dust_rl.encoder_check import probe_dataset, write_encoder_check
+
+        check_at_least(self, 1, "every")
+        dataset, encoder = DemoDataset(self.dataset), resolve_image_encoder(self.image_encoder)
+        grid = tuple(self.grid) if self.grid else encoder.native_grid()
+        results = probe_dataset(dataset, encoder, grid, every=self.every)
+        title = f"{self.image_encoder or 'default encoder'}, {grid[0]}x{grid[1]} tokens, {dataset.root.name}"
+        paths = write_encoder_check(results, self.out, title)
+        for camera, result in results.items():
+            values = " ".join(f"{v:.2f}" for v in result.r2.tolist())
+            print(f"{camera}: held-out R^2 per environment-state column [{values}] (mean {result.r2.mean():.2f})")
+        print(f"{paths['plot']}\n{paths['json']}")
+
+
+@dataclass
+class EncoderInfo:
+    """An image encoder's size, token grid, speed on this machine and feature-cache size per 1,000 frames."""
+
+    image_encoder: str | None = None
+    """Encoder name or file (default: the policies' default)."""
+    frames: int = 32
+    """Frames per timed batch (the median of 5 batches is reported)."""
+
+    def run(self) -> None:
+        import statistics
+        import time
+
+        import torch
+
+        from dust_rl.agents.backbone import resolve_image_encoder
+
+        check_at_least(self, 1, "frames")
+        encoder = resolve_image_encoder(self.image_encoder)
+        grid = encoder.native_grid()
+        images = torch.randint(0, 256, (self.frames, 3, encoder.image_size, encoder.image_size), dtype=torch.uint8)
+        seconds = []
+        with torch.no_grad():
+            for _ in range(6):  # the first call warms up and is not counted
+                began = time.perf_counter()
+                encoder.feature_map(images.float() / 255)
+                seconds.append(time.perf_counter() - began)
+        cache = 1000 * grid[0] * grid[1] * encoder.dim * 2  # float16 tokens of one camera
+        print(f"{self.image_encoder or 'default encoder'}: {sum(p.numel() for p in encoder.parameters()):,} "
+              f"parameters, {encoder.image_size} px -> {grid[0]}x{grid[1]} tokens of {encoder.dim}; "
+              f"{1e3 * statistics.median(seconds[1:]) / self.frames:.2f} ms/frame at {torch.get_num_threads()} "
+              f"threads; feature cache {cache / 2**20:.1f} MiB per 1,000 frames per camera")
+
+
+@dataclass
+class EncoderCommand:
+    """Diagnose frozen image encoders."""
+
+    action: (Annotated[EncoderCheck, tyro.conf.subcommand("check")]
+             | Annotated[EncoderInfo, tyro.conf.subcommand("info")])
+    """What to report."""
+
+
+def run_encoder(config: EncoderCommand, command_line: str) -> None:
+    config.action.run()
