@@ -1,11 +1,10 @@
-"""DUST agents: dual-stream flow-matching trunk, baselines, samplers, losses, frozen backbone, torchrl policy."""
+"""DUST agents: the dual-stream trunk with its loss and sampler, baselines, frozen backbone, torchrl policy."""
 
 from .autoencoder import AutoencoderConfig, ConvAutoencoder
 from .backbone import FrozenBackbone, load_image_encoder, save_image_encoder
 from .batch import random_batch
 from .checkpoint_io import CheckpointError
 from .config import VARIANTS, DustConfig, ModelConfig, PolicyConfig, SamplerConfig
-from .dust_agent import DustAgent
 from .dust_model import ChunkContext, DustModel
 from .execution import ChunkExecutor
 from .factory import env_spec, load_policy, make_policy, save_policy, unwrap
@@ -24,7 +23,6 @@ __all__ = [
     "ChunkExecutor",
     "ConvAutoencoder",
     "DenoiseStep",
-    "DustAgent",
     "DustConfig",
     "DustModel",
     "DustPolicy",

@@ -1,6 +1,6 @@
 """Random batches in the agent's TensorDict layout, for smoke tests and benchmarks.
 
-The layout itself (keys, shapes) is documented in :mod:`.dust_agent`.
+The layout itself (keys, shapes) is documented in :mod:`.dust_model`.
 """
 
 from __future__ import annotations

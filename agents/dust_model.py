@@ -20,22 +20,61 @@ Timesteps reach the blocks only through AdaLN. Each stream of a two-stream
 model has its own timestep embedder and modulation weights, fed by its own
 tau only; the single-stream ``"decoupled"`` variant gives every token the
 modulation of its own modality's tau.
+
+Besides the velocity network, the model holds DUST's decoupled
+flow-matching loss (:meth:`DustModel.compute_loss`) and chunk sampling
+(:meth:`DustModel.predict_action`, the sampler schedule given at call time)
+on encoded, normalised inputs; the frozen backbone and the torchrl policy
+live in :mod:`.policy`. Names follow diffusion_policy.
+
+TensorDict keys (B = batch size):
+
+=====================  ===================  =====================================================
+key                    shape / dtype        meaning
+=====================  ===================  =====================================================
+``cond_tokens``        [B, Nc, Dc] float    backbone condition tokens (image + language)
+``cond_mask``          [B, Nc] bool         optional; True where a condition token is valid
+``state``              [B, Ds] float        normalised proprioceptive state
+``action_chunk``       [B, H, Da] float     normalised action chunk (training; output of predict)
+``action_is_pad``      [B, H] bool          optional; True for entries past the episode end
+``has_action``         [B] bool             optional; False for action-free (video-only) samples
+``future_tokens``      [B, N_o, Dv] float   frozen embedding of the frame after the chunk (t+H);
+                                            training target, and predicted by ``predict_action``
+``future_is_clamped``  [B] bool             optional; True where t+H lies past the episode's last
+                                            stored row, so ``future_tokens`` hold that row instead
+=====================  ===================  =====================================================
+
+``action_is_pad`` entries and action-free samples are left out of the action
+loss, and clamped futures out of the vision loss: the last stored row is the
+observation before the final action, not the frame H steps on, and a padded
+chunk's repeated actions are no more real than that frame.
+
+An action-free sample also gets pure-noise action tokens (tau_A = 0 in
+the decoupled variants, as UWM does), so the vision stream learns the future
+marginalised over actions, and the sampler's first steps (tau_A = 0) see the
+same input distribution.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
+from tensordict import TensorDict
 from torch import Tensor, nn
 
 from .adaln import Modulation
 from .config import DustConfig
 from .embeddings import TimestepEmbedder, TokenDecoder, TokenEncoder, sincos_positions_1d, sincos_positions_2d
+from .flow_matching import action_validity, decoupled_loss, interpolate, sample_tau, velocity_target
 from .mmdit import KV, AttentionKind, Block
+from .samplers import DenoiseStep, run_schedule
 
 MODS_PER_BLOCK = 6  # shift, scale, gate for attention, then for the MLP
+ACTION_STREAM, VISION_STREAM = 0, 1  # rows of the stacked streams of a two-stream model
+ALL_STREAMS = slice(None)
 SCALE_SLOTS = (1, 4)
 
 
@@ -176,35 +215,54 @@ class DustModel(nn.Module):
         """
         need_vision = need_vision and noisy_vision is not None
         mods = self.modulation(F.silu(self.time_embed(self._stream_taus(tau_a, tau_o))), self.token_modality)
-        x = self._tokens(ctx, noisy_action, noisy_vision)
-        everything = slice(None)
-        keep = everything
-        if self.n_streams == 2 and not (need_action and need_vision):
-            keep = slice(0 if need_action else 1, 2 if need_vision else 1)
-        streams = everything
+        x, streams = self._run_blocks(self._tokens(ctx, noisy_action, noisy_vision), mods, ctx,
+                                      self._needed_streams(need_action, need_vision))
+        shift, scale = mods[-2], mods[-1]  # the decoders' AdaLN vectors
+        if self.n_streams == 2:
+            return self._decode_streams(x, streams, shift, scale, need_action, need_vision)
+        return self._decode_single_stream(x, shift, scale, need_action, need_vision)
+
+    def _needed_streams(self, need_action: bool, need_vision: bool) -> slice:
+        """The streams whose output is needed: only those run past the last joint block (two streams)."""
+        if self.n_streams == 1:
+            return ALL_STREAMS
+        first = ACTION_STREAM if need_action else VISION_STREAM
+        return slice(first, (VISION_STREAM if need_vision else ACTION_STREAM) + 1)
+
+    def _run_blocks(self, x: Tensor, mods: list[Tensor], ctx: ChunkContext, needed: slice) -> tuple[Tensor, slice]:
+        """Tokens [S', B, N, d] after every block, and which streams S' they are (``needed`` after the last joint
+        block: a stream nothing reads any more is dropped there)."""
+        streams = ALL_STREAMS
         for i, (block, kv) in enumerate(zip(self.blocks, ctx.cross_kv)):
-            if i == self.last_joint_block + 1 and keep != everything:
-                streams = keep
-                x = x[keep]
+            if i == self.last_joint_block + 1 and needed != ALL_STREAMS:
+                streams = needed
+                x = x[needed]
             block_mods = mods[MODS_PER_BLOCK * i : MODS_PER_BLOCK * (i + 1)]
-            if streams != everything:
+            if streams != ALL_STREAMS:
                 block_mods = [m[streams] for m in block_mods]
             x = block(x, block_mods, kv, ctx.cond_mask, self.key_valid, streams)
+        return x, streams
 
-        # Decoders: tokens and AdaLN vectors of each modality, in stream s = row s of x (two streams)
-        # or in token ranges of the single stream.
-        shift, scale = mods[-2], mods[-1]
-        n_a = self.n_action_tokens
+    def _decode_streams(self, x: Tensor, streams: slice, shift: Tensor, scale: Tensor, need_action: bool,
+                        need_vision: bool) -> tuple[Tensor | None, Tensor | None]:
+        """Velocities of a two-stream model: each modality is its own stream, decoded with that stream's AdaLN."""
+        present = range(2)[streams]  # stream index -> row of x
         v_a = v_o = None
-        if self.n_streams == 2:
-            present = range(2)[streams]
-            if need_action:
-                v_a = self.action_out(x[present.index(0), :, 1:n_a], shift[0], scale[0])
-            if need_vision:
-                n_o = self.config.n_vision_tokens
-                v_o = self.vision_out(x[present.index(1), :, :n_o], shift[1], scale[1])
-            return v_a, v_o
+        if need_action:
+            row = present.index(ACTION_STREAM)
+            v_a = self.action_out(x[row, :, 1:self.n_action_tokens], shift[ACTION_STREAM], scale[ACTION_STREAM])
+        if need_vision:
+            row = present.index(VISION_STREAM)
+            v_o = self.vision_out(x[row, :, :self.config.n_vision_tokens], shift[VISION_STREAM], scale[VISION_STREAM])
+        return v_a, v_o
+
+    def _decode_single_stream(self, x: Tensor, shift: Tensor, scale: Tensor, need_action: bool,
+                              need_vision: bool) -> tuple[Tensor | None, Tensor | None]:
+        """Velocities of a single-stream model: the modalities are token ranges of stream 0 (decoded with the
+        AdaLN vector of each token's own modality in the decoupled variant, one shared vector otherwise)."""
+        n_a = self.n_action_tokens
         per_token = shift.shape[2] > 1
+        v_a = v_o = None
         if need_action:
             rows = slice(1, n_a) if per_token else slice(None)
             v_a = self.action_out(x[0, :, 1:n_a], shift[0, :, rows], scale[0, :, rows])
@@ -212,3 +270,73 @@ class DustModel(nn.Module):
             rows = slice(n_a, None) if per_token else slice(None)
             v_o = self.vision_out(x[0, :, n_a:], shift[0, :, rows], scale[0, :, rows])
         return v_a, v_o
+
+    def compute_loss(self, batch: TensorDict, generator: torch.Generator | None = None) -> TensorDict:
+        """Decoupled flow-matching loss of one batch.
+
+        Args:
+            batch: keys listed in the module docstring (``future_tokens`` unused by action_only).
+            generator: random source of tau and noise (tau_A, tau_o, eps_A, eps_o in that order).
+
+        Returns:
+            TensorDict with scalar ``loss`` (to minimise), ``loss_action`` and ``loss_vision``.
+        """
+        cfg = self.config
+        action = batch["action_chunk"]
+        b, device = action.shape[0], action.device
+        has_action = batch.get("has_action", None)
+        valid = action_validity(b, cfg.horizon, has_action, batch.get("action_is_pad", None), device)
+        ctx = self.encode_context(batch["state"], batch["cond_tokens"], batch.get("cond_mask", None))
+
+        tau_a = sample_tau(b, s=cfg.tau_s, alpha=cfg.tau_alpha, generator=generator, device=device)
+        tau_o = sample_tau(b, s=cfg.tau_s, alpha=cfg.tau_alpha, generator=generator, device=device)
+        if not cfg.decoupled:
+            tau_o = tau_a
+        eps_a = torch.randn(action.shape, generator=generator, device=device)
+        noisy_action = interpolate(action, eps_a, tau_a)
+        if has_action is not None:
+            # No action to interpolate towards: the action tokens are pure noise.
+            noisy_action = torch.where(has_action.view(-1, 1, 1), noisy_action, eps_a)
+            if cfg.decoupled:
+                tau_a = torch.where(has_action, tau_a, 0.0)
+
+        noisy_vision = target_vision = None
+        if cfg.has_vision:
+            future = batch["future_tokens"]
+            eps_o = torch.randn(future.shape, generator=generator, device=device)
+            noisy_vision = interpolate(future, eps_o, tau_o)
+            target_vision = velocity_target(future, eps_o)
+        v_a, v_o = self(ctx, noisy_action, noisy_vision, tau_a, tau_o if cfg.has_vision else None)
+        clamped = batch.get("future_is_clamped", None)
+        losses = decoupled_loss(v_a, velocity_target(action, eps_a), valid, v_o, target_vision, cfg.lambda_wm,
+                                None if clamped is None else ~clamped)
+        return TensorDict(losses, batch_size=[])
+
+    @torch.no_grad()
+    def predict_action(
+        self,
+        obs: TensorDict,
+        schedule: list[DenoiseStep],
+        generator: torch.Generator | None = None,
+        callback: Callable[[DenoiseStep, torch.Tensor, torch.Tensor | None], None] | None = None,
+    ) -> TensorDict:
+        """Sample an action chunk (and, with a vision stream, the predicted future tokens).
+
+        Args:
+            obs: ``state``, ``cond_tokens`` and optionally ``cond_mask`` and ``action_noise`` [B, H, Da]
+                (the initial action noise, :func:`.samplers.run_schedule`).
+            schedule: the sampler's steps (:func:`.samplers.schedule_for`), e.g. ``async_schedule(4, 8)`` for
+                test-time scaling to N_o = 32 vision steps.
+            generator: random source of the initial noise; same seed, same chunk.
+            callback: called after every denoising step (see :func:`.samplers.run_schedule`).
+
+        Returns:
+            TensorDict [B] with ``action_chunk`` [B, H, Da] and, unless action_only,
+            ``future_tokens`` [B, N_o, Dv].
+        """
+        ctx = self.encode_context(obs["state"], obs["cond_tokens"], obs.get("cond_mask", None))
+        action, vision = run_schedule(self, ctx, schedule, generator, callback, obs.get("action_noise", None))
+        out = {"action_chunk": action}
+        if vision is not None:
+            out["future_tokens"] = vision
+        return TensorDict(out, batch_size=[ctx.batch_size])

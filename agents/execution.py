@@ -9,16 +9,27 @@ policy when its step counter reaches ``execute_steps`` or the env was reset
 With a vision stream the predicted future is cached the same way, so every
 executed step carries ``("dust", "future_tokens")``: the future predicted at
 its latest re-plan.
+
+Given a ``seed_key``, the executor also restarts its sampling noise from the
+episode's seed at every reset (:func:`episode_generator`), so an episode's
+outcome depends on its seed only, whatever the number of env processes and
+the order they ran their episodes in.
 """
 
 from __future__ import annotations
 
-from tensordict import TensorDictBase
+import torch
+from tensordict import NestedKey, TensorDictBase
 from torchrl.modules import MultiStepActorWrapper
 
 from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, FUTURE_CHUNK_KEY, PREDICTED_FUTURE_KEY
 
 from .policy import DustPolicy
+
+
+def episode_generator(seed: int) -> torch.Generator:
+    """The sampling-noise generator of the episode reset with ``seed``."""
+    return torch.Generator().manual_seed(int(seed))
 
 
 class ChunkExecutor(MultiStepActorWrapper):
@@ -30,20 +41,39 @@ class ChunkExecutor(MultiStepActorWrapper):
     Args:
         policy: the chunk policy.
         execute_steps: actions executed per chunk before re-planning, in [1, H].
+        seed_key: where the env writes its episode seed (e.g. ``"episode_seed"``); at every reset the noise
+            then restarts from it. None: the noise comes from torch's global generator.
     """
 
-    def __init__(self, policy: DustPolicy, execute_steps: int) -> None:
+    def __init__(self, policy: DustPolicy, execute_steps: int, seed_key: NestedKey | None = None) -> None:
         keys = {}
         if policy.writes_future:  # the predicted future travels with the chunk (see DustPolicy.forward)
             keys = {"action_keys": [ACTION_KEY, PREDICTED_FUTURE_KEY],
                     "chunk_keys": [ACTION_CHUNK_KEY, FUTURE_CHUNK_KEY]}
         super().__init__(policy, n_steps=policy.chunk_size, replan_interval=execute_steps, **keys)
+        self.seed_key = seed_key
+        self.generator = episode_generator(0)
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        return super().in_keys + ([] if self.seed_key is None else [self.seed_key])
 
     @property
     def policy(self) -> DustPolicy:
         return self.actor
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self.seed_key is None:
+            return self._execute(tensordict)
+        if tensordict.get("is_init").any():
+            self.generator = episode_generator(int(tensordict.get(self.seed_key)))
+        with torch.random.fork_rng(devices=[]):  # the policy draws from the global generator: lend it ours
+            torch.set_rng_state(self.generator.get_state())
+            out = self._execute(tensordict)
+            self.generator.set_state(torch.get_rng_state())
+        return out
+
+    def _execute(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.batch_dims:
             return super().forward(tensordict)
         return tensordict.update(super().forward(tensordict.unsqueeze(0)).squeeze(0))

@@ -28,6 +28,7 @@ from .policy import DustPolicy
 from .text_encoder import TextEncoder, TransformersTextEncoder
 
 POLICY_KIND = "dust-rl-policy"
+LEGACY_TRUNK_PREFIX = "agent.model."
 
 
 def env_spec(env: EnvBase) -> dict:
@@ -152,7 +153,7 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
         backbone = FrozenBackbone.from_reference(payload["backbone"], payload["image_weights"])
         policy = DustPolicy(config, backbone, cameras, payload["future_camera"],
                             execute_steps or payload["execute_steps"])
-        missing, unexpected = policy.load_state_dict(payload["state_dict"], strict=False)
+        missing, unexpected = policy.load_state_dict(_current_names(payload["state_dict"]), strict=False)
         policy.info = dict(payload.get("info", {}))
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{path}: policy does not load ({type(err).__name__}: {err})") from err
@@ -164,6 +165,13 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
     if env is not None:
         check_fits_env(policy, env, path)
     return ChunkExecutor(policy, policy.execute_steps)
+
+
+def _current_names(state_dict: dict) -> dict:
+    """Weights named as today: files written before the trunk's loss and sampler moved into ``DustModel`` (no
+    ``DustAgent`` layer in between) store the trunk under ``agent.model.``."""
+    return {f"model.{k.removeprefix(LEGACY_TRUNK_PREFIX)}" if k.startswith(LEGACY_TRUNK_PREFIX) else k: v
+            for k, v in state_dict.items()}
 
 
 def check_fits_env(policy: DustPolicy, env: EnvBase, source: object = "policy") -> None:

@@ -56,7 +56,7 @@ from dust_rl.keys import (
 from .backbone import FrozenBackbone
 from .condition import ConditionProjector
 from .config import DustConfig, SamplerConfig
-from .dust_agent import DustAgent
+from .dust_model import DustModel
 from .image_encoder import pool_tokens
 from .normalizer import Normalizer
 from .samplers import schedule_for
@@ -120,7 +120,8 @@ class DustPolicy(VLAWrapperBase):
         self.condition = ConditionProjector(len(cameras), config.condition_grid, backbone.image_dim,
                                             backbone.text_dim, config.cond_dim, config.keypoints,
                                             config.keypoint_source)
-        self.agent = DustAgent(config)
+        self.config = config  # the policy's own: set_sampler replaces it; the model reads only its model fields
+        self.model = DustModel(config)
         if config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
                                               config.aux_state_dim)
@@ -128,10 +129,6 @@ class DustPolicy(VLAWrapperBase):
         self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
         self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
         self.info: dict = {}
-
-    @property
-    def config(self) -> DustConfig:
-        return self.agent.config
 
     def _update_keys(self) -> None:
         super()._update_keys()
@@ -152,8 +149,7 @@ class DustPolicy(VLAWrapperBase):
         Raises:
             ValueError: the sampler does not apply to the variant (e.g. async sampling of one shared timestep).
         """
-        cfg = dataclasses.replace(self.agent.config, **dataclasses.asdict(sampler))
-        self.agent.config, self.agent.schedule = cfg, schedule_for(cfg)
+        self.config = dataclasses.replace(self.config, **dataclasses.asdict(sampler))
 
     def trainable_parameters(self) -> list[torch.nn.Parameter]:
         """Projector and trunk parameters (the backbone is frozen)."""
@@ -161,7 +157,7 @@ class DustPolicy(VLAWrapperBase):
 
     def trainable_modules(self) -> nn.ModuleDict:
         """The modules training optimises and averages, by name (checkpoints key their state by these names)."""
-        modules = {"condition": self.condition, "agent": self.agent}
+        modules = {"condition": self.condition, "model": self.model}
         if self.config.aux_state_dim:
             modules["state_readout"] = self.state_readout
         return nn.ModuleDict(modules)
@@ -265,7 +261,7 @@ class DustPolicy(VLAWrapperBase):
             batch.set(key, value)
         return batch
 
-    def _agent_batch(self, features: TensorDictBase, augment: bool = False,
+    def _model_batch(self, features: TensorDictBase, augment: bool = False,
                      generator: torch.Generator | None = None) -> TensorDictBase:
         """The trunk's batch; ``augment`` shifts the frames of pixel keypoints at random (training only)."""
         image = self.normalizer.normalize_vision(features.get("image_tokens"))
@@ -292,13 +288,13 @@ class DustPolicy(VLAWrapperBase):
         """
         if not self.config.aux_state_dim:
             raise ValueError("this policy has no state read-out (trained without --policy.lambda-aux)")
-        return self._state_estimate(self._agent_batch(features), features)
+        return self._state_estimate(self._model_batch(features), features)
 
-    def _state_estimate(self, agent_batch: TensorDictBase, features: TensorDictBase) -> Tensor:
-        """The read-out's estimate from the keypoints in ``agent_batch`` (reused when already there)."""
-        if "env_state_estimate" in agent_batch.keys():
-            return agent_batch.get("env_state_estimate")
-        return self.state_readout(agent_batch.get("keypoints"), features.get("text_tokens"), features.get("text_mask"))
+    def _state_estimate(self, model_batch: TensorDictBase, features: TensorDictBase) -> Tensor:
+        """The read-out's estimate from the keypoints in ``model_batch`` (reused when already there)."""
+        if "env_state_estimate" in model_batch.keys():
+            return model_batch.get("env_state_estimate")
+        return self.state_readout(model_batch.get("keypoints"), features.get("text_tokens"), features.get("text_mask"))
 
     # -- training and inference ---------------------------------------------
     def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
@@ -309,10 +305,10 @@ class DustPolicy(VLAWrapperBase):
         With ``config.aux_state_dim`` and an ``env_state`` in the batch, ``loss`` also holds
         ``lambda_aux`` times ``loss_aux``, the read-out error of the privileged state (:mod:`.state_readout`).
         """
-        agent_batch = self._agent_batch(batch, augment=self.training, generator=generator)
-        losses = self.agent.compute_loss(agent_batch, generator)
+        model_batch = self._model_batch(batch, augment=self.training, generator=generator)
+        losses = self.model.compute_loss(model_batch, generator)
         if self.config.aux_state_dim and "env_state" in batch.keys():
-            losses.set("loss_aux", _squared_error(self._state_estimate(agent_batch, batch), batch.get("env_state")))
+            losses.set("loss_aux", _squared_error(self._state_estimate(model_batch, batch), batch.get("env_state")))
             losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))
         return losses
 
@@ -356,10 +352,10 @@ class DustPolicy(VLAWrapperBase):
                       action_noise: Tensor | None = None) -> TensorDict:
         """:meth:`plan` from a flat feature batch [B] (:meth:`observation_features`), for callers that also
         read the features (an RL critic) and so encode each observation once."""
-        batch = self._agent_batch(features)
+        batch = self._model_batch(features)
         if action_noise is not None:
             batch.set("action_noise", action_noise.reshape(batch.batch_size[0], *action_noise.shape[-2:]))
-        out = self.agent.predict_action(batch, generator)
+        out = self.model.predict_action(batch, schedule_for(self.config), generator)
         chunk = self.normalizer.denormalize_action(out.get("action_chunk"))
         out.set("action_chunk", chunk.clamp(self.action_low, self.action_high))
         if "future_tokens" in out.keys():

@@ -22,12 +22,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from .config import DustConfig
-from .dust_model import ChunkContext, DustModel
+
+if TYPE_CHECKING:  # the model imports this module to sample
+    from .dust_model import ChunkContext, DustModel
 
 
 @dataclass(frozen=True)

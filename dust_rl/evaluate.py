@@ -5,7 +5,7 @@ processes when ``workers > 1``, each building the policy from the checkpoint
 file), which yields one whole episode at a time. Episode ``k`` of every task
 resets from seed ``seed + k`` (workers share the seeds through
 :class:`~dust_rl.data.seeding.SeedSchedule`), and the policy's sampling noise
-is seeded by the episode seed too (:func:`~dust_rl.data.seeding.episode_generator`),
+is seeded by the episode seed too (:func:`~dust_rl.agents.execution.episode_generator`),
 so an episode's outcome depends on its seed only: the same config gives the
 same episodes, bit for bit, with any number of workers. Exactly ``episodes``
 seeds count per task; episodes the workers start past them are dropped.
@@ -35,7 +35,6 @@ from typing import NamedTuple
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector, Collector
 from torchrl.envs import InitTracker, TransformedEnv
 from tqdm import tqdm
@@ -43,7 +42,7 @@ from tqdm import tqdm
 from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy, unwrap
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.config_json import config_json
-from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule, episode_generator
+from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, check_at_least
@@ -127,30 +126,6 @@ class Episode(NamedTuple):
     digest: str
 
 
-class EpisodeSeededPolicy(TensorDictModuleBase):
-    """A chunk executor whose sampling noise restarts from the episode seed at every reset.
-
-    The executor samples from torch's global generator; it runs here inside ``fork_rng`` on the
-    state of a per-episode generator, so nothing else in the process shares (or disturbs) it.
-    """
-
-    def __init__(self, executor: ChunkExecutor) -> None:
-        super().__init__()
-        self.executor = executor
-        self.in_keys = [*executor.in_keys, SEED_KEY]
-        self.out_keys = executor.out_keys
-        self.generator = torch.Generator()
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if tensordict.get("is_init").any():
-            self.generator = episode_generator(int(tensordict.get(SEED_KEY)))
-        with torch.random.fork_rng(devices=[]):
-            torch.set_rng_state(self.generator.get_state())
-            out = self.executor(tensordict)
-            self.generator.set_state(torch.get_rng_state())
-        return out
-
-
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """Wilson score interval of a success rate (z = 1.96: 95%); (0, 1) when n = 0.
 
@@ -172,11 +147,16 @@ def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> Tran
     return env
 
 
-def make_eval_policy(setup: EvalSetup) -> EpisodeSeededPolicy:
+def make_eval_policy(setup: EvalSetup) -> ChunkExecutor:
     """The policy of one worker process, built from the checkpoint file (a live policy is not pickled)."""
-    executor = load_policy(setup.policy_path, execute_steps=setup.execute_steps)
-    unwrap(executor).set_sampler(setup.sampler)
-    return EpisodeSeededPolicy(executor)
+    policy = unwrap(load_policy(setup.policy_path, execute_steps=setup.execute_steps))
+    policy.set_sampler(setup.sampler)
+    return seeded_executor(policy)
+
+
+def seeded_executor(policy: DustPolicy) -> ChunkExecutor:
+    """The evaluated policy: chunks executed receding-horizon, sampling noise restarted from each episode's seed."""
+    return ChunkExecutor(policy, policy.execute_steps, SEED_KEY)
 
 
 @contextlib.contextmanager
@@ -230,8 +210,7 @@ def make_eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers
     env_fns = [functools.partial(make_eval_env, setup.env_id, {**setup.env_kwargs, "task": task},
                                  SeedSchedule(seed, worker=worker, num_workers=workers)) for worker in range(workers)]
     if workers == 1:
-        executor = ChunkExecutor(policy, policy.execute_steps)
-        source = {"create_env_fn": env_fns[0], "policy": EpisodeSeededPolicy(executor)}
+        source = {"create_env_fn": env_fns[0], "policy": seeded_executor(policy)}
     else:
         source = {"create_env_fn": env_fns, "policy_factory": functools.partial(make_eval_policy, setup),
                   "num_collectors": workers, "sync": False, "num_threads": threads, "num_sub_threads": threads}

@@ -26,7 +26,7 @@ from gymnasium import spaces
 from tensordict import TensorDict
 
 from dust_rl.agents import DustPolicy, pooled_text
-from dust_rl.data.seeding import episode_generator
+from dust_rl.agents.execution import episode_generator
 from dust_rl.keys import INSTRUCTION_KEY, STATE_KEY, flat_name
 
 STATE_NAME = flat_name(STATE_KEY)

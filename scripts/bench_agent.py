@@ -1,4 +1,4 @@
-"""Benchmark the DUST agent core on CPU: chunk latency at batch 1 and training throughput.
+"""Benchmark the DUST model on CPU: chunk latency at batch 1 and training throughput.
 
 Inputs are random stand-ins for cached backbone features (no backbone runs), so
 the trunk rows measure the flow-matching trunk and sampler alone; the policy
@@ -25,7 +25,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDict
 
-from dust_rl.agents import DustAgent, DustConfig, SamplerConfig, make_policy, random_batch, unwrap
+from dust_rl.agents import DustConfig, DustModel, SamplerConfig, make_policy, random_batch, schedule_for, unwrap
 
 N_COND_TOKENS = 40
 CAMERAS = ("front", "wrist")
@@ -46,12 +46,13 @@ def timed(fn: Callable[[], object], repeats: int, warmup: int = 3) -> tuple[list
 
 def chunk_latency_ms(config: DustConfig, repeats: int, compile_model: bool) -> tuple[float, float, float]:
     """Median and best wall time and median CPU time (ms) of one ``predict_action`` call at batch 1."""
-    agent = DustAgent(config).eval()
+    agent = DustModel(config).eval()
     if compile_model:
-        agent.model.compile()
+        agent.compile()
     generator = torch.Generator().manual_seed(0)
     obs = random_batch(config, 1, N_COND_TOKENS, generator).select("state", "cond_tokens")
-    wall, cpu = timed(lambda: agent.predict_action(obs, generator), repeats)
+    schedule = schedule_for(config)
+    wall, cpu = timed(lambda: agent.predict_action(obs, schedule, generator), repeats)
     return 1e3 * statistics.median(wall), 1e3 * min(wall), 1e3 * statistics.median(cpu)
 
 
@@ -82,7 +83,7 @@ def train_samples_per_s(config: DustConfig, batch_size: int, steps: int) -> tupl
 
     Returns samples/s from the median and the best wall time, and from the median CPU time.
     """
-    agent = DustAgent(config).train()
+    agent = DustModel(config).train()
     optimizer = torch.optim.AdamW(agent.parameters(), lr=1e-4, fused=True)  # fused: ~5x faster step on CPU
     generator = torch.Generator().manual_seed(0)
     batch = random_batch(config, batch_size, N_COND_TOKENS, generator)
@@ -111,7 +112,7 @@ def main() -> None:
     torch.manual_seed(0)
 
     base = DustConfig()
-    params = sum(p.numel() for p in DustAgent(base).parameters())
+    params = sum(p.numel() for p in DustModel(base).parameters())
     print(
         f"DUST d_model={base.d_model} heads={base.n_heads} blocks={base.n_mmdit}+{base.n_dit} "
         f"params={params / 1e6:.2f}M H={base.horizon} N_o={base.n_vision_tokens} Nc={N_COND_TOKENS} "

@@ -1,4 +1,4 @@
-"""DUST trunk and agent: shapes, per-stream timestep conditioning, masks, caching, loss masking."""
+"""DUST trunk, its loss and sampling: shapes, per-stream timestep conditioning, masks, caching, loss masking."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import torch
 from conftest import assert_close_up_to_rounding
 from torch import nn
 
-from dust_rl.agents import VARIANTS, DustAgent, DustConfig, DustModel, random_batch
+from dust_rl.agents import VARIANTS, DustConfig, DustModel, random_batch, schedule_for
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -58,7 +58,7 @@ def assert_same_trunk_output(model: DustModel, actual, expected) -> None:
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_shapes_of_loss_and_prediction(variant):
     config = tiny(variant)
-    agent = DustAgent(config)
+    agent = DustModel(config)
     batch = random_batch(config, 3, n_cond_tokens=4, generator=torch.Generator().manual_seed(0))
     losses = agent.compute_loss(batch)
     assert losses.batch_size == torch.Size([])
@@ -67,7 +67,7 @@ def test_shapes_of_loss_and_prediction(variant):
     losses["loss"].backward()
     assert all(p.grad is not None for p in agent.parameters())
 
-    out = agent.predict_action(batch.exclude("action_chunk", "future_tokens"))
+    out = agent.predict_action(batch.exclude("action_chunk", "future_tokens"), schedule_for(config))
     assert out.batch_size == torch.Size([3])
     assert out["action_chunk"].shape == (3, 6, 3)
     if config.has_vision:
@@ -211,8 +211,8 @@ def test_context_is_reused_across_steps():
 @pytest.mark.parametrize("variant", ["dust", "joint"])
 def test_action_free_samples_give_no_action_gradient(variant):
     config = tiny(variant)
-    agent = DustAgent(config)
-    randomised(agent.model)
+    agent = DustModel(config)
+    randomised(agent)
     batch = random_batch(config, 3, n_cond_tokens=4, generator=torch.Generator().manual_seed(1))
     batch["has_action"] = torch.tensor([True, False, False])
     batch["action_chunk"][2] = float("nan")  # placeholder actions must not leak in
@@ -233,23 +233,23 @@ def test_action_free_samples_give_no_action_gradient(variant):
 
 def test_action_free_batch_trains_only_the_vision_stream():
     config = tiny("dust")
-    agent = DustAgent(config)
-    randomised(agent.model)
+    agent = DustModel(config)
+    randomised(agent)
     batch = random_batch(config, 2, n_cond_tokens=4, generator=torch.Generator().manual_seed(3))
     batch["has_action"] = torch.zeros(2, dtype=torch.bool)
     losses = agent.compute_loss(batch)
     assert losses["loss_action"].item() == 0.0 and losses["loss_vision"].item() > 0
-    action_head = list(agent.model.action_out.parameters())
+    action_head = list(agent.action_out.parameters())
     grads = torch.autograd.grad(losses["loss"], action_head, allow_unused=True)
     assert all(g is None or (g == 0).all() for g in grads)
 
 
 def test_padded_action_entries_are_excluded():
     config = tiny("dust", lambda_wm=0.0)
-    agent = DustAgent(config)
-    randomised(agent.model)
+    agent = DustModel(config)
+    randomised(agent)
     outputs = []
-    agent.model.action_out.register_forward_hook(lambda mod, args, out: outputs.append(out) or out.retain_grad())
+    agent.action_out.register_forward_hook(lambda mod, args, out: outputs.append(out) or out.retain_grad())
     batch = random_batch(config, 2, n_cond_tokens=4, generator=torch.Generator().manual_seed(4))
     batch["action_is_pad"] = torch.zeros(2, config.horizon, dtype=torch.bool)
     batch["action_is_pad"][:, -2:] = True
@@ -261,8 +261,8 @@ def test_padded_action_entries_are_excluded():
 
 def test_clamped_futures_are_left_out_of_the_vision_loss():
     config = tiny("dust")
-    agent = DustAgent(config)
-    randomised(agent.model)
+    agent = DustModel(config)
+    randomised(agent)
     batch = random_batch(config, 3, n_cond_tokens=4, generator=torch.Generator().manual_seed(5))
     batch["future_is_clamped"] = torch.tensor([True, False, False])
 

@@ -20,6 +20,8 @@ from dust_rl.agents import (
     save_policy,
     unwrap,
 )
+from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
+from dust_rl.agents.factory import POLICY_KIND
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.keys import ACTION_NOISE_KEY, PREDICTED_FUTURE_KEY
 
@@ -114,7 +116,7 @@ def test_sampler_options(sampler, n_action_steps, ratio, evaluations, tiny_encod
     policy = unwrap(tiny_policy("dust", tiny_encoder, minilm))
     policy.set_sampler(SamplerConfig(sampler, n_action_steps, ratio))
     calls = []
-    policy.agent.model.register_forward_hook(lambda *args: calls.append(1))
+    policy.model.register_forward_hook(lambda *args: calls.append(1))
     policy(observation())
     assert len(calls) == evaluations and policy.config.sampler == sampler
     joint = unwrap(tiny_policy("joint", tiny_encoder, minilm))
@@ -142,6 +144,19 @@ def test_checkpoint_round_trip_gives_identical_outputs(tiny_encoder, minilm, tmp
     assert torch.equal(got["action_chunk"], expected["action_chunk"])
     assert torch.equal(got["future_tokens"], expected["future_tokens"])
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_policy_files_naming_the_old_agent_layer_still_load(tiny_encoder, minilm, tmp_path):
+    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm))
+    perturb(policy)
+    payload = load_checkpoint(save_policy(policy, tmp_path / "new.pt"), POLICY_KIND)
+    payload["state_dict"] = {k.replace("model.", "agent.model.", 1) if k.startswith("model.") else k: v
+                             for k, v in payload["state_dict"].items()}  # as files written before the change
+    assert any(k.startswith("agent.model.") for k in payload["state_dict"])
+    old = unwrap(load_policy(save_checkpoint(payload, tmp_path / "old.pt", POLICY_KIND)))
+    obs = observation()
+    expected = policy.plan(obs, torch.Generator().manual_seed(0))["action_chunk"]
+    assert torch.equal(old.plan(obs, torch.Generator().manual_seed(0))["action_chunk"], expected)
 
 
 def test_loading_a_corrupt_or_mismatched_checkpoint_fails_clearly(tiny_encoder, minilm, tmp_path):

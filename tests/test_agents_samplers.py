@@ -8,12 +8,13 @@ import pytest
 import torch
 
 from dust_rl.agents import (
-    DustAgent,
     DustConfig,
+    DustModel,
     action_only_schedule,
     async_schedule,
     random_batch,
     run_schedule,
+    schedule_for,
     sync_schedule,
 )
 
@@ -26,9 +27,9 @@ def tiny(**overrides) -> DustConfig:
     return DustConfig(**{**sizes, **overrides})
 
 
-def trained_like_agent(config: DustConfig) -> DustAgent:
+def trained_like_agent(config: DustConfig) -> DustModel:
     """An agent whose zero-initialised output layers are randomised, so every step moves its stream."""
-    agent = DustAgent(config).eval()
+    agent = DustModel(config).eval()
     g = torch.Generator().manual_seed(0)
     with torch.no_grad():
         for p in agent.parameters():
@@ -82,7 +83,8 @@ def test_async_sampler_makes_n_o_vision_and_n_a_action_updates(n_action_steps, q
     config = tiny(vision_step_ratio=q, n_action_steps=n_action_steps)
     agent = trained_like_agent(config)
     states = []
-    agent.predict_action(obs_for(config), torch.Generator().manual_seed(0), lambda step, a, o: states.append((a, o)))
+    agent.predict_action(obs_for(config), schedule_for(config), torch.Generator().manual_seed(0),
+                         lambda step, a, o: states.append((a, o)))
     assert len(states) == q * n_action_steps
     g = torch.Generator().manual_seed(0)  # the initial noise, drawn as the sampler draws it (actions first)
     previous_a = torch.randn(2, config.horizon, config.action_dim, generator=g)
@@ -100,7 +102,8 @@ def test_action_only_sampling_leaves_vision_as_noise():
     config = tiny(sampler="action_only")
     agent = trained_like_agent(config)
     states = []
-    agent.predict_action(obs_for(config), torch.Generator().manual_seed(0), lambda step, a, o: states.append((a, o)))
+    agent.predict_action(obs_for(config), schedule_for(config), torch.Generator().manual_seed(0),
+                         lambda step, a, o: states.append((a, o)))
     g = torch.Generator().manual_seed(0)
     torch.randn(2, config.horizon, config.action_dim, generator=g)  # the sampler draws action noise first
     initial_vision = torch.randn(2, config.n_vision_tokens, config.vision_dim, generator=g)
@@ -114,9 +117,9 @@ def test_action_only_sampling_leaves_vision_as_noise():
 def test_seeded_sampling_is_bitwise_deterministic(config):
     agent = trained_like_agent(config)
     obs = obs_for(config)
-    first = agent.predict_action(obs, torch.Generator().manual_seed(7))
-    second = agent.predict_action(obs, torch.Generator().manual_seed(7))
-    other = agent.predict_action(obs, torch.Generator().manual_seed(8))
+    first = agent.predict_action(obs, schedule_for(config), torch.Generator().manual_seed(7))
+    second = agent.predict_action(obs, schedule_for(config), torch.Generator().manual_seed(7))
+    other = agent.predict_action(obs, schedule_for(config), torch.Generator().manual_seed(8))
     for key in first.keys():
         assert torch.equal(first[key], second[key])
         assert not torch.equal(first[key], other[key])
@@ -126,7 +129,7 @@ def test_schedule_can_be_overridden_at_test_time():
     config = tiny()  # trained for N_A = N_o = 4
     agent = trained_like_agent(config)
     seen = []
-    agent.predict_action(obs_for(config), schedule=async_schedule(4, 8), callback=lambda s, a, o: seen.append(s))
+    agent.predict_action(obs_for(config), async_schedule(4, 8), callback=lambda s, a, o: seen.append(s))
     assert len(seen) == 32 and sum(s.dt_a > 0 for s in seen) == 4
 
 
@@ -134,8 +137,8 @@ def test_run_schedule_returns_final_state_of_callback():
     config = tiny()
     agent = trained_like_agent(config)
     obs = obs_for(config)
-    ctx = agent.model.encode_context(obs["state"], obs["cond_tokens"])
+    ctx = agent.encode_context(obs["state"], obs["cond_tokens"])
     seen = []
-    action, vision = run_schedule(agent.model, ctx, async_schedule(2, 2), torch.Generator().manual_seed(0),
+    action, vision = run_schedule(agent, ctx, async_schedule(2, 2), torch.Generator().manual_seed(0),
                                   lambda s, a, o: seen.append((a, o)))
     assert torch.equal(action, seen[-1][0]) and torch.equal(vision, seen[-1][1])

@@ -8,7 +8,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from dust_rl.agents import VARIANTS, DustAgent, DustConfig
+from dust_rl.agents import VARIANTS, DustConfig, DustModel, schedule_for
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -37,7 +37,7 @@ def toy_dataset(config: DustConfig, size: int, seed: int = 0) -> TensorDict:
     )
 
 
-def train(agent: DustAgent, batch: TensorDict, steps: int, lr: float, seed: int = 0) -> None:
+def train(agent: DustModel, batch: TensorDict, steps: int, lr: float, seed: int = 0) -> None:
     optimizer = torch.optim.AdamW(agent.parameters(), lr=lr, weight_decay=0.0)
     g = torch.Generator().manual_seed(seed)
     for _ in range(steps):
@@ -51,7 +51,7 @@ def train(agent: DustAgent, batch: TensorDict, steps: int, lr: float, seed: int 
 def test_loss_falls(variant):
     torch.manual_seed(0)
     config = small(variant)
-    agent = DustAgent(config)
+    agent = DustModel(config)
     batch = torch.cat([toy_dataset(config, 4)] * 2)
 
     def fixed_draw_loss() -> float:
@@ -66,12 +66,12 @@ def test_loss_falls(variant):
 def test_dust_overfits_a_tiny_dataset():
     torch.manual_seed(0)
     config = small("dust")
-    agent = DustAgent(config)
+    agent = DustModel(config)
     data = toy_dataset(config, 4)
     obs = data.select("state", "cond_tokens")
 
     def errors() -> tuple[torch.Tensor, torch.Tensor]:
-        out = agent.eval().predict_action(obs, torch.Generator().manual_seed(1))
+        out = agent.eval().predict_action(obs, schedule_for(config), torch.Generator().manual_seed(1))
         agent.train()
         return (out["action_chunk"] - data["action_chunk"]).abs(), (out["future_tokens"] - data["future_tokens"]).abs()
 

@@ -12,7 +12,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.env_checker import check_env
 
 from dust_rl.agents import make_policy, unwrap
-from dust_rl.data.seeding import episode_generator
+from dust_rl.agents.execution import episode_generator
 from dust_rl.env_factory import make_env
 from dust_rl.frozen_policy_env import observation_td
 from dust_rl.residual import ResidualEnv

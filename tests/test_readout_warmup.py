@@ -27,7 +27,7 @@ def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, ti
     aux = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
     frames = aux.sample(4)  # the demonstration rows are stood in for by aux frames: the loss reads the same keys
     before = policy.readout_loss(frames).item()
-    agent = {k: v.clone() for k, v in policy.agent.state_dict().items()}
+    agent = {k: v.clone() for k, v in policy.model.state_dict().items()}
     logged = {}
     warm_up_readout(policy, (lambda: frames) if with_demos else None, aux, 100, 3e-3,
                     lambda scalars, step: logged.update({step: scalars}), batch_size=8, progress=False)
@@ -35,5 +35,5 @@ def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, ti
     expected = {"warmup/loss_aux_frames", "warmup/loss_aux"} if with_demos else {"warmup/loss_aux_frames"}
     assert sorted(logged) == [100] and set(logged[100]) == expected
     assert not any(p.requires_grad or p.grad is not None for p in policy.readout_modules().parameters())
-    assert all(p.requires_grad for p in policy.agent.parameters())
-    assert all(torch.equal(v, agent[k]) for k, v in policy.agent.state_dict().items())
+    assert all(p.requires_grad for p in policy.model.parameters())
+    assert all(torch.equal(v, agent[k]) for k, v in policy.model.state_dict().items())

@@ -149,7 +149,7 @@ def test_readout_warmup_freezes_the_readout_and_resumes(run_inputs, tmp_path):
     short, long = trained_weights(run(tmp_path / "short", 2).policy), trained_weights(run(tmp_path / "long", 4).policy)
     readout = [k for k in short if k.startswith(("condition.keypoints.", "state_readout."))]
     assert readout and all(torch.equal(short[k], long[k]) for k in readout)  # warmed, then never moved
-    assert any(not torch.equal(short[k], long[k]) for k in short if k.startswith("agent."))
+    assert any(not torch.equal(short[k], long[k]) for k in short if k.startswith("model."))
     warm = (tmp_path / "long" / "logs" / "train" / "scalars" / "warmup" / "loss_aux_frames.csv").read_text().split(",")
     assert int(warm[0]) == 3 and float(warm[1]) > 0
     # Resuming from step 2 skips the warm-up (the checkpoint holds it) and ends where the straight run did.

@@ -4,7 +4,7 @@ Episodes are identified by (task, seed), so a collection can be resumed, split
 across worker processes, or reproduced one episode at a time. Workers share one
 ascending sequence of not-yet-known seeds, each taking every ``num_workers``-th,
 so no seed runs twice and none is skipped. A policy's sampling noise restarts
-from the episode's seed too (:func:`episode_generator`).
+from the episode's seed too (:func:`dust_rl.agents.execution.episode_generator`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from collections.abc import Iterator
 
 import gymnasium as gym
 import numpy as np
-import torch
 
 from dust_rl.keys import SEED_KEY, SUCCESS_KEY
 
@@ -68,12 +67,3 @@ class EpisodeSeedWrapper(gym.Wrapper):
     def _observation(self, obs: dict, info: dict) -> dict:
         return {**obs, SEED_KEY: np.array([self._seed], dtype=np.int64),
                 SUCCESS_KEY: np.array([bool(info["is_success"])], dtype=np.int8)}
-
-
-def episode_generator(seed: int) -> torch.Generator:
-    """The sampling-noise generator of the episode reset with ``seed``.
-
-    Seeding the noise per episode (not per process) makes an episode's outcome depend on its seed
-    only, whatever the number of env processes and the order they ran their episodes in.
-    """
-    return torch.Generator().manual_seed(int(seed))
