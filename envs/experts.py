@@ -65,9 +65,9 @@ def rotation_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
     return axis_angle
 
 
-def equivalent_yaw(yaw: float, current_yaw: float, period: float) -> float:
-    """The yaw equivalent to ``yaw`` (under the grasp's symmetry) nearest the current one."""
-    return yaw + period * np.round((current_yaw - yaw) / period)
+def equivalent_yaw(yaw: float, near: float, period: float = np.pi / 2) -> float:
+    """The yaw equivalent to ``yaw`` under a ``period`` symmetry (a grasp's, a square's) that is nearest ``near``."""
+    return float(yaw + period * np.round((near - yaw) / period))
 
 
 class WaypointExpert:

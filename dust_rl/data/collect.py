@@ -30,7 +30,7 @@ from .episodes import EpisodeRecord, scan_episodes, trajectory_to_episode, write
 from .finalize import finalize_dataset
 from .layout import clear_staging
 from .lock import dataset_lock
-from .metadata import env_spec, open_meta
+from .metadata import open_meta, recorded_env_spec
 from .policy import make_expert_policy
 from .selection import select_episodes
 
@@ -73,7 +73,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         raise ConfigError(f"env_kwargs must be JSON values (they are stored in meta.json): {err}") from err
     check_tasks(env_id, env_kwargs, tasks)
     probe = make_env(env_id, {**env_kwargs, "task": tasks[0]})
-    spec = env_spec(probe)
+    spec = recorded_env_spec(probe)
     probe.close()
     if not spec["cameras"]:
         raise ConfigError("demonstrations need camera images and instructions: use obs_mode='rgb'")

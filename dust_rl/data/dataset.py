@@ -19,7 +19,7 @@ from dust_rl.keys import INSTRUCTION_KEY
 from .errors import DatasetError
 from .layout import META_FILE
 from .memmap_io import load_memmap_checked
-from .metadata import env_spec, read_meta, spec_mismatches
+from .metadata import read_meta, recorded_env_spec, spec_mismatches
 
 
 def _is_int(value: object) -> bool:
@@ -112,6 +112,6 @@ class DemoDataset:
 
     def check_env(self, env: gym.Env) -> None:
         """Raise :class:`DatasetError` naming each way the dataset's arrays do not fit ``env``."""
-        problems = spec_mismatches(self.meta["spec"], env_spec(env))
+        problems = spec_mismatches(self.meta["spec"], recorded_env_spec(env))
         if problems:
             raise DatasetError(f"{self.root} does not match the requested env:\n  " + "\n  ".join(problems))

@@ -53,7 +53,7 @@ from .errors import DatasetError
 from .finalize import consolidate
 from .layout import FORMAT_VERSION, SAFE_NAME, inside, read_json
 from .lerobot_export import COLUMNS, DUST_META_FILE, IMAGE_PREFIX
-from .metadata import env_spec, package_versions
+from .metadata import package_versions, recorded_env_spec
 from .video import read_mp4
 
 INFO_FILE = "meta/info.json"
@@ -118,7 +118,7 @@ def _env_target(env_id: str | None, task: str | None, env_kwargs: dict | None) -
         raise ConfigError(f"env kwargs must be JSON values (they are stored in meta.json): {err}") from err
     check_tasks(env_id, env_kwargs, [task])
     env = make_env(env_id, {**env_kwargs, "task": task})
-    spec = env_spec(env)
+    spec = recorded_env_spec(env)
     env.close()
     return {"env_id": env_id, "env_kwargs": env_kwargs, "task": task, "spec": spec}
 

@@ -25,7 +25,7 @@ _VERSIONED_PACKAGES = ("dust-rl", "mujoco", "torch", "torchrl", "tensordict", "g
 _IMAGE_PREFIX = "observation.image."
 
 
-def env_spec(env: gym.Env) -> dict:
+def recorded_env_spec(env: gym.Env) -> dict:
     """The parts of an env that a dataset's arrays depend on (cameras, shapes, rates)."""
     spaces = env.observation_space.spaces
     cameras = [key.removeprefix(_IMAGE_PREFIX) for key in spaces if key.startswith(_IMAGE_PREFIX)]
@@ -41,7 +41,7 @@ def env_spec(env: gym.Env) -> dict:
 
 
 def spec_mismatches(expected: dict, actual: dict) -> list[str]:
-    """Human-readable differences between two :func:`env_spec` results."""
+    """Human-readable differences between two :func:`recorded_env_spec` results."""
     return [f"{key}: dataset has {expected.get(key)!r}, env has {actual[key]!r}"
             for key in actual if expected.get(key) != actual[key]]
 
@@ -87,7 +87,7 @@ def open_meta(root: pathlib.Path, config: dict, tasks: list[str], episodes: int,
         config: the :data:`FIXED_CONFIG` entries of this collection.
         tasks: tasks requested now; they join the dataset with ``episodes`` each, or with as many
             as its consolidated copy already holds if that is more (finalising fewer would delete rows).
-        spec: :func:`env_spec` of the env about to be collected.
+        spec: :func:`recorded_env_spec` of the env about to be collected.
     """
     if (root / META_FILE).exists():
         meta = read_meta(root)

@@ -14,7 +14,7 @@ import mink
 import mujoco
 import numpy as np
 
-from ..experts import Vector, Waypoint
+from ..experts import Vector, Waypoint, equivalent_yaw
 from ..robot import RobotConfig
 from .base import body_yaw
 
@@ -30,11 +30,6 @@ def gripper_geoms(model: mujoco.MjModel, robot: RobotConfig) -> np.ndarray:
     return np.array(mink.get_subtree_geom_ids(model, hand))
 
 
-def aligned_yaw(yaw: float, near: float, period: float = np.pi / 2) -> float:
-    """The yaw equivalent to ``yaw`` under a ``period`` symmetry that is nearest ``near``."""
-    return float(yaw + period * np.round((near - yaw) / period))
-
-
 def grasp_yaw(data: mujoco.MjData, body: str, square: bool = True) -> float:
     """Top-down grasp yaw that closes the fingers along the line from the robot base to ``body``.
 
@@ -47,7 +42,7 @@ def grasp_yaw(data: mujoco.MjData, body: str, square: bool = True) -> float:
     """
     position = data.body(body).xpos
     radial = float(np.arctan2(position[1], position[0]) + np.pi / 2)  # the robot base is at the origin
-    return aligned_yaw(body_yaw(data, body), radial) if square else radial
+    return equivalent_yaw(body_yaw(data, body), radial) if square else radial
 
 
 def pick_and_place(data: mujoco.MjData, body: str, pinch: str, goal: Vector, yaw: float,

@@ -5,12 +5,12 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from ..experts import Waypoint
+from ..experts import Waypoint, equivalent_yaw
 from ..robot import RobotConfig
 from ..scene import add_free_box
 from .base import COLORS, Task, body_yaw, sample_separated, set_free_body_pose
 from .fixtures import add_walled_square, local_xyz, set_mocap_pose
-from .grasping import aligned_yaw, grasp_yaw, pick_and_place
+from .grasping import grasp_yaw, pick_and_place
 
 PEG_HALF = (0.01, 0.01, 0.04)  # 2 x 2 x 8 cm
 HOLE_HALF = 0.0125  # 2.5 mm clearance on each side of the peg
@@ -73,7 +73,7 @@ class PegInsert(Task):
     def expert_plan(self, model: mujoco.MjModel, data: mujoco.MjData) -> list[Waypoint]:
         yaw = grasp_yaw(data, "peg")
         # The held peg keeps the gripper's yaw (up to its square symmetry): turn it to the hole's.
-        place_yaw = aligned_yaw(body_yaw(data, "fixture"), yaw)
+        place_yaw = equivalent_yaw(body_yaw(data, "fixture"), yaw)
         seated = data.body("fixture").xpos + [0, 0, PEG_HALF[2] + 0.002]
         return pick_and_place(data, "peg", self._pinch, seated, yaw, place_yaw, grasp_height=GRASP_HEIGHT,
                               place_tolerance=0.003, place_speed=0.3)

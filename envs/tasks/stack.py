@@ -5,11 +5,11 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from ..experts import Waypoint
+from ..experts import Waypoint, equivalent_yaw
 from ..robot import RobotConfig
 from ..scene import add_free_box
 from .base import COLORS, Task, body_yaw, geoms_touch, sample_separated, set_free_body_pose
-from .grasping import aligned_yaw, grasp_yaw, gripper_geoms, pick_and_place
+from .grasping import grasp_yaw, gripper_geoms, pick_and_place
 
 CUBE_HALF = 0.02
 CUBES = ("top_cube", "bottom_cube", "distractor_cube")
@@ -69,6 +69,6 @@ class Stack(Task):
             return data.body("bottom_cube").xpos + [0, 0, 2 * CUBE_HALF + 0.005]
 
         # Line the faces up with the bottom cube's so the stack rests flat.
-        place_yaw = aligned_yaw(body_yaw(data, "bottom_cube"), yaw)
+        place_yaw = equivalent_yaw(body_yaw(data, "bottom_cube"), yaw)
         return pick_and_place(data, "top_cube", self._pinch, on_bottom, yaw, place_yaw,
                               place_tolerance=0.005)

@@ -5,11 +5,10 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from ...experts import Step, Waypoint
+from ...experts import Step, Waypoint, equivalent_yaw
 from ...g1 import OPEN_THUMB_BEHIND, PALM_DEPTH
 from ...scene import add_free_box
 from ..base import COLORS, body_yaw, set_free_body_pose
-from ..grasping import aligned_yaw
 from .hands import APPROACH, LEFT, RIGHT, HumanoidTask
 
 BOX_HALF = (0.035, 0.11, 0.07)  # shallow, wide and tall: one palm on each end, thumbs behind it
@@ -89,7 +88,7 @@ class LiftBox(HumanoidTask):
 
     def expert_plan(self, model: mujoco.MjModel, data: mujoco.MjData) -> list[Step]:
         # Both palms face the box's ends: turn the hands with the box (it is symmetric under half a turn).
-        yaw = aligned_yaw(body_yaw(data, "target_box"), 0.0, period=np.pi)
+        yaw = equivalent_yaw(body_yaw(data, "target_box"), 0.0, period=np.pi)
 
         def both(tolerance: float, speed: float = 1.0, hold: int = 0, **offsets) -> tuple[Waypoint, Waypoint]:
             targets = self._palm_targets(data, **offsets)

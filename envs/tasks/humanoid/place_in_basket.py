@@ -5,10 +5,9 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from ...experts import Step
+from ...experts import Step, equivalent_yaw
 from ...scene import add_free_box, add_free_cylinder, add_open_box
 from ..base import COLORS, body_yaw, set_free_body_pose
-from ..grasping import aligned_yaw
 from .hands import HumanoidTask, hand_for, side_area
 
 OBJECT_HALF = (0.028, 0.06)  # can radius / carton half width, half height
@@ -92,5 +91,5 @@ class PlaceInBasket(HumanoidTask):
         target = self._objects[0]
         drop = data.body("basket").xpos + [0, 0, BASKET_WALL_HEIGHT + DROP_CLEARANCE + OBJECT_HALF[1]]
         # A carton is held with the palm flat on one of its faces.
-        yaw = aligned_yaw(body_yaw(data, target), 0.0) if target == "carton" else 0.0
+        yaw = equivalent_yaw(body_yaw(data, target), 0.0) if target == "carton" else 0.0
         return self.carry(data, target, drop, yaw=yaw, place_tolerance=0.015)
