@@ -216,21 +216,19 @@ class PolicyConfig(ModelConfig):
 class DustConfig(ModelConfig, SamplerConfig):
     """Everything that builds a DUST agent: the chosen model and sampler settings and the sizes the data and
     the frozen backbone fix. A policy file stores it flat (every field by name).
-
-    Attributes:
-        action_dim: size of one action vector.
-        state_dim: size of the (normalised) proprioceptive state vector.
-        vision_dim: feature size of one future-vision token.
-        cond_dim: feature size of the backbone condition tokens.
-        aux_state_dim: size of the privileged environment state the auxiliary read-out predicts (training only;
-            0: no read-out). Needs ``lambda_aux``.
     """
 
     action_dim: int = 7
+    """Size of one action vector."""
     state_dim: int = 8
+    """Size of the (normalised) proprioceptive state vector."""
     vision_dim: int = 64
+    """Feature size of one future-vision token (the image encoder's)."""
     cond_dim: int = 384
+    """Feature size of the backbone condition tokens."""
     aux_state_dim: int = 0
+    """Size of the privileged environment state the auxiliary read-out predicts (training only; 0: no read-out).
+    Needs ``lambda_aux``."""
 
     def __post_init__(self) -> None:
         SamplerConfig.__post_init__(self)
