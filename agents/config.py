@@ -2,7 +2,7 @@
 
 Each setting is declared once, in the dataclass of whoever chooses it:
 :class:`SamplerConfig` (how a chunk is sampled: chosen when acting, by
-``dust-rl eval --sampling.*``), :class:`ModelConfig` (variant, trunk size,
+``dust-rl eval ... resample --*``), :class:`ModelConfig` (variant, trunk size,
 losses: chosen for training, ``dust-rl train --policy.*``, with
 :class:`PolicyConfig` adding the image encoder and the executed steps) and
 :class:`DustConfig`, which joins the two and adds the sizes the data and
@@ -43,6 +43,7 @@ MAX_GRID_SIDE = 64
 MAX_BLOCKS = 64  # n_mmdit + n_dit
 MAX_MLP_RATIO = 16.0
 MAX_STEPS = 1024  # n_action_steps, vision_step_ratio
+MAX_CANDIDATES = 256  # joint samples per chunk
 MAX_IMAGE_SIZE = 1024  # side of the frames an image encoder works at
 MAX_CONV_WIDTH = 512  # channels of a convolutional encoder stage
 MAX_ENCODER_LAYERS = 64  # transformer layers of an image encoder
@@ -63,7 +64,7 @@ def check_size(name: str, value: object, maximum: int, minimum: int = 1) -> None
 class SamplerConfig:
     """How a chunk is sampled: chosen when acting, not when training (the loss does not depend on it).
 
-    A policy file stores the settings it acts with by default; ``dust-rl eval --sampling.*`` sets them per
+    A policy file stores the settings it acts with by default; ``dust-rl eval ... resample --*`` sets them per
     evaluation. With q > 1 the vision stream takes N_o = q * N_A steps (async only).
     """
 
@@ -73,12 +74,16 @@ class SamplerConfig:
     """N_A, action denoising steps per chunk (paper: 4)."""
     vision_step_ratio: int = 1
     """q, vision denoising steps per action step (async only: N_o = q * N_A)."""
+    candidates: int = 1
+    """K joint samples per chunk; the one whose predicted future the policy's future scorer rates best is
+    executed (``wm_select``, :mod:`.future_scorer`; needs a scorer). 1: the chunk as sampled."""
 
     def __post_init__(self) -> None:
         if self.sampler is not None and self.sampler not in SAMPLERS:
             raise ValueError(f"unknown sampler {self.sampler!r}; expected one of {SAMPLERS} or None")
         check_size("n_action_steps", self.n_action_steps, MAX_STEPS)
         check_size("vision_step_ratio", self.vision_step_ratio, MAX_STEPS)
+        check_size("candidates", self.candidates, MAX_CANDIDATES)
 
     @property
     def sampler_settings(self) -> SamplerConfig:
@@ -229,6 +234,9 @@ class DustConfig(ModelConfig, SamplerConfig):
     aux_state_dim: int = 0
     """Size of the privileged environment state the auxiliary read-out predicts (training only; 0: no read-out).
     Needs ``lambda_aux``."""
+    scorer_hidden: int = 0
+    """Hidden width of the future scorer (:mod:`.future_scorer`, fitted after training by ``dust-rl finetune
+    --method wm_select``); 0: no scorer."""
 
     def __post_init__(self) -> None:
         SamplerConfig.__post_init__(self)
@@ -245,6 +253,9 @@ class DustConfig(ModelConfig, SamplerConfig):
             raise ValueError("the action_only variant has no vision stream; use sampler='action_only'")
         if not self.decoupled and (sampler == "action_only" or self.vision_step_ratio != 1):
             raise ValueError(f"variant {self.variant!r} shares one timestep: only synchronous sampling applies")
+        if self.candidates > 1 and not (self.scorer_hidden and self.has_vision and sampler != "action_only"):
+            raise ValueError(f"candidates={self.candidates} needs a future scorer (scorer_hidden > 0, fitted by "
+                             "dust-rl finetune --method wm_select) and a sampler that predicts the future")
         if sampler != "async" and self.vision_step_ratio != 1:
             raise ValueError(f"vision_step_ratio (N_o = q * N_A) applies to the async sampler only; the sampler is "
                              f"{sampler!r}")
@@ -254,8 +265,11 @@ class DustConfig(ModelConfig, SamplerConfig):
         for name in ("action_dim", "state_dim", "vision_dim", "cond_dim"):
             check_size(name, getattr(self, name), MAX_WIDTH)
         check_size("aux_state_dim", self.aux_state_dim, MAX_WIDTH, minimum=0)
+        check_size("scorer_hidden", self.scorer_hidden, MAX_WIDTH, minimum=0)
         if any(c % v for c, v in zip(self.condition_grid, self.vision_grid)):
             raise ValueError(f"cond_grid {self.condition_grid} must be a multiple of vision_grid {self.vision_grid}")
+        if self.n_vision_tokens * self.vision_dim * self.scorer_hidden > MAX_PARAMETERS:
+            raise ValueError(f"the future scorer would have over {MAX_PARAMETERS:.3g} parameters; reduce scorer_hidden")
         if self.n_parameters > MAX_PARAMETERS:
             raise ValueError(f"the trunk would have {self.n_parameters:.3g} parameters, more than the cap of "
                              f"{MAX_PARAMETERS:.3g}; reduce d_model, the block counts or mlp_ratio")

@@ -57,6 +57,7 @@ from .backbone import FrozenBackbone
 from .condition import ConditionProjector
 from .config import DustConfig, SamplerConfig
 from .dust_model import DustModel
+from .future_scorer import FutureScorer
 from .image_encoder import pool_tokens
 from .normalizer import Normalizer
 from .samplers import schedule_for
@@ -125,6 +126,8 @@ class DustPolicy(VLAWrapperBase):
         if config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
                                               config.aux_state_dim)
+        if config.scorer_hidden:
+            self.future_scorer = FutureScorer(config.n_vision_tokens, config.vision_dim, config.scorer_hidden)
         self.normalizer = Normalizer(config.state_dim, config.action_dim, config.vision_dim)
         self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
         self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
@@ -355,12 +358,29 @@ class DustPolicy(VLAWrapperBase):
         batch = self._model_batch(features)
         if action_noise is not None:
             batch.set("action_noise", action_noise.reshape(batch.batch_size[0], *action_noise.shape[-2:]))
+        candidates = self.config.candidates
+        if candidates > 1:  # K joint samples of each observation, side by side: [B * K]
+            batch = batch[torch.arange(batch.batch_size[0]).repeat_interleave(candidates)]
         out = self.model.predict_action(batch, schedule_for(self.config), generator)
+        if candidates > 1:  # keep, per observation, the sample whose predicted future scores best
+            scores = self.future_scores(out.get("future_tokens")).view(-1, candidates)
+            out = out.view(-1, candidates)[torch.arange(scores.shape[0]), scores.argmax(-1)]
         chunk = self.normalizer.denormalize_action(out.get("action_chunk"))
         out.set("action_chunk", chunk.clamp(self.action_low, self.action_high))
         if "future_tokens" in out.keys():
             out.set("future_tokens", self.normalizer.denormalize_vision(out.get("future_tokens")))
         return out
+
+    def future_scores(self, future_tokens: Tensor) -> Tensor:
+        """The future scorer's success logits [B] of predicted futures [B, N_o, Dv] (the trunk's normalised
+        units, as :meth:`~.dust_model.DustModel.predict_action` returns them).
+
+        Raises:
+            ValueError: the policy has no future scorer.
+        """
+        if not self.config.scorer_hidden:
+            raise ValueError("this policy has no future scorer (fit one with dust-rl finetune --method wm_select)")
+        return self.future_scorer(future_tokens)
 
     def forward(self, tensordict: TensorDictBase, *, tensordict_out: TensorDictBase | None = None,
                 **kwargs) -> TensorDictBase:

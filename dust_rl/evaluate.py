@@ -30,10 +30,11 @@ import pathlib
 import time
 import warnings
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, replace
-from typing import NamedTuple
+from dataclasses import dataclass, replace
+from typing import Annotated, NamedTuple
 
 import torch
+import tyro
 from tensordict import TensorDictBase
 from torchrl.collectors import BaseCollector, Collector
 from torchrl.envs import InitTracker, TransformedEnv
@@ -69,10 +70,11 @@ class EvalConfig:
     """Env processes per task (1 runs in this process)."""
     seed: int = 10_000
     """Episode k of a task resets from seed + k (training data uses seeds from 0 on)."""
-    sampling: SamplerConfig = field(default_factory=SamplerConfig)
-    """How chunks are sampled (``--sampling.sampler sync``, ``--sampling.n-action-steps 8``,
-    ``--sampling.vision-step-ratio 4`` for N_o = 4 N_A); the defaults are what every trained policy stores: the
-    variant's natural sampler at N_A = 4, N_o = N_A."""
+    sampling: (Annotated[SamplerConfig, tyro.conf.subcommand("resample")]
+               | Annotated[None, tyro.conf.subcommand("as-saved")]) = None
+    """How chunks are sampled: as the policy file says (the default), or ``resample`` with other settings, given
+    after every other argument (``dust-rl eval --policy P resample --n-action-steps 8 --vision-step-ratio 4
+    --candidates 4``; fields not given take their defaults, not the file's)."""
     execute_steps: int | None = None
     """Actions executed per chunk before re-planning (1..H); default: the policy's (training's)."""
     max_steps: int | None = None
@@ -92,10 +94,11 @@ class EvalConfig:
 
 
 def describe_sampler(sampler: SamplerConfig) -> dict:
-    """Name, N_A and N_o (vision Euler steps: q * N_A async, N_A sync, none action-only) of a resolved sampler."""
+    """Name, N_A, N_o (vision Euler steps: q * N_A async, N_A sync, none action-only) and the joint samples per
+    chunk of a resolved sampler."""
     vision = {"async": sampler.n_action_steps * sampler.vision_step_ratio, "sync": sampler.n_action_steps}
     return {"name": sampler.sampler, "n_action_steps": sampler.n_action_steps,
-            "vision_steps": vision.get(sampler.sampler, 0)}
+            "vision_steps": vision.get(sampler.sampler, 0), "candidates": sampler.candidates}
 
 
 @dataclass(frozen=True)
@@ -193,7 +196,8 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
     finally:
         probe.close()
     try:
-        policy.set_sampler(config.sampling)
+        if config.sampling is not None:
+            policy.set_sampler(config.sampling)
     except ValueError as err:  # the policy's own config check (e.g. async sampling of a shared-timestep variant)
         raise ConfigError(f"{config.policy}: sampling {config_json(config.sampling)} does not apply: {err}") from err
     sampler = replace(policy.config.sampler_settings, sampler=policy.config.sampler_name)

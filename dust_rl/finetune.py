@@ -17,7 +17,9 @@ Every ``checkpoint_every`` RL steps the whole learning state (networks,
 optimisers, replay buffer, counters, RNG; :mod:`dust_rl.rl_checkpoint`) goes
 to a torchrl ``Checkpoint``; ``--resume`` continues from the newest one.
 
-Not yet: torchrl's SAC front-end, and the world model's part (issue 10, item 3).
+``--method wm_select`` trains no RL agent: it fits a scorer of DUST's predicted futures on the policy's own
+rollouts and writes a policy that picks among K joint samples (:mod:`dust_rl.wm_select`). torchrl's SAC
+front-end is :mod:`dust_rl.torchrl_sac`.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
 from dust_rl.steering import NoiseSteeringEnv
+from dust_rl.wm_select import VALIDATION_EVERY, wm_select
 
 RL_AGENT_KIND = "dust-rl rl agent"
 RESUMABLE_FIELDS = ("resume", "progress", "threads")
@@ -63,9 +66,11 @@ class FinetuneConfig:
     out: pathlib.Path = pathlib.Path("runs/finetune")
     """Run folder: ``config.json``, ``checkpoints/``, ``rl_agent.pt``, ``report.json``, ``report.md`` and ``logs/``
     (SB3's scalars: CSV, TensorBoard)."""
-    method: Literal["steer", "residual"] = "steer"
+    method: Literal["steer", "residual", "wm_select"] = "steer"
     """``steer``: the RL action is the policy's initial action noise, one step per chunk (DSRL);
-    ``residual``: a bounded correction added to every executed action."""
+    ``residual``: a bounded correction added to every executed action; ``wm_select``: K joint samples per chunk,
+    the one whose predicted future a scorer fitted on the policy's own rollouts rates best executed
+    (:mod:`dust_rl.wm_select`; writes ``policy.pt``, no SB3 agent)."""
     algorithm: Literal["sac", "ppo"] = "sac"
     """stable-baselines3 algorithm (``MultiInputPolicy``)."""
     steps: int = 20_000
@@ -93,6 +98,16 @@ class FinetuneConfig:
     """First evaluation seed (training data: 0 on; validation: 5000 on; held-out: 10000 on)."""
     max_steps: int | None = None
     """Time limit per episode in env steps; default: the task's."""
+    candidates: tuple[int, ...] = (4, 8)
+    """wm_select: the K values evaluated; the written ``policy.pt`` acts with the first."""
+    rollouts: int = 100
+    """wm_select: base-policy episodes whose outcomes train the scorer."""
+    rollout_seed: int = 20_000
+    """wm_select: first seed of those episodes (away from training, validation and held-out seeds)."""
+    scorer_hidden: int = 128
+    """wm_select: hidden width of the scorer."""
+    scorer_steps: int = 2000
+    """wm_select: scorer optimiser steps (the weights of the best validation loss are kept)."""
     checkpoint_every: int = 5000
     """RL steps between checkpoints of the whole learning state (one is always written at the end; PPO rounds
     each sitting up to whole rollouts of up to 2048 steps)."""
@@ -104,56 +119,75 @@ class FinetuneConfig:
     """Show progress bars."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "steps", "batch_size", "eval_episodes", "threads", "max_steps", "checkpoint_every")
-        check_at_least(self, 0, "learning_starts", "seed", "eval_seed")
+        check_at_least(self, 1, "steps", "batch_size", "eval_episodes", "threads", "max_steps", "checkpoint_every",
+                       "rollouts", "scorer_hidden", "scorer_steps")
+        check_at_least(self, 0, "learning_starts", "seed", "eval_seed", "rollout_seed")
+        if not self.candidates or min(self.candidates) < 1:
+            raise ConfigError(f"candidates must list positive sample counts, got {self.candidates}")
+        if self.method == "wm_select" and self.rollouts < VALIDATION_EVERY:
+            raise ConfigError(f"wm_select needs rollouts >= {VALIDATION_EVERY}: every {VALIDATION_EVERY}th episode "
+                              "validates the scorer")
         check_finite(self, "noise_bound", "residual_scale", positive=True)
         if not self.net_arch or min(self.net_arch) < 1:
             raise ConfigError(f"net_arch must list positive layer widths, got {self.net_arch}")
 
 
 def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
-    """Fine-tune, save the RL agent, compare with the base policy; returns the report."""
+    """Fine-tune, save the result, compare with the base policy; returns the report."""
     with torch_threads(config.threads):
-        began = time.perf_counter()
         check_run_folder(config, RESUMABLE_FIELDS)
         policy = unwrap(load_policy(config.policy))
         make, task = finetune_env_factory(config, policy)
         if not config.resume:
             write_run_config(config, command)
-
-        # The RL agent, trained on the fine-tuning env; DUST itself is frozen inside it.
-        env = make()
-        agent = build_agent(config, env)
-        agent.set_logger(configure_logger(str(config.out / "logs"), ["csv", "tensorboard"]))
-        checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=GlobalRNGState())
-        rotation = CheckpointRotation(config.out / "checkpoints", keep_last=2)
-        restore(checkpoint, rotation)
-        while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every steps
-            agent.learn(total_timesteps=min(config.checkpoint_every, config.steps - agent.num_timesteps),
-                        reset_num_timesteps=False, progress_bar=config.progress)
-            rotation.save(checkpoint, step=agent.num_timesteps, metadata={"step": agent.num_timesteps})
-        env.close()
-        trained_s = time.perf_counter() - began
-        save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
-                        config.out / "rl_agent.pt", RL_AGENT_KIND)
-
-        # The base policy and the fine-tuned one on the same held-out seeds.
-        base = _run_episodes(make, lambda obs, env: env.step_base(), config)
-        tuned = _run_episodes(make, lambda obs, env: env.step(agent.predict(obs, deterministic=True)[0]), config)
-        for name, episodes in (("base", base), ("fine_tuned", tuned)):
-            agent.logger.record(f"eval/success_rate_{name}", summary_row(name, episodes)["success_rate"])
-        agent.logger.dump(agent.num_timesteps)
+        if config.method == "wm_select":
+            result = wm_select(config, task)
+            episodes = {name: [Episode(*e) for e in row["per_episode"]] for name, row in result["rows"].items()}
+            extra = {"scorer": result["scorer"], "rollout_env_steps": result["rollout_env_steps"],
+                     "policy_file": result["policy_file"]}
+            trained_s = result["train_seconds"]
+        else:
+            episodes, trained_s = train_rl(config, make)
+            extra = {"rl_agent": str(config.out / "rl_agent.pt")}
     report = {
-        "policy": str(config.policy), "method": config.method, "algorithm": config.algorithm,
-        "task": task, "steps": config.steps, "command": command, "config": config_json(config),
+        "policy": str(config.policy), "method": config.method, "algorithm": config.algorithm, "task": task,
+        "steps": config.steps, "command": command, "config": config_json(config),
         "seeds": [config.eval_seed, config.eval_seed + config.eval_episodes - 1], "train_seconds": trained_s,
-        "rows": [summary_row("base policy", base), summary_row(f"fine-tuned ({config.method}, {config.algorithm})",
-                                                                 tuned)],
-        "per_episode": {"base": [list(e) for e in base], "fine_tuned": [list(e) for e in tuned]},
+        "rows": [summary_row(name, rows) for name, rows in episodes.items()],
+        "per_episode": {name: [list(e) for e in rows] for name, rows in episodes.items()}, **extra,
     }
     write_json_atomic(config.out / "report.json", report, indent=2)
     write_text_atomic(config.out / "report.md", _markdown(report))
     return report
+
+
+def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tuple[dict[str, list[Episode]], float]:
+    """Train the SB3 agent on the fine-tuning env (resuming from the newest checkpoint), save it, and run the
+    base and the fine-tuned policy on the evaluation seeds; returns their episodes by row name and the
+    training seconds."""
+    began = time.perf_counter()
+    env = make()
+    agent = build_agent(config, env)
+    agent.set_logger(configure_logger(str(config.out / "logs"), ["csv", "tensorboard"]))
+    checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=GlobalRNGState())
+    rotation = CheckpointRotation(config.out / "checkpoints", keep_last=2)
+    restore(checkpoint, rotation)
+    while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every steps
+        agent.learn(total_timesteps=min(config.checkpoint_every, config.steps - agent.num_timesteps),
+                    reset_num_timesteps=False, progress_bar=config.progress)
+        rotation.save(checkpoint, step=agent.num_timesteps, metadata={"step": agent.num_timesteps})
+    env.close()
+    trained_s = time.perf_counter() - began
+    save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
+                    config.out / "rl_agent.pt", RL_AGENT_KIND)
+
+    # The base policy and the fine-tuned one on the same held-out seeds.
+    base = _run_episodes(make, lambda obs, env: env.step_base(), config)
+    tuned = _run_episodes(make, lambda obs, env: env.step(agent.predict(obs, deterministic=True)[0]), config)
+    for name, episodes in (("base", base), ("fine_tuned", tuned)):
+        agent.logger.record(f"eval/success_rate_{name}", summary_row(name, episodes)["success_rate"])
+    agent.logger.dump(agent.num_timesteps)
+    return {"base policy": base, f"fine-tuned ({config.method}, {config.algorithm})": tuned}, trained_s
 
 
 def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
@@ -175,7 +209,8 @@ def finetune_command(config: FinetuneConfig, command: str | None = None) -> dict
     for row in report["rows"]:
         print(f"{row['task']}: {row['successes']}/{row['episodes']} successful ({100 * row['success_rate']:.0f}%, "
               f"95% CI {100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}%)")
-    print(f"RL agent: {config.out / 'rl_agent.pt'}\nreport: {config.out / 'report.md'}")
+    print(f"{'policy' if config.method == 'wm_select' else 'RL agent'}: "
+          f"{report.get('policy_file', report.get('rl_agent'))}\nreport: {config.out / 'report.md'}")
     return report
 
 
@@ -222,9 +257,16 @@ def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, Fro
 
 
 def _markdown(report: dict) -> str:
+    if report["method"] == "wm_select":
+        scorer = report["scorer"]
+        auc = "n/a" if scorer["validation_auc"] is None else f"{scorer['validation_auc']:.2f}"
+        how = (f"a future scorer fitted on {report['config']['rollouts']} base-policy rollouts "
+               f"({report['rollout_env_steps']} env steps, {report['train_seconds']:.0f} s; validation ROC AUC {auc})")
+    else:
+        how = (f"{report['algorithm']}, {report['steps']} RL steps ({report['train_seconds']:.0f} s), "
+               f"{report['config']['reward']} reward")
     lines = [f"# RL fine-tuning: {report['policy']}", "",
-             f"- task `{report['task']}`, method `{report['method']}`, {report['algorithm']}, "
-             f"{report['steps']} RL steps ({report['train_seconds']:.0f} s), {report['config']['reward']} reward",
+             f"- task `{report['task']}`, method `{report['method']}`: {how}",
              f"- seeds {report['seeds'][0]}..{report['seeds'][1]}; the imitation policy stays frozen", "",
              "| policy | episodes | success | 95% CI |", "|---|---|---|---|"]
     lines += [f"| {row['task']} | {row['episodes']} | {100 * row['success_rate']:.0f}% | "

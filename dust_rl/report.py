@@ -20,6 +20,11 @@ REPORT_MD = "report.md"
 SUCCESS_PNG = "success.png"
 
 
+def candidates_note(candidates: int) -> str:
+    """How many joint samples each chunk was chosen from, when more than one (``wm_select``)."""
+    return f", best of {candidates} joint samples by the future scorer" if candidates > 1 else ""
+
+
 def write_report(report: dict, out_dir: pathlib.Path) -> dict[str, pathlib.Path]:
     """Write ``report.json``, ``report.md`` and ``success.png`` into ``out_dir``; returns their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -52,8 +57,9 @@ def markdown_report(report: dict, out_dir: pathlib.Path) -> str:
         f"- policy: `{report['policy']}` (variant `{report['variant']}`, "
         f"{report.get('trainable_parameters', 0) / 1e6:.2f}M trainable parameters)",
         f"- env: `{report['env_id']}` {report['env_kwargs']}",
-        f"- sampler: {sampler['name']}, N_A = {sampler['n_action_steps']}, N_o = {sampler['vision_steps']}; "
-        f"{report.get('execute_steps', '?')} actions executed per chunk",
+        f"- sampler: {sampler['name']}, N_A = {sampler['n_action_steps']}, N_o = {sampler['vision_steps']}"
+        f"{candidates_note(sampler.get('candidates', 1))}; {report.get('execute_steps', '?')} actions executed "
+        "per chunk",
         f"- seeds {report['seeds'][0]}..{report['seeds'][1]} per task; {report['noise_seeding']}",
         f"- {report['env_steps']} env steps in {report['episodes_time_s']:.1f} s "
         f"({report['env_steps_per_s']:.1f} steps/s with {report['config']['workers']} env processes) "

@@ -49,11 +49,32 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
     # The base row is the policy's own evaluation, episode for episode (same seeds, same noise, same actions).
     evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", episodes=2, workers=1, videos=0,
                                     max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
-    assert report["per_episode"]["base"] == [list(e) for e in evaluated["tasks"][0]["per_episode"]]
+    assert report["per_episode"]["base policy"] == [list(e) for e in evaluated["tasks"][0]["per_episode"]]
     agent = load_checkpoint(tmp_path / "ft" / "rl_agent.pt", RL_AGENT_KIND)
     assert agent["config"]["method"] == method and all(torch.isfinite(v).all() for v in agent["state_dict"].values())
     assert "| base policy | 2 |" in (tmp_path / "ft" / "report.md").read_text()
     assert "eval/success_rate_fine_tuned" in (tmp_path / "ft" / "logs" / "progress.csv").read_text()
+
+
+def test_wm_select_writes_a_policy_eval_loads_and_compares_on_the_same_seeds(policy_path, tmp_path):
+    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method="wm_select", candidates=(2,), rollouts=5,
+                            scorer_hidden=8, scorer_steps=3, eval_episodes=2, max_steps=EPISODE_STEPS,
+                            progress=False)
+    report = finetune(config, command="dust-rl finetune ...")
+    assert [row["task"] for row in report["rows"]] == ["base policy", "wm_select (K = 2)"]
+    assert report["rollout_env_steps"] == 5 * EPISODE_STEPS and report["scorer"]["validation_rows"] > 0
+    evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", episodes=2, workers=1, videos=0,
+                                    max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
+    assert report["per_episode"]["base policy"] == [list(e) for e in evaluated["tasks"][0]["per_episode"]]
+    # The written policy is the base one plus a scorer, acting with K = 2; dust-rl eval reads it as any policy.
+    selected = unwrap(load_policy(tmp_path / "ft" / "policy.pt"))
+    assert selected.config.candidates == 2 and selected.info["wm_select"]["base_policy"] == str(policy_path)
+    base_weights = unwrap(load_policy(policy_path)).state_dict()
+    assert all(torch.equal(v, base_weights[k]) for k, v in selected.state_dict().items() if k in base_weights)
+    again = evaluate(EvalConfig(policy=tmp_path / "ft" / "policy.pt", out=tmp_path / "eval_k2", episodes=2,
+                                workers=1, videos=0, max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
+    assert again["tasks"][0]["per_episode"] == report["per_episode"]["wm_select (K = 2)"]
+    assert "| wm_select (K = 2) | 2 |" in (tmp_path / "ft" / "report.md").read_text()
 
 
 def test_bad_finetune_settings_are_named(policy_path, tmp_path):
