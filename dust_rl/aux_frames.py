@@ -26,7 +26,6 @@ layout the policy is scored on.
 
 from __future__ import annotations
 
-import gymnasium as gym
 import numpy as np
 import torch
 from tensordict import TensorDict
@@ -34,6 +33,7 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
 from dust_rl.env_factory import make_env
+from dust_rl.envs.env import DustEnv
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, flat_name
 
 FIRST_SEED = 1_000_000
@@ -68,12 +68,15 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
             frame_seed = FIRST_SEED + seed * count + i
             env = envs[tasks[i % len(tasks)]]
             rng = np.random.default_rng(frame_seed)
-            obs, _ = env.reset(seed=frame_seed)
+            env.reset(seed=frame_seed)
+            sim = env.unwrapped  # steps without rendering; only the frame at the end is drawn
             if expert_fraction and rng.random() < expert_fraction:  # no draw at 0: earlier runs' frames stay
-                obs = _expert_steps(env, obs, int(rng.integers(0, MAX_EXPERT_STEPS)))
+                _expert_steps(sim, int(rng.integers(0, MAX_EXPERT_STEPS)))
             else:
                 for _ in range(rng.integers(0, MAX_RANDOM_STEPS)):
-                    obs, *_ = env.step(rng.uniform(-1.0, 1.0, env.action_space.shape).astype(np.float32))
+                    if sim.advance(rng.uniform(-1.0, 1.0, env.action_space.shape).astype(np.float32))[1]:
+                        break  # the episode ended (a time limit, an unstable simulation)
+            obs = sim.observe()
             for cam in cameras:
                 frames[cam].append(torch.from_numpy(obs[f"{flat_name(IMAGE_KEY)}.{cam}"]).permute(2, 0, 1))
             state = torch.from_numpy(obs[flat_name(ENV_STATE_KEY)])
@@ -87,14 +90,13 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
     return rows, instructions
 
 
-def _expert_steps(env: gym.Env, obs: dict, steps: int) -> dict:
-    """The observation ``steps`` expert actions after ``obs`` (a reset), or at the episode's end if sooner."""
-    expert = env.unwrapped.make_expert()
+def _expert_steps(sim: DustEnv, steps: int) -> None:
+    """``steps`` scripted-expert steps after a reset, or up to the episode's end if sooner."""
+    expert = sim.make_expert()
     for _ in range(steps):
-        obs, _, terminated, truncated, _ = env.step(expert.act())
-        if terminated or truncated:
+        success, reason = sim.advance(expert.act())
+        if success or reason:
             break
-    return obs
 
 
 class AuxFrameBatches:

@@ -210,9 +210,21 @@ class DustEnv(gym.Env):
         # Let props settle on the table before the first observation.
         mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
         self._elapsed = 0
-        return self._observation(), self._info(success=False, reason="")
+        return self.observe(), self._info(success=False, reason="")
 
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        success, reason = self.advance(action)
+        if self.reward_type == "dense":
+            eef = self.data.site_xpos[self._ee_sites[0]]
+            reward = 1.0 if success else self.task.progress(self.model, self.data, eef)
+        else:
+            reward = float(success)
+        return self.observe(), float(reward), success, bool(reason), self._info(success, reason)
+
+    def advance(self, action: np.ndarray) -> tuple[bool, str]:
+        """One control step without an observation (no rendering): :meth:`step` minus the observation, for
+        callers that only look at the end of a motion (``dust_rl.aux_frames`` renders one frame after many
+        steps). Returns (success, the truncation reason or "")."""
         action = self._validate_action(action)
         reason = self._apply_action(action)
         if not reason:
@@ -221,13 +233,8 @@ class DustEnv(gym.Env):
         success = not reason and self.task.is_success(self.model, self.data)
         if not reason and self._elapsed >= self.max_episode_steps:
             reason = "time_limit"
-        if self.reward_type == "dense":
-            eef = self.data.site_xpos[self._ee_sites[0]]
-            reward = 1.0 if success else self.task.progress(self.model, self.data, eef)
-        else:
-            reward = float(success)
-        obs = self._observation()
-        return obs, float(reward), bool(success), bool(reason), self._info(success, reason)
+        return bool(success), reason
+
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array":
@@ -290,7 +297,8 @@ class DustEnv(gym.Env):
     def _instability_warnings(self) -> int:
         return int(self.data.warning.number[_INSTABILITY_WARNINGS].sum())
 
-    def _observation(self) -> dict:
+    def observe(self) -> dict:
+        """The observation of the current state, as :meth:`step` returns it."""
         obs: dict = {}
         if self.obs_mode == "rgb":
             for camera in self.cameras:
