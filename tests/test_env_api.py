@@ -72,6 +72,21 @@ def test_state_mode_renders_nothing(state_env):
     assert state_env._renderer is None
 
 
+def test_advance_then_observe_is_a_step():
+    stepped, advanced = (DustEnv(task="pick_place", image_size=32) for _ in range(2))
+    for env in (stepped, advanced):
+        env.reset(seed=3)
+    action = np.linspace(-1, 1, 7).astype(np.float32)
+    obs, _, terminated, truncated, _ = stepped.step(action)
+    assert advanced.advance(action) == (terminated, "")
+    observed = advanced.observe()
+    assert obs.keys() == observed.keys() and not truncated
+    assert all(np.array_equal(obs[k], observed[k]) for k in obs if k != "language_instruction")
+    assert observed["language_instruction"] == obs["language_instruction"]
+    for env in (stepped, advanced):
+        env.close()
+
+
 def test_list_tasks_and_unknown_task():
     tasks = list_tasks("franka")
     assert "pick_place" in tasks
