@@ -111,6 +111,7 @@ class TrainSettings:
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
     """Where the scalars go, each through torchrl's ``get_logger`` into ``out/logs`` (experiment ``train``);
     ``wandb`` and ``mlflow`` need their package installed. ``loss.png`` is drawn from the CSV files."""
+
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
                        "eval_episodes", "eval_workers", "threads")
