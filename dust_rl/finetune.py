@@ -24,6 +24,7 @@ front-end is :mod:`dust_rl.torchrl_sac`.
 
 from __future__ import annotations
 
+import json
 import pathlib
 import time
 from collections.abc import Callable
@@ -46,6 +47,7 @@ from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.evaluate import Episode, episode_digest, summary_row, torch_threads
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
+from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
@@ -108,6 +110,13 @@ class FinetuneConfig:
     """wm_select: hidden width of the scorer."""
     scorer_steps: int = 2000
     """wm_select: scorer optimiser steps (the weights of the best validation loss are kept)."""
+    eval_every: int = 0
+    """RL steps between evaluations of the agent on ``curve_episodes`` validation episodes, for the learning curve
+    (``learning_curve.json``/``.png``: success against env steps); 0: none."""
+    curve_episodes: int = 10
+    """Episodes of each periodic evaluation."""
+    curve_seed: int = 5000
+    """First seed of the periodic evaluations (validation seeds: the held-out ones stay for the report)."""
     checkpoint_every: int = 5000
     """RL steps between checkpoints of the whole learning state (one is always written at the end; PPO rounds
     each sitting up to whole rollouts of up to 2048 steps)."""
@@ -121,7 +130,8 @@ class FinetuneConfig:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "eval_episodes", "threads", "max_steps", "checkpoint_every",
                        "rollouts", "scorer_hidden", "scorer_steps")
-        check_at_least(self, 0, "learning_starts", "seed", "eval_seed", "rollout_seed")
+        check_at_least(self, 0, "learning_starts", "seed", "eval_seed", "rollout_seed", "eval_every", "curve_seed")
+        check_at_least(self, 1, "curve_episodes")
         if not self.candidates or min(self.candidates) < 1:
             raise ConfigError(f"candidates must list positive sample counts, got {self.candidates}")
         if self.method == "wm_select" and self.rollouts < VALIDATION_EVERY:
@@ -171,19 +181,35 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     agent.set_logger(configure_logger(str(config.out / "logs"), ["csv", "tensorboard"]))
     checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=GlobalRNGState())
     rotation = CheckpointRotation(config.out / "checkpoints", keep_last=2)
-    restore(checkpoint, rotation)
-    while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every steps
-        agent.learn(total_timesteps=min(config.checkpoint_every, config.steps - agent.num_timesteps),
-                    reset_num_timesteps=False, progress_bar=config.progress)
-        rotation.save(checkpoint, step=agent.num_timesteps, metadata={"step": agent.num_timesteps})
+    env.env_steps = int(restore(checkpoint, rotation).get("env_steps", 0))
+    curve_path = config.out / "learning_curve.json"
+    curve = [p for p in _read_curve(curve_path) if p["rl_steps"] <= agent.num_timesteps]  # none past the checkpoint
+    sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
+    while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every (or eval_every) steps
+        agent.learn(total_timesteps=min(sitting, config.steps - agent.num_timesteps), reset_num_timesteps=False,
+                    progress_bar=config.progress)
+        last_eval = curve[-1]["rl_steps"] if curve else 0
+        if config.eval_every and (agent.num_timesteps >= last_eval + config.eval_every
+                                  or agent.num_timesteps >= config.steps):
+            seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
+            episodes = _run_episodes(make, _tuned_step(agent), seeds, config.progress)
+            curve.append({"rl_steps": agent.num_timesteps, "env_steps": env.env_steps,
+                          **summary_row("fine-tuned", episodes)})
+            agent.logger.record("eval/curve_success_rate", curve[-1]["success_rate"])
+            write_json_atomic(curve_path, curve, indent=2)
+            plot_learning_curve(curve, config.out / "learning_curve.png",
+                                f"{config.method} + {config.algorithm}, seeds {seeds.start}..{seeds.stop - 1}")
+        rotation.save(checkpoint, step=agent.num_timesteps,
+                      metadata={"step": agent.num_timesteps, "env_steps": env.env_steps})
     env.close()
     trained_s = time.perf_counter() - began
     save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
                     config.out / "rl_agent.pt", RL_AGENT_KIND)
 
     # The base policy and the fine-tuned one on the same held-out seeds.
-    base = _run_episodes(make, lambda obs, env: env.step_base(), config)
-    tuned = _run_episodes(make, lambda obs, env: env.step(agent.predict(obs, deterministic=True)[0]), config)
+    seeds = range(config.eval_seed, config.eval_seed + config.eval_episodes)
+    base = _run_episodes(make, lambda obs, env: env.step_base(), seeds, config.progress)
+    tuned = _run_episodes(make, _tuned_step(agent), seeds, config.progress)
     for name, episodes in (("base", base), ("fine_tuned", tuned)):
         agent.logger.record(f"eval/success_rate_{name}", summary_row(name, episodes)["success_rate"])
     agent.logger.dump(agent.num_timesteps)
@@ -237,13 +263,22 @@ def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Ca
     return make, task
 
 
+def _tuned_step(agent: BaseAlgorithm) -> Callable[[dict, FrozenPolicyEnv], tuple]:
+    """An env step with the RL agent's deterministic action."""
+    return lambda obs, env: env.step(agent.predict(obs, deterministic=True)[0])
+
+
+def _read_curve(path: pathlib.Path) -> list[dict]:
+    """The learning curve written so far (a resumed run continues it); empty for a new run."""
+    return json.loads(path.read_text()) if path.is_file() else []
+
+
 def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, FrozenPolicyEnv], tuple],
-                  config: FinetuneConfig) -> list[Episode]:
-    """Closed-loop episodes on the evaluation seeds; success is the env's ``is_success`` at the end, length and
-    digest count env steps, as :func:`dust_rl.evaluate.evaluate` does (equal digests: the same episode)."""
+                  seeds: range, progress: bool) -> list[Episode]:
+    """Closed-loop episodes on ``seeds``; success is the env's ``is_success`` at the end, length and digest count
+    env steps, as :func:`dust_rl.evaluate.evaluate` does (equal digests: the same episode)."""
     env, episodes = make(), []
-    for seed in tqdm(range(config.eval_seed, config.eval_seed + config.eval_episodes), desc="episodes",
-                     disable=not config.progress):
+    for seed in tqdm(seeds, desc="episodes", disable=not progress):
         obs, _ = env.reset(seed=seed)
         done, info = False, {}
         while not done:

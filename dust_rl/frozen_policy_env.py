@@ -62,6 +62,7 @@ class FrozenPolicyEnv(gym.Env):
         self.features: TensorDict | None = None  # of the newest observation, for the next plan
         self.generator = episode_generator(0)
         self.executed: list[np.ndarray] = []  # the env actions of the current episode
+        self.env_steps = 0  # env steps of every episode so far (RL steps differ when one step runs a chunk)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Reset the env; the policy's sampling noise restarts from ``seed`` too."""
@@ -76,6 +77,7 @@ class FrozenPolicyEnv(gym.Env):
         """One step of the wrapped env, recorded in :attr:`executed`."""
         action = np.asarray(action, dtype=np.float32)
         self.executed.append(action)
+        self.env_steps += 1
         return self.env.step(action)
 
     def check_action(self, action: np.ndarray) -> np.ndarray:

@@ -154,6 +154,23 @@ def plot_loss_curves(source: pathlib.Path, out_png: pathlib.Path) -> pathlib.Pat
     return out_png
 
 
+def plot_learning_curve(curve: list[dict], out_png: pathlib.Path, title: str) -> pathlib.Path:
+    """Success rate (with its 95% interval) against env steps, one point per periodic evaluation
+    (``{"env_steps", "success_rate", "ci95_low", "ci95_high"}`` each)."""
+    fig = Figure(figsize=(6, 3.5), layout="constrained")
+    ax = fig.add_subplot()
+    steps = [point["env_steps"] for point in curve]
+    ax.plot(steps, [100 * point["success_rate"] for point in curve], marker="o")
+    ax.fill_between(steps, [100 * point["ci95_low"] for point in curve], [100 * point["ci95_high"] for point in curve],
+                    alpha=0.2)
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.set_title(title)
+    save_png(fig, out_png)
+    return out_png
+
+
 def save_png(fig: Figure, out_png: pathlib.Path) -> None:
     """Write ``fig`` as a PNG, atomically."""
     with atomic_write(out_png, "wb") as f:

@@ -53,17 +53,18 @@ def write_run_config(config, command: str | None) -> None:
                       {"config": config_json(config), "command": command, "versions": package_versions()}, indent=2)
 
 
-def restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> int:
-    """Load the newest checkpoint (if any) into the run's objects; returns its step (0: none).
+def restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> dict:
+    """Load the newest checkpoint (if any) into the run's objects; returns its metadata (``step`` and whatever
+    the run saved with it; empty: no checkpoint).
 
     Raises:
         CheckpointError: the newest checkpoint does not load into these objects.
     """
     latest = rotation.latest()
     if latest is None:
-        return 0
+        return {}
     try:
         checkpoint.load(latest)
     except (TorchrlCheckpointError, KeyError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{latest}: cannot resume from this checkpoint ({err})") from err
-    return int(Checkpoint.manifest(latest)["metadata"]["step"])
+    return dict(Checkpoint.manifest(latest)["metadata"])

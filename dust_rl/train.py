@@ -222,7 +222,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     schedule = warmup_cosine(optimizer, config.steps, config.warmup)
     ema = weight_average(trained, config.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
-    start = restore(checkpoint, rotation) if config.resume else 0
+    start = int(restore(checkpoint, rotation).get("step", 0)) if config.resume else 0
 
     # The loop.
     bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc="training",

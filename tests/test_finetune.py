@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -43,9 +44,16 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
                                                                         tmp_path):
     config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method=method, algorithm=algorithm, steps=8,
                             reward=reward, learning_starts=4, batch_size=4, net_arch=(16,), eval_episodes=2,
-                            max_steps=EPISODE_STEPS, progress=False)
+                            max_steps=EPISODE_STEPS, eval_every=4, curve_episodes=1, progress=False)
     report = finetune(config, command="dust-rl finetune ...")
     assert [row["episodes"] for row in report["rows"]] == [2, 2] and report["task"] == "press_button"
+    # A learning curve: a validation point every eval_every RL steps (PPO learns in whole rollouts of 8 here, so
+    # one point), env steps counted as executed.
+    curve = json.loads((tmp_path / "ft" / "learning_curve.json").read_text())
+    assert [p["rl_steps"] for p in curve] == ([4, 8] if algorithm == "sac" else [8])
+    assert all(p["episodes"] == 1 for p in curve) and curve[0]["env_steps"] >= curve[0]["rl_steps"]
+    assert all(a["env_steps"] < b["env_steps"] for a, b in zip(curve, curve[1:]))
+    assert (tmp_path / "ft" / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
     # The base row is the policy's own evaluation, episode for episode (same seeds, same noise, same actions).
     evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", episodes=2, workers=1, videos=0,
                                     max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
