@@ -360,11 +360,11 @@ class DustPolicy(VLAWrapperBase):
             batch.set("action_noise", action_noise.reshape(batch.batch_size[0], *action_noise.shape[-2:]))
         candidates = self.config.candidates
         if candidates > 1:  # K joint samples of each observation, side by side: [B * K]
-            batch = batch[torch.arange(batch.batch_size[0]).repeat_interleave(candidates)]
+            batch = batch[torch.arange(batch.batch_size[0], device=batch.device).repeat_interleave(candidates)]
         out = self.model.predict_action(batch, schedule_for(self.config), generator)
         if candidates > 1:  # keep, per observation, the sample whose predicted future scores best
             scores = self.future_scores(out.get("future_tokens")).view(-1, candidates)
-            out = out.view(-1, candidates)[torch.arange(scores.shape[0]), scores.argmax(-1)]
+            out = out.view(-1, candidates)[torch.arange(scores.shape[0], device=scores.device), scores.argmax(-1)]
         chunk = self.normalizer.denormalize_action(out.get("action_chunk"))
         out.set("action_chunk", chunk.clamp(self.action_low, self.action_high))
         if "future_tokens" in out.keys():
