@@ -24,8 +24,9 @@ DESCRIPTION = ("DUST (dual-stream diffusion) for torchrl and gymnasium: collect 
 
 
 def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
-    """Every command: name -> (its dataclass of arguments, its runner(config, command line))."""
+    """Every command: name (one or two words) -> (its dataclass of arguments, its runner(config, command line))."""
     from dust_rl import commands as data
+    from dust_rl.bench_suite import SuiteConfig, suite_command
     from dust_rl.evaluate import EvalConfig, evaluate_command
     from dust_rl.finetune import FinetuneConfig, finetune_command
     from dust_rl.quickstart import QuickstartConfig, quickstart
@@ -42,6 +43,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "train": (TrainConfig, train_command),
         "eval": (EvalConfig, evaluate_command),
         "finetune": (FinetuneConfig, finetune_command),
+        "bench suite": (SuiteConfig, suite_command),
     }
 
 
@@ -51,10 +53,12 @@ def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     command_line = shlex.join(["dust-rl", *argv])  # provenance for files a command writes
     table = commands()
+    name = " ".join(argv[:2]) if " ".join(argv[:2]) in table else argv[0] if argv else None
     try:
-        if argv and argv[0] in table:  # parsed on its own, so messages name the command ("dust-rl train --help")
-            config_class, runner = table[argv[0]]
-            runner(tyro.cli(config_class, args=argv[1:], prog=f"dust-rl {argv[0]}", config=GROUPS), command_line)
+        if name in table:  # parsed on its own, so messages name the command ("dust-rl train --help")
+            config_class, runner = table[name]
+            words = len(name.split())
+            runner(tyro.cli(config_class, args=argv[words:], prog=f"dust-rl {name}", config=GROUPS), command_line)
         else:  # no or an unknown command: tyro lists them all and exits
             choices = Union[tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, (cls, _) in table.items())]  # noqa: UP007
             tyro.cli(choices, args=argv, prog="dust-rl", description=DESCRIPTION, config=GROUPS)

@@ -1,0 +1,242 @@
+"""The paper's comparison on our suites: ``dust-rl bench suite``.
+
+DUST's claim is that a world-model stream kept apart from the actions (two
+MMDiT streams, decoupled noise) makes a better action policy than an
+action-only diffusion head. This command trains every variant of the
+comparison (``dust``, ``mmdit_shared``, ``decoupled``, ``joint``,
+``action_only``) on the same demonstrations with the same recipe and
+training seeds, and evaluates each on the same held-out seeds; then DUST's
+test-time scaling (N_A = 4, N_o = q * 4, async) against the synchronous
+control (both step counts raised together), and a data-scaling row (DUST and
+action_only on the first n demonstrations per task, n from ``--demos``).
+
+Every cell is a job cached on disk under ``out``: ``data/<n>/`` (collection,
+resumed), ``train/<variant>_seed<s>_demos<n>/`` (training, resumed; skipped
+once its ``policy.pt`` exists) and ``eval/<cell>/<sampler>/`` (skipped once
+its ``report.json`` exists), so rerunning the command after an interruption
+redoes nothing that finished. The budget (episodes to collect, training
+steps, evaluation episodes) is printed before anything runs. Output:
+``results.json``, ``results.md`` (the paper's form: success with 95%
+intervals, episodes pooled over training seeds) and ``results.png`` (bars).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+from dataclasses import dataclass, field
+
+from matplotlib.figure import Figure
+
+from dust_rl.agents import VARIANTS, SamplerConfig
+from dust_rl.agents.config import Variant
+from dust_rl.atomic_files import write_json_atomic, write_text_atomic
+from dust_rl.config_json import config_json
+from dust_rl.data import collect_demos
+from dust_rl.env_factory import DEFAULT_ENV_ID, env_tasks
+from dust_rl.errors import ConfigError, check_at_least
+from dust_rl.evaluate import EvalConfig, evaluate, wilson_interval
+from dust_rl.report import save_png
+from dust_rl.train import TrainConfig, TrainSettings, train
+
+AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
+
+
+@dataclass
+class SuiteConfig:
+    """Train the paper's five variants on the same data and seeds, evaluate them on the same held-out seeds."""
+
+    out: pathlib.Path = pathlib.Path("runs/bench/suite")
+    """Folder of every cell (data, train, eval) and of results.json / .md / .png; rerun to resume."""
+    env: str = DEFAULT_ENV_ID
+    """Gymnasium env id."""
+    task: str = "pick_place"
+    """Task name, comma-separated names, or ``all`` (one language-conditioned policy per cell)."""
+    demos: tuple[int, ...] = (50, 100, 200)
+    """Demonstrations per task; the largest trains every variant, the others give the data-scaling row."""
+    variants: tuple[Variant, ...] = VARIANTS
+    """Variants to compare (the first two of the data-scaling row: dust and action_only, when listed)."""
+    seeds: tuple[int, ...] = (0, 1)
+    """Training seeds; each cell's episodes are pooled over them."""
+    train: TrainSettings = field(default_factory=lambda: TrainSettings(lr=3e-4))
+    """The recipe every cell trains with (``--train.steps``, ``--train.policy.d-model`` ...; its variant and
+    seed are the cell's)."""
+    vision_steps: tuple[int, ...] = (4, 8, 16, 32)
+    """N_o of DUST's test-time scaling (async, N_A = 4) and of the synchronous control (N_A = N_o)."""
+    episodes: int = 20
+    """Evaluation episodes per task and cell."""
+    eval_seed: int = 10_000
+    """First held-out seed (training data: seeds from 0)."""
+    image_size: int = 128
+    """Camera resolution of the collected data."""
+    max_steps: int | None = None
+    """Evaluation time limit per episode; default: the task's."""
+    workers: int = 1
+    """Env processes for collection and evaluation."""
+    progress: bool = True
+    """Show progress bars."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "episodes", "image_size", "max_steps", "workers")
+        check_at_least(self, 0, "eval_seed")
+        if not self.demos or min(self.demos) < 1 or not self.seeds or not self.variants:
+            raise ConfigError("demos, seeds and variants must each list at least one value (demos >= 1)")
+        if any(v % 4 for v in self.vision_steps):
+            raise ConfigError(f"vision_steps must be multiples of N_A = 4, got {self.vision_steps}")
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One trained policy of the study."""
+
+    variant: str
+    seed: int
+    demos: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.variant}_seed{self.seed}_demos{self.demos}"
+
+
+def samplers(config: SuiteConfig, variant: str) -> dict[str, SamplerConfig | None]:
+    """What each policy of ``variant`` is evaluated with, by name: as trained, and for DUST the test-time
+    scaling (async, N_A = 4, N_o = q * 4) and the synchronous control (N_A = N_o)."""
+    runs: dict[str, SamplerConfig | None] = {AS_TRAINED: None}
+    if variant == "dust":
+        for n_o in config.vision_steps:
+            runs[f"async N_A=4 N_o={n_o}"] = SamplerConfig("async", 4, n_o // 4)
+            runs[f"sync N_A=N_o={n_o}"] = SamplerConfig("sync", n_o)
+    return runs
+
+
+def plan(config: SuiteConfig) -> list[tuple[Cell, str]]:
+    """Every (cell, sampler) evaluation of the study."""
+    main = max(config.demos)
+    cells = [Cell(v, s, main) for v in config.variants for s in config.seeds]
+    scaling = [v for v in ("dust", "action_only") if v in config.variants]
+    cells += [Cell(v, s, n) for n in sorted(config.demos) if n != main for v in scaling for s in config.seeds]
+    return [(cell, name) for cell in cells for name in samplers(config, cell.variant)
+            if cell.demos == main or name == AS_TRAINED]
+
+
+def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
+    """Run (or resume) every cell, then write the tables and the plot; returns the results."""
+    tasks = env_tasks(config.env, config.task)
+    jobs = plan(config)
+    cells = list(dict.fromkeys(cell for cell, _ in jobs))
+    print(f"budget: collect {max(config.demos)} demonstrations x {len(tasks)} tasks; train {len(cells)} policies "
+          f"x {config.train.steps} steps ({len(cells) * config.train.steps} steps); evaluate {len(jobs)} x "
+          f"{config.episodes} episodes x {len(tasks)} tasks ({len(jobs) * config.episodes * len(tasks)} episodes)")
+    env_kwargs = {"image_size": config.image_size}
+    for demos in sorted(config.demos):  # the first n seeds of every task: each smaller set is a prefix of the next
+        collect_demos(config.out / "data" / str(demos), config.env, tasks, demos, env_kwargs=env_kwargs,
+                      workers=config.workers, progress=config.progress)
+    reports = {}
+    for cell, name in jobs:
+        policy = train_cell(config, cell)
+        reports[cell, name] = evaluate_cell(config, cell, name, policy, command)
+    results = summarise(config, jobs, reports)
+    write_json_atomic(config.out / "results.json", results, indent=2)
+    write_text_atomic(config.out / "results.md", markdown(results, command))
+    plot(results, config.out / "results.png")
+    return results
+
+
+def train_cell(config: SuiteConfig, cell: Cell) -> pathlib.Path:
+    """The cell's policy file, trained (or resumed) unless it is already there."""
+    out = config.out / "train" / cell.name
+    if not (out / "policy.pt").is_file():
+        settings = dataclasses.replace(config.train, seed=cell.seed, progress=config.progress,
+                                       policy=dataclasses.replace(config.train.policy, variant=cell.variant))
+        train(TrainConfig.from_settings(settings, dataset=config.out / "data" / str(cell.demos), out=out,
+                                        resume=(out / "config.json").is_file()))
+    return out / "policy.pt"
+
+
+def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Path, command: str | None) -> dict:
+    """The cell's evaluation report with sampler ``name``, run unless already on disk."""
+    out = config.out / "eval" / cell.name / name.replace(" ", "_").replace("=", "")
+    if not (out / "report.json").is_file():
+        evaluate(EvalConfig(policy=policy, out=out, episodes=config.episodes, seed=config.eval_seed,
+                            workers=config.workers, videos=0, max_steps=config.max_steps,
+                            sampling=samplers(config, cell.variant)[name], progress=config.progress), command)
+    return json.loads((out / "report.json").read_text())
+
+
+def summarise(config: SuiteConfig, jobs: list[tuple[Cell, str]], reports: dict) -> dict:
+    """One row per (variant, demos, sampler): successes pooled over the training seeds, with a 95% interval."""
+    rows: dict[tuple, dict] = {}
+    for cell, name in jobs:
+        report = reports[cell, name]
+        key = (cell.variant, cell.demos, name)
+        row = rows.setdefault(key, {"variant": cell.variant, "demos": cell.demos, "sampler": name, "successes": 0,
+                                    "episodes": 0, "seeds": [], "per_seed": [],
+                                    "trainable_parameters": report["trainable_parameters"]})
+        overall = report["overall"]
+        row["successes"] += overall["successes"]
+        row["episodes"] += overall["episodes"]
+        row["seeds"].append(cell.seed)
+        row["per_seed"].append(overall["success_rate"])
+    for row in rows.values():
+        row["success_rate"] = row["successes"] / row["episodes"]
+        row["ci95_low"], row["ci95_high"] = wilson_interval(row["successes"], row["episodes"])
+    return {"env": config.env, "task": config.task, "main_demos": max(config.demos),
+            "eval_seeds": [config.eval_seed, config.eval_seed + config.episodes - 1],
+            "train": config_json(config.train),
+            "rows": list(rows.values())}
+
+
+def markdown(results: dict, command: str | None) -> str:
+    """The results in the paper's form: the comparison, test-time scaling, data scaling."""
+    main = results["main_demos"]
+
+    def table(title: str, rows: list[dict]) -> list[str]:
+        lines = [f"## {title}", "", "| variant | demos | sampler | parameters | success | 95% CI | per seed |",
+                 "|---|---|---|---|---|---|---|"]
+        for r in rows:
+            per_seed = " / ".join(f"{100 * s:.0f}%" for s in r["per_seed"])
+            lines.append(f"| {r['variant']} | {r['demos']} | {r['sampler']} | {r['trainable_parameters'] / 1e6:.2f}M "
+                         f"| {100 * r['success_rate']:.0f}% ({r['successes']}/{r['episodes']}) | "
+                         f"{100 * r['ci95_low']:.0f}-{100 * r['ci95_high']:.0f}% | {per_seed} |")
+        return [*lines, ""]
+
+    rows = results["rows"]
+    lines = [f"# Variant comparison: {results['task']} ({results['env']})", "",
+             f"Held-out seeds {results['eval_seeds'][0]}..{results['eval_seeds'][1]} per task; episodes pooled over "
+             "training seeds; every cell trained with the same recipe.", ""]
+    lines += table("Variants", [r for r in rows if r["demos"] == main and r["sampler"] == AS_TRAINED])
+    lines += table("DUST test-time scaling and the synchronous control",
+                   [r for r in rows if r["demos"] == main and r["sampler"] != AS_TRAINED])
+    lines += table("Data scaling", sorted((r for r in rows if r["sampler"] == AS_TRAINED
+                                           and r["variant"] in ("dust", "action_only")),
+                                          key=lambda r: (r["variant"], r["demos"])))
+    if command:
+        lines += ["Reproduce:", "", f"    {command}", ""]
+    return "\n".join(lines)
+
+
+def plot(results: dict, out_png: pathlib.Path) -> pathlib.Path:
+    """Bars of success (with 95% intervals) for every row."""
+    rows = results["rows"]
+    fig = Figure(figsize=(max(6.0, 0.45 * len(rows)), 4.0), layout="constrained")
+    ax = fig.add_subplot()
+    x = range(len(rows))
+    rates = [100 * r["success_rate"] for r in rows]
+    errors = [[rate - 100 * r["ci95_low"] for rate, r in zip(rates, rows)],
+              [100 * r["ci95_high"] - rate for rate, r in zip(rates, rows)]]
+    ax.bar(x, rates, yerr=errors, capsize=3)
+    ax.set_xticks(list(x), [f"{r['variant']} ({r['demos']})\n{r['sampler']}" for r in rows], rotation=60,
+                  ha="right", fontsize=7)
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.set_title(f"{results['task']}: variants, samplers, demonstrations")
+    save_png(fig, out_png)
+    return out_png
+
+
+def suite_command(config: SuiteConfig, command: str | None = None) -> dict:
+    """``dust-rl bench suite``: run the study, print where the tables are."""
+    results = run_suite(config, command)
+    print(f"{len(results['rows'])} rows: {config.out / 'results.md'}, {config.out / 'results.png'}")
+    return results
