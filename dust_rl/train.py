@@ -34,6 +34,7 @@ from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from torchrl.record.loggers import Logger, get_logger
 from tqdm.auto import tqdm
 
+from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.config import PolicyConfig
 from dust_rl.aux_frames import AuxFrameBatches, render_aux_frames
@@ -88,6 +89,11 @@ class TrainSettings:
     """Learning rate of that warm-up (constant)."""
     readout_demos: bool = True
     """Also fit the warm-up on demonstration rows (half of each batch); without them it sees aux frames only."""
+    video_dataset: pathlib.Path | None = None
+    """A dataset of the same robot and cameras whose episodes train without their actions (action-free video,
+    :mod:`dust_rl.action_free`): the world-model stream learns from them, the action loss does not."""
+    video_fraction: float = 0.25
+    """Share of each batch taken from ``video_dataset``."""
     augment_views: int = 1
     """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
     (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
@@ -125,6 +131,13 @@ class TrainSettings:
             raise ConfigError(f"aux_expert_fraction must be in [0, 1], got {self.aux_expert_fraction}")
         if self.aux_expert_fraction and not self.aux_frames:
             raise ConfigError("aux_expert_fraction needs --aux-frames > 0: it is a share of those frames")
+        if not 0 < self.video_fraction < 1:
+            raise ConfigError(f"video_fraction must be in (0, 1), got {self.video_fraction}")
+        if self.video_dataset is not None and self.batch_size < 2:
+            raise ConfigError("video_dataset needs --batch-size >= 2: each batch holds demonstrations and video")
+        if self.video_dataset is not None and self.policy.lambda_aux:
+            raise ConfigError("video_dataset with --policy.lambda-aux: the action-free episodes' object state is "
+                              "another task's; train the read-out without them")
         if self.readout_warmup and not self.aux_frames:
             raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
                               "is where the gripper is' (dust_rl.aux_frames)")
@@ -194,10 +207,16 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     if not config.resume:
         write_run_config(config, command)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
-                   "dataset": str(config.dataset), "variant": config.policy.variant, "steps": config.steps}
+                   "dataset": str(config.dataset), "variant": config.policy.variant, "steps": config.steps,
+                   "video_dataset": str(config.video_dataset) if config.video_dataset else None}
     features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
     policy.normalizer.set_vision_stats(features.image_tokens)
-    windows = DemoWindows(dataset, horizon=config.policy.horizon, batch_size=config.batch_size, images=False)
+    n_video = min(max(1, round(config.video_fraction * config.batch_size)), config.batch_size - 1) \
+        if config.video_dataset else 0
+    windows = DemoWindows(dataset, horizon=config.policy.horizon, batch_size=config.batch_size - n_video,
+                          images=False)
+    video = (ActionFreeBatches(DemoDataset(config.video_dataset), policy, n_video, config.progress)
+             if config.video_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
     loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers]
     policy.train()
@@ -230,7 +249,8 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     tick, samples, losses = time.perf_counter(), 0, None
     began = tick
     for step in bar:
-        losses = policy.compute_loss(features.batch(windows.sample()))
+        batch = features.batch(windows.sample())
+        losses = policy.compute_loss(batch if video is None else with_action_free(batch, video.sample()))
         if aux is not None:
             losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.batch_size)))
             losses.set("loss", losses.get("loss") + config.policy.lambda_aux * losses.get("loss_aux_frames"))

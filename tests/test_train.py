@@ -11,10 +11,13 @@ import pytest
 import torch
 from conftest import kill_after_first_checkpoint
 
+from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
-from dust_rl.data import DatasetError
+from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.errors import ConfigError
+from dust_rl.features import FeatureCache
+from dust_rl.keys import ACTION_IS_PAD_KEY
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.train import TrainConfig, train
 
@@ -205,3 +208,23 @@ def test_bad_training_input_is_named(run_inputs, tmp_path):
     (dataset / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match="does not match the requested env"):
         train(tiny_config(run_inputs, tmp_path / "b"))
+
+
+def test_action_free_episodes_train_the_world_model_but_not_the_actions(run_inputs, demo_dir, tmp_path):
+    video_dir = shutil.copytree(demo_dir, tmp_path / "video")
+    result = train(tiny_config(run_inputs, tmp_path / "run", steps=2, video_dataset=video_dir, video_fraction=0.5))
+    policy = unwrap(load_policy(result.policy))
+    assert policy.info["video_dataset"] == str(video_dir) and any((video_dir / "features").iterdir())
+    # Their rows carry no action label: NaN actions there change no loss, while the vision loss counts them.
+    dataset, _ = run_inputs
+    features = FeatureCache(DemoDataset(dataset), policy, progress=False)
+    windows = DemoWindows(DemoDataset(dataset), horizon=policy.config.horizon, batch_size=4, images=False)
+    action_free = ActionFreeBatches(DemoDataset(video_dir), policy, 4, progress=False).sample()
+    assert not action_free.get("has_action").any() and action_free.get(ACTION_IS_PAD_KEY).all()
+    batch = with_action_free(features.batch(windows.sample()), action_free)
+    poisoned = batch.clone()
+    poisoned.get("action_chunk")[4:] = float("nan")
+    losses, poisoned_losses = (policy.compute_loss(b, torch.Generator().manual_seed(0)) for b in (batch, poisoned))
+    assert torch.equal(losses["loss_action"], poisoned_losses["loss_action"]) and torch.isfinite(losses["loss"])
+    with pytest.raises(ConfigError, match="video_fraction must be in"):
+        tiny_config(run_inputs, tmp_path / "x", video_dataset=video_dir, video_fraction=1.0)
