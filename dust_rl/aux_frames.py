@@ -37,13 +37,15 @@ from dust_rl.envs.env import DustEnv
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, flat_name
 
 FIRST_SEED = 1_000_000
+HELDOUT_FIRST_SEED = 2_000_000  # frames that only measure the read-out (never fitted)
+HELDOUT_FRAMES = 256
 MAX_RANDOM_STEPS = 40
 MAX_EXPERT_STEPS = 80
 
 
 def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: list[str], count: int,
                       env_state_width: int, seed: int = 0, expert_fraction: float = 0.0,
-                      progress: bool = True) -> tuple[TensorDict, list[str]]:
+                      first_seed: int = FIRST_SEED, progress: bool = True) -> tuple[TensorDict, list[str]]:
     """``count`` frames of random resets and random arm motions (or expert motions), tasks taken in turn.
 
     Args:
@@ -52,8 +54,9 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
         cameras: the policy's cameras.
         count: frames to render.
         env_state_width: the dataset's (padded) width of the object state; shorter states are zero-padded.
-        seed: offsets the frames' seeds (FIRST_SEED + seed * count + i), so runs can differ.
+        seed: offsets the frames' seeds (first_seed + seed * count + i), so runs can differ.
         expert_fraction: chance that a frame comes from the scripted expert's motion rather than random actions.
+        first_seed: :data:`FIRST_SEED` for frames to fit, :data:`HELDOUT_FIRST_SEED` for frames that measure.
         progress: show a progress bar.
 
     Returns:
@@ -65,7 +68,7 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
     states, instructions = torch.zeros(count, env_state_width), []
     try:
         for i in tqdm(range(count), desc="aux frames", disable=not progress):
-            frame_seed = FIRST_SEED + seed * count + i
+            frame_seed = first_seed + seed * count + i
             env = envs[tasks[i % len(tasks)]]
             rng = np.random.default_rng(frame_seed)
             env.reset(seed=frame_seed)
@@ -122,8 +125,11 @@ class AuxFrameBatches:
 
     def sample(self, batch_size: int) -> TensorDict:
         """``batch_size`` frames drawn with replacement (torch's global generator, as the demo windows)."""
-        index = torch.randint(0, len(self), (batch_size,))
+        return self.rows(torch.randint(0, len(self), (batch_size,)))
+
+    def rows(self, index: torch.Tensor) -> TensorDict:
+        """The frames at ``index`` (all of them: ``rows(torch.arange(len(batches)))``)."""
         text = self.instruction_index[index]
         return TensorDict({"pixels": self.pixels[index], "text_tokens": self.text_tokens[text],
                            "text_mask": self.text_mask[text], "env_state": self.env_state[index]},
-                          batch_size=[batch_size])
+                          batch_size=[len(index)])

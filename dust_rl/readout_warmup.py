@@ -38,7 +38,7 @@ LOG_EVERY = 100
 
 def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase] | None, aux: AuxFrameBatches,
                     steps: int, lr: float, log: Callable[[dict[str, float], int], None], batch_size: int = 64,
-                    progress: bool = True) -> None:
+                    heldout: AuxFrameBatches | None = None, progress: bool = True) -> None:
     """Fit ``policy``'s pixel keypoints and read-out for ``steps`` steps, then freeze them.
 
     Args:
@@ -47,8 +47,10 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
             frames only.
         aux: aux frames; each step draws ``batch_size`` of them.
         steps: optimiser steps (AdamW at the constant rate ``lr``).
-        log: receives ``warmup/loss_aux_frames`` (and ``warmup/loss_aux`` on demonstration rows) every
-            :data:`LOG_EVERY` steps.
+        log: receives ``warmup/loss_aux_frames`` (and ``warmup/loss_aux`` on demonstration rows, and
+            ``warmup/loss_aux_frames_heldout``) every :data:`LOG_EVERY` steps.
+        heldout: aux frames never fitted, whose error (frames unshifted, no random draws) tells learning the
+            positions from learning the frames by heart.
         progress: show a progress bar.
     """
     modules = policy.readout_modules()
@@ -62,6 +64,20 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
         sum(losses.values()).backward()
         optimizer.step()
         if step % LOG_EVERY == 0 or step == steps:
-            log({k: v.item() for k, v in losses.items()}, step)
+            scalars = {k: v.item() for k, v in losses.items()}
+            if heldout is not None:
+                scalars["warmup/loss_aux_frames_heldout"] = heldout_loss(policy, heldout)
+            log(scalars, step)
     optimizer.zero_grad(set_to_none=True)  # a stale gradient would still count in the policy's gradient clipping
     modules.requires_grad_(False)
+
+
+@torch.no_grad()
+def heldout_loss(policy: DustPolicy, frames: AuxFrameBatches) -> float:
+    """The read-out's error on every frame of ``frames``, as acting sees them (evaluation mode)."""
+    was_training = policy.training
+    policy.eval()
+    try:
+        return policy.readout_loss(frames.rows(torch.arange(len(frames)))).item()
+    finally:
+        policy.train(was_training)

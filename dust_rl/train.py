@@ -37,7 +37,7 @@ from tqdm.auto import tqdm
 from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.config import PolicyConfig
-from dust_rl.aux_frames import AuxFrameBatches, render_aux_frames
+from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
@@ -227,9 +227,11 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     if config.readout_warmup:
         if not (config.resume and rotation.latest() is not None):
             demos = (lambda: features.batch(windows.sample())) if config.readout_demos else None
+            heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.aux_frames),
+                                         HELDOUT_FIRST_SEED)
             warm_up_readout(policy, demos, _aux_frame_batches(config, dataset, policy), config.readout_warmup,
                             config.readout_lr, lambda scalars, step: _log(loggers, scalars, step),
-                            config.batch_size, config.progress)
+                            config.batch_size, heldout, config.progress)
         policy.readout_modules().requires_grad_(False)
     elif config.aux_frames:
         aux = _aux_frame_batches(config, dataset, policy)
@@ -319,12 +321,14 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
         raise ConfigError(f"invalid model settings: {err}") from err
 
 
-def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy) -> AuxFrameBatches:
-    """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed)."""
+def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, count: int | None = None,
+                       first_seed: int = FIRST_SEED) -> AuxFrameBatches:
+    """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed): ``aux_frames``
+    of them to fit, or ``count`` from ``first_seed`` on (frames that only measure)."""
     rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
-                                           policy.cameras, config.aux_frames, env_state_width(dataset),
+                                           policy.cameras, count or config.aux_frames, env_state_width(dataset),
                                            seed=config.seed, expert_fraction=config.aux_expert_fraction,
-                                           progress=config.progress)
+                                           first_seed=first_seed, progress=config.progress)
     return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
 
 

@@ -155,6 +155,9 @@ def test_readout_warmup_freezes_the_readout_and_resumes(run_inputs, tmp_path):
     assert any(not torch.equal(short[k], long[k]) for k in short if k.startswith("model."))
     warm = (tmp_path / "long" / "logs" / "train" / "scalars" / "warmup" / "loss_aux_frames.csv").read_text().split(",")
     assert int(warm[0]) == 3 and float(warm[1]) > 0
+    heldout = tmp_path / "long" / "logs" / "train" / "scalars" / "warmup" / "loss_aux_frames_heldout.csv"
+    step, value = heldout.read_text().split(",")  # frames never fitted: how well the positions generalise
+    assert int(step) == 3 and math.isfinite(float(value)) and float(value) > 0
     # Resuming from step 2 skips the warm-up (the checkpoint holds it) and ends where the straight run did.
     shutil.rmtree(sorted((tmp_path / "long" / "checkpoints").iterdir())[-1])
     (tmp_path / "long" / "policy.pt").unlink()
