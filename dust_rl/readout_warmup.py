@@ -17,6 +17,10 @@ off at step 0; on aux frames alone 3.1 cm, but 12-15 cm once the cube is
 lifted (random arm motions never lift it). Neither run's policy grasped
 (2/20 and 0/20).
 
+With held-out aux frames (``dust-rl train`` renders 256 from other seeds) the weights of the lowest
+held-out error are kept, not the last ones: with 5,000 frames the read-out learnt them by heart (4.9 cm on
+its frames, 11.7 cm on fresh ones; README).
+
 A resumed run skips the warm-up (its checkpoint holds the warmed weights); a
 run stopped during the warm-up repeats it from the start, which gives the same
 weights (the warm-up draws from the run's seeded global generator).
@@ -38,7 +42,7 @@ LOG_EVERY = 100
 
 def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase] | None, aux: AuxFrameBatches,
                     steps: int, lr: float, log: Callable[[dict[str, float], int], None], batch_size: int = 64,
-                    heldout: AuxFrameBatches | None = None, progress: bool = True) -> None:
+                    heldout: AuxFrameBatches | None = None, log_every: int = LOG_EVERY, progress: bool = True) -> None:
     """Fit ``policy``'s pixel keypoints and read-out for ``steps`` steps, then freeze them.
 
     Args:
@@ -48,14 +52,16 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
         aux: aux frames; each step draws ``batch_size`` of them.
         steps: optimiser steps (AdamW at the constant rate ``lr``).
         log: receives ``warmup/loss_aux_frames`` (and ``warmup/loss_aux`` on demonstration rows, and
-            ``warmup/loss_aux_frames_heldout``) every :data:`LOG_EVERY` steps.
+            ``warmup/loss_aux_frames_heldout``) every ``log_every`` steps.
         heldout: aux frames never fitted, whose error (frames unshifted, no random draws) tells learning the
-            positions from learning the frames by heart.
+            positions from learning the frames by heart; the weights of its lowest error (checked every
+            ``log_every`` steps) are the ones kept.
         progress: show a progress bar.
     """
     modules = policy.readout_modules()
     modules.requires_grad_(True)
     optimizer = torch.optim.AdamW(modules.parameters(), lr=lr)
+    best = (float("inf"), None)  # the lowest held-out error and the weights that reached it
     for step in tqdm(range(1, steps + 1), desc="read-out warm-up", disable=not progress):
         losses = {"warmup/loss_aux_frames": policy.readout_loss(aux.sample(batch_size))}
         if demo_batch is not None:
@@ -63,11 +69,15 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
         optimizer.zero_grad(set_to_none=True)
         sum(losses.values()).backward()
         optimizer.step()
-        if step % LOG_EVERY == 0 or step == steps:
+        if step % log_every == 0 or step == steps:
             scalars = {k: v.item() for k, v in losses.items()}
             if heldout is not None:
-                scalars["warmup/loss_aux_frames_heldout"] = heldout_loss(policy, heldout)
+                scalars["warmup/loss_aux_frames_heldout"] = error = heldout_loss(policy, heldout)
+                if error < best[0]:
+                    best = (error, {k: v.clone() for k, v in modules.state_dict().items()})
             log(scalars, step)
+    if best[1] is not None:  # early stopping: the weights that generalised best to the held-out frames
+        modules.load_state_dict(best[1])
     optimizer.zero_grad(set_to_none=True)  # a stale gradient would still count in the policy's gradient clipping
     modules.requires_grad_(False)
 

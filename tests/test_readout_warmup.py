@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from dust_rl.agents import make_policy, unwrap
-from dust_rl.aux_frames import AuxFrameBatches, render_aux_frames
+from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset
 from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
-from dust_rl.readout_warmup import warm_up_readout
+from dust_rl.readout_warmup import heldout_loss, warm_up_readout
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -37,3 +37,25 @@ def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, ti
     assert not any(p.requires_grad or p.grad is not None for p in policy.readout_modules().parameters())
     assert all(p.requires_grad for p in policy.model.parameters())
     assert all(torch.equal(v, agent[k]) for k, v in policy.model.state_dict().items())
+
+
+def test_warm_up_keeps_the_weights_that_read_held_out_frames_best(demo_dir, tiny_encoder, minilm):
+    dataset = DemoDataset(demo_dir)
+    width = env_state_width(dataset)
+    torch.manual_seed(0)
+    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
+                                keypoint_source="pixels", aux_state_dim=width, lambda_aux=1.0))
+
+    def frames(first_seed: int) -> AuxFrameBatches:
+        rows, instructions = render_aux_frames("DustFranka-v0", dataset.meta["env_kwargs"], dataset.tasks,
+                                               policy.cameras, 4, width, first_seed=first_seed, progress=False)
+        return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+
+    heldout, logged = frames(HELDOUT_FIRST_SEED), {}
+    # A learning rate far too high (5) makes the read-out diverge: the last weights are not the best.
+    warm_up_readout(policy, None, frames(FIRST_SEED), 8, 5.0, lambda scalars, step: logged.update({step: scalars}),
+                    batch_size=4, heldout=heldout, log_every=1, progress=False)
+    errors = [logged[step]["warmup/loss_aux_frames_heldout"] for step in sorted(logged)]
+    assert len(errors) == 8 and min(errors) < errors[-1]
+    assert heldout_loss(policy, heldout) == pytest.approx(min(errors), rel=1e-6)
