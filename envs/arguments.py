@@ -66,6 +66,13 @@ def max_episode_steps(value: object) -> int | None:
     return None if value is None else int(value)
 
 
+def non_negative(name: str, value: object) -> float:
+    """A finite number >= 0."""
+    if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return float(value)
+
+
 def _positive_finite(name: str, value: object) -> float:
     if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value) and value > 0):
         raise ValueError(f"{name} must be a positive finite number, got {value!r}")

@@ -77,6 +77,9 @@ class DustEnv(gym.Env):
         privileged_state: append the task's ``environment_state`` (object positions) to
             ``observation.state``. A policy trained on it cannot fail for lack of seeing the
             objects: an oracle that measures how much perception costs, not a deployable policy.
+        privileged_noise: standard deviation (m) of a Gaussian offset added to that appended state, drawn once
+            per episode from its seed: the oracle of a perception that misplaces every object by about
+            this much, consistently, to measure how precise a read-out must be. Needs ``privileged_state``.
 
     Raises:
         ValueError: an argument is out of its domain; the message names it and what is allowed.
@@ -108,6 +111,7 @@ class DustEnv(gym.Env):
         physics_dt: float = 0.002,
         ik_solver: str = "daqp",
         privileged_state: bool = False,
+        privileged_noise: float = 0.0,
     ) -> None:
         arguments.check_choice("obs_mode", obs_mode, OBS_MODES)
         arguments.check_choice("control_mode", control_mode, CONTROL_MODES)
@@ -120,7 +124,11 @@ class DustEnv(gym.Env):
         self.n_substeps = arguments.substeps(control_hz, physics_dt)
         max_episode_steps = arguments.max_episode_steps(max_episode_steps)
         self.privileged_state = arguments.flag("privileged_state", privileged_state)
+        self.privileged_noise = arguments.non_negative("privileged_noise", privileged_noise)
+        if self.privileged_noise and not self.privileged_state:
+            raise ValueError("privileged_noise needs privileged_state=True: it perturbs that appended state")
         self.task = make_task(task, robot)
+        self._privileged_offset = np.zeros(self.task.environment_state_dim, np.float32)
         self.obs_mode, self.control_mode, self.reward_type = obs_mode, control_mode, reward_type
         self.render_mode = render_mode
         self.max_episode_steps = self.task.max_episode_steps if max_episode_steps is None else max_episode_steps
@@ -206,6 +214,9 @@ class DustEnv(gym.Env):
         for ee, ctrl in zip(self.robot.end_effectors, self._ee_ctrl):
             self.data.ctrl[ctrl] = ee.closure_to_ctrl(0.0)
         self._instruction = self.task.reset(self.model, self.data, self.np_random)
+        if self.privileged_noise:  # drawn after the task's draws, which stay as they were
+            self._privileged_offset = self.np_random.normal(0.0, self.privileged_noise,
+                                                            self.task.environment_state_dim).astype(np.float32)
         mujoco.mj_forward(self.model, self.data)
         # Let props settle on the table before the first observation.
         mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
@@ -305,7 +316,9 @@ class DustEnv(gym.Env):
                 obs[f"observation.image.{camera}"] = self._render_camera(camera)
         env_state = self.task.environment_state(self.data).astype(np.float32)
         state = self._state()
-        obs[FLAT_STATE_KEY] = np.concatenate([state, env_state]) if self.privileged_state else state
+        if self.privileged_state:
+            state = np.concatenate([state, env_state + self._privileged_offset if self.privileged_noise else env_state])
+        obs[FLAT_STATE_KEY] = state
         obs[FLAT_ENV_STATE_KEY] = env_state
         if self.obs_mode == "rgb":
             obs[INSTRUCTION_KEY] = self._instruction

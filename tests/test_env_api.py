@@ -140,6 +140,26 @@ def test_privileged_state_appends_the_objects_to_the_robot_state(robot, task):
     oracle.close()
 
 
+def test_privileged_noise_misplaces_each_object_by_one_offset_per_episode():
+    env = DustEnv(task="pick_place", obs_mode="state", privileged_state=True, privileged_noise=0.03)
+    offsets = []
+    for seed in (0, 0, 1):
+        obs, _ = env.reset(seed=seed)
+        seen = [obs["agent_pos"][-9:] - obs["environment_state"]]
+        for _ in range(3):
+            obs, *_ = env.step(np.zeros(7, np.float32))
+            seen.append(obs["agent_pos"][-9:] - obs["environment_state"])
+        assert all(np.allclose(s, seen[0], atol=1e-6) for s in seen)  # the same offset all episode (float32 sums)
+        offsets.append(seen[0])
+    assert np.allclose(offsets[0], offsets[1], atol=1e-6) and not np.allclose(offsets[0], offsets[2], atol=1e-3)
+    assert 0 < np.abs(offsets[0]).max() < 0.03 * 6
+    env.close()
+    with pytest.raises(ValueError, match="privileged_noise needs privileged_state"):
+        DustEnv(task="pick_place", obs_mode="state", privileged_noise=0.01)
+    with pytest.raises(ValueError, match="privileged_noise must be a finite number >= 0"):
+        DustEnv(task="pick_place", obs_mode="state", privileged_state=True, privileged_noise=-1.0)
+
+
 def test_make_without_import_uses_module_prefix():
     code = ("import gymnasium as gym; env = gym.make('dust_rl:DustFranka-v0', task='pick_place', obs_mode='state');"
             "_, info = env.reset(seed=0); print(info['language_instruction'])")
