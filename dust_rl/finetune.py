@@ -112,7 +112,7 @@ class FinetuneConfig:
     """wm_select: scorer optimiser steps (the weights of the best validation loss are kept)."""
     eval_every: int = 0
     """RL steps between evaluations of the agent on ``curve_episodes`` validation episodes, for the learning curve
-    (``learning_curve.json``/``.png``: success against env steps); 0: none."""
+    (``learning_curve.json``/``.png``: success against env steps, from the base policy at 0); 0: none."""
     curve_episodes: int = 10
     """Episodes of each periodic evaluation."""
     curve_seed: int = 5000
@@ -184,6 +184,11 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     env.env_steps = int(restore(checkpoint, rotation).get("env_steps", 0))
     curve_path = config.out / "learning_curve.json"
     curve = [p for p in _read_curve(curve_path) if p["rl_steps"] <= agent.num_timesteps]  # none past the checkpoint
+    seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
+    if config.eval_every and not curve:  # the curve starts at the base policy (the RL agent's "off" action)
+        curve.append({"rl_steps": 0, "env_steps": 0,
+                      **summary_row("base policy", _run_episodes(make, lambda obs, env: env.step_base(), seeds,
+                                                                 config.progress))})
     sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
     while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every (or eval_every) steps
         agent.learn(total_timesteps=min(sitting, config.steps - agent.num_timesteps), reset_num_timesteps=False,
@@ -191,7 +196,6 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
         last_eval = curve[-1]["rl_steps"] if curve else 0
         if config.eval_every and (agent.num_timesteps >= last_eval + config.eval_every
                                   or agent.num_timesteps >= config.steps):
-            seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
             episodes = _run_episodes(make, _tuned_step(agent), seeds, config.progress)
             curve.append({"rl_steps": agent.num_timesteps, "env_steps": env.env_steps,
                           **summary_row("fine-tuned", episodes)})

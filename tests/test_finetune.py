@@ -47,12 +47,13 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
                             max_steps=EPISODE_STEPS, eval_every=4, curve_episodes=1, progress=False)
     report = finetune(config, command="dust-rl finetune ...")
     assert [row["episodes"] for row in report["rows"]] == [2, 2] and report["task"] == "press_button"
-    # A learning curve: a validation point every eval_every RL steps (PPO learns in whole rollouts of 8 here, so
-    # one point), env steps counted as executed.
+    # A learning curve: the base policy, then a validation point every eval_every RL steps (PPO learns in whole
+    # rollouts of 8 here, so one point after the base), env steps counted as executed.
     curve = json.loads((tmp_path / "ft" / "learning_curve.json").read_text())
-    assert [p["rl_steps"] for p in curve] == ([4, 8] if algorithm == "sac" else [8])
-    assert all(p["episodes"] == 1 for p in curve) and curve[0]["env_steps"] >= curve[0]["rl_steps"]
+    assert [p["rl_steps"] for p in curve] == ([0, 4, 8] if algorithm == "sac" else [0, 8])
+    assert curve[0]["task"] == "base policy" and curve[0]["env_steps"] == 0 and all(p["episodes"] == 1 for p in curve)
     assert all(a["env_steps"] < b["env_steps"] for a, b in zip(curve, curve[1:]))
+    assert curve[1]["env_steps"] >= curve[1]["rl_steps"]
     assert (tmp_path / "ft" / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
     # The base row is the policy's own evaluation, episode for episode (same seeds, same noise, same actions).
     evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", episodes=2, workers=1, videos=0,
