@@ -42,7 +42,8 @@ LOG_EVERY = 100
 
 def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase] | None, aux: AuxFrameBatches,
                     steps: int, lr: float, log: Callable[[dict[str, float], int], None], batch_size: int = 64,
-                    heldout: AuxFrameBatches | None = None, log_every: int = LOG_EVERY, progress: bool = True) -> None:
+                    *, heldout: AuxFrameBatches | None = None, log_every: int = LOG_EVERY,
+                    progress: bool = True) -> None:
     """Fit ``policy``'s pixel keypoints and read-out for ``steps`` steps, then freeze them.
 
     Args:

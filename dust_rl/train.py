@@ -231,7 +231,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
                                          HELDOUT_FIRST_SEED)
             warm_up_readout(policy, demos, _aux_frame_batches(config, dataset, policy), config.readout_warmup,
                             config.readout_lr, lambda scalars, step: _log(loggers, scalars, step),
-                            config.batch_size, heldout, config.progress)
+                            config.batch_size, heldout=heldout, progress=config.progress)
         policy.readout_modules().requires_grad_(False)
     elif config.aux_frames:
         aux = _aux_frame_batches(config, dataset, policy)
