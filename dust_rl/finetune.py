@@ -184,11 +184,11 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     env.env_steps = int(restore(checkpoint, rotation).get("env_steps", 0))
     curve_path = config.out / "learning_curve.json"
     curve = [p for p in _read_curve(curve_path) if p["rl_steps"] <= agent.num_timesteps]  # none past the checkpoint
-    seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
+    curve_seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
     if config.eval_every and not curve:  # the curve starts at the base policy (the RL agent's "off" action)
         curve.append({"rl_steps": 0, "env_steps": 0,
-                      **summary_row("base policy", _run_episodes(make, lambda obs, env: env.step_base(), seeds,
-                                                                 config.progress))})
+                      **summary_row("base policy", _run_episodes(make, lambda obs, env: env.step_base(),
+                                                                 curve_seeds, config.progress))})
     sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
     while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every (or eval_every) steps
         agent.learn(total_timesteps=min(sitting, config.steps - agent.num_timesteps), reset_num_timesteps=False,
@@ -196,13 +196,13 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
         last_eval = curve[-1]["rl_steps"] if curve else 0
         if config.eval_every and (agent.num_timesteps >= last_eval + config.eval_every
                                   or agent.num_timesteps >= config.steps):
-            episodes = _run_episodes(make, _tuned_step(agent), seeds, config.progress)
+            episodes = _run_episodes(make, _tuned_step(agent), curve_seeds, config.progress)
             curve.append({"rl_steps": agent.num_timesteps, "env_steps": env.env_steps,
                           **summary_row("fine-tuned", episodes)})
             agent.logger.record("eval/curve_success_rate", curve[-1]["success_rate"])
             write_json_atomic(curve_path, curve, indent=2)
-            plot_learning_curve(curve, config.out / "learning_curve.png",
-                                f"{config.method} + {config.algorithm}, seeds {seeds.start}..{seeds.stop - 1}")
+            title = f"{config.method} + {config.algorithm}, seeds {curve_seeds.start}..{curve_seeds.stop - 1}"
+            plot_learning_curve(curve, config.out / "learning_curve.png", title)
         rotation.save(checkpoint, step=agent.num_timesteps,
                       metadata={"step": agent.num_timesteps, "env_steps": env.env_steps})
     env.close()
