@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dust_rl.agents import make_policy, unwrap
+from dust_rl.agents import DustPolicy, make_policy, unwrap
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset
 from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
@@ -14,17 +14,27 @@ from dust_rl.readout_warmup import heldout_loss, warm_up_readout
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-@pytest.mark.parametrize("with_demos", [True, False])
-def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, tiny_encoder, minilm):
+def pixel_readout_policy(demo_dir, tiny_encoder, minilm) -> tuple[DemoDataset, DustPolicy]:
+    """A tiny policy with a state read-out on pixel keypoints, for the demo dataset."""
     dataset = DemoDataset(demo_dir)
-    width = env_state_width(dataset)
     torch.manual_seed(0)
     policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                                 horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                keypoint_source="pixels", aux_state_dim=width, lambda_aux=1.0))
+                                keypoint_source="pixels", aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
+    return dataset, policy
+
+
+def aux_frames(dataset: DemoDataset, policy: DustPolicy, first_seed: int = FIRST_SEED) -> AuxFrameBatches:
     rows, instructions = render_aux_frames("DustFranka-v0", dataset.meta["env_kwargs"], dataset.tasks,
-                                           policy.cameras, 4, width, progress=False)
-    aux = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+                                           policy.cameras, 4, env_state_width(dataset), first_seed=first_seed,
+                                           progress=False)
+    return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+
+
+@pytest.mark.parametrize("with_demos", [True, False])
+def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, tiny_encoder, minilm):
+    dataset, policy = pixel_readout_policy(demo_dir, tiny_encoder, minilm)
+    aux = aux_frames(dataset, policy)
     frames = aux.sample(4)  # the demonstration rows are stood in for by aux frames: the loss reads the same keys
     before = policy.readout_loss(frames).item()
     agent = {k: v.clone() for k, v in policy.model.state_dict().items()}
@@ -40,22 +50,12 @@ def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, ti
 
 
 def test_warm_up_keeps_the_weights_that_read_held_out_frames_best(demo_dir, tiny_encoder, minilm):
-    dataset = DemoDataset(demo_dir)
-    width = env_state_width(dataset)
-    torch.manual_seed(0)
-    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                keypoint_source="pixels", aux_state_dim=width, lambda_aux=1.0))
-
-    def frames(first_seed: int) -> AuxFrameBatches:
-        rows, instructions = render_aux_frames("DustFranka-v0", dataset.meta["env_kwargs"], dataset.tasks,
-                                               policy.cameras, 4, width, first_seed=first_seed, progress=False)
-        return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
-
-    heldout, logged = frames(HELDOUT_FIRST_SEED), {}
+    dataset, policy = pixel_readout_policy(demo_dir, tiny_encoder, minilm)
+    heldout, logged = aux_frames(dataset, policy, HELDOUT_FIRST_SEED), {}
     # A learning rate far too high makes the held-out error jump around: the last weights are not the best.
-    warm_up_readout(policy, None, frames(FIRST_SEED), 8, 0.3, lambda scalars, step: logged.update({step: scalars}),
-                    batch_size=4, heldout=heldout, log_every=1, progress=False)
+    warm_up_readout(policy, None, aux_frames(dataset, policy), 8, 0.3,
+                    lambda scalars, step: logged.update({step: scalars}), batch_size=4, heldout=heldout, log_every=1,
+                    progress=False)
     errors = [logged[step]["warmup/loss_aux_frames_heldout"] for step in sorted(logged)]
     assert len(errors) == 8 and min(errors) < errors[-1]
     assert heldout_loss(policy, heldout) == pytest.approx(min(errors), rel=1e-6)
