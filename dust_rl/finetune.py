@@ -151,7 +151,7 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
         if not config.resume:
             write_run_config(config, command)
         if config.method == "wm_select":
-            result = wm_select(config, task)
+            result = wm_select(config, task, policy)
             episodes = {name: [Episode(*e) for e in row["per_episode"]] for name, row in result["rows"].items()}
             extra = {"scorer": result["scorer"], "rollout_env_steps": result["rollout_env_steps"],
                      "policy_file": result["policy_file"]}

@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
-from dust_rl.agents import DustPolicy, SamplerConfig, load_policy, save_policy, unwrap
+from dust_rl.agents import DustPolicy, SamplerConfig, save_policy
 from dust_rl.evaluate import EvalConfig, evaluate, make_eval_collector, prepare, run_task
 from dust_rl.keys import PREDICTED_FUTURE_KEY
 
@@ -120,11 +120,11 @@ def with_scorer(policy: DustPolicy, hidden: int, candidates: int) -> DustPolicy:
     return scored
 
 
-def wm_select(config: FinetuneConfig, task: str) -> dict:
-    """Roll out, fit the scorer, write ``policy.pt``, evaluate base and each K; returns the report's parts."""
+def wm_select(config: FinetuneConfig, task: str, base: DustPolicy) -> dict:
+    """Roll out, fit the scorer on a copy of ``base`` (the loaded ``config.policy``), write ``policy.pt``, evaluate
+    base and each K; returns the report's parts."""
     began = time.perf_counter()
     rollouts = collect_rollouts(config, task)
-    base = unwrap(load_policy(config.policy))
     torch.manual_seed(config.seed)
     policy = with_scorer(base, config.scorer_hidden, config.candidates[0])
     scorer = fit_scorer(policy, rollouts, config.scorer_steps, config.seed)
