@@ -27,12 +27,16 @@ PREDICTED_FUTURE_KEY = ("dust", "future_tokens")  # the frozen tokens of the fra
 FUTURE_CHUNK_KEY = ("dust", "future_chunk")  # the same, repeated along the chunk for the executor's cache
 ACTION_NOISE_KEY = ("dust", "action_noise")  # the initial action noise a chunk is sampled from (steering)
 SEED_KEY = "episode_seed"  # the reset seed of the episode a row belongs to
+# The instruction as zero-padded UTF-8 bytes: a string does not survive torchrl's multi-process collectors
+# (each worker's first one sticks in the shared buffer), a tensor does.
+INSTRUCTION_BYTES_KEY = "instruction_utf8"
 SUCCESS_KEY = "is_success"
 STEP_KEY = "step_count"  # steps since the episode's reset
 
 __all__ = ["ACTION_CHUNK_KEY", "ACTION_IS_PAD_KEY", "ACTION_KEY", "ACTION_NOISE_KEY", "ENV_STATE_KEY",
-           "EXPERT_ACTION_KEY", "FUTURE_CHUNK_KEY", "FUTURE_KEY", "IMAGE_KEY", "INSTRUCTION_KEY",
-           "PREDICTED_FUTURE_KEY", "SEED_KEY", "STATE_KEY", "STEP_KEY", "SUCCESS_KEY", "flat_name"]
+           "EXPERT_ACTION_KEY", "FUTURE_CHUNK_KEY", "FUTURE_KEY", "IMAGE_KEY", "INSTRUCTION_BYTES_KEY",
+           "INSTRUCTION_KEY", "PREDICTED_FUTURE_KEY", "SEED_KEY", "STATE_KEY", "STEP_KEY", "SUCCESS_KEY",
+           "flat_name"]
 
 
 def flat_name(key: NestedKey) -> str:

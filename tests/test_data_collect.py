@@ -89,6 +89,12 @@ def test_killed_collection_resumes_with_two_workers_without_duplicates(tmp_path,
     resumed = DemoDataset(out)
     seeds = [e["seed"] for e in resumed.meta["episodes"]]
     assert seeds == sorted(set(seeds)) and len(seeds) == 40 and not (out / ".staging").exists()
+    # Each episode keeps its own instruction, also those a worker process ran after its first.
+    env = DustEnv(task="press_button", obs_mode="state")
+    truth = [env.reset(seed=seed)[1]["language_instruction"] for seed in seeds]
+    env.close()
+    stored = [resumed.instructions[e["instruction_index"]] for e in resumed.meta["episodes"]]
+    assert stored == truth and len(set(truth)) > 2
     reference = DemoDataset(demo_dir)  # collected in one go, in-process
     assert seeds[:3] == [e["seed"] for e in reference.meta["episodes"][:3]]
     rows = reference.meta["episodes"][2]["row_start"] + reference.meta["episodes"][2]["length"]

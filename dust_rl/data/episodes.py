@@ -14,7 +14,7 @@ import pathlib
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from dust_rl.keys import EXPERT_ACTION_KEY, INSTRUCTION_KEY, SEED_KEY, STEP_KEY, SUCCESS_KEY
+from dust_rl.keys import EXPERT_ACTION_KEY, INSTRUCTION_BYTES_KEY, SEED_KEY, STEP_KEY, SUCCESS_KEY
 
 from .errors import DatasetError
 from .layout import (
@@ -28,6 +28,7 @@ from .layout import (
     write_json_atomic,
 )
 from .memmap_io import load_memmap_checked
+from .seeding import decode_instruction
 
 # Per-row entries kept from a collected trajectory; the next observation is not stored
 # (it is the next row's observation), which halves the image storage.
@@ -70,7 +71,7 @@ def trajectory_to_episode(trajectory: TensorDictBase, task: str) -> tuple[Tensor
         "next": {**{flag: trajectory.get(("next", flag)) for flag in _NEXT_FLAGS},
                  "success": trajectory.get(("next", SUCCESS_KEY)).bool()},
     }, batch_size=[length])
-    instruction = trajectory.get(INSTRUCTION_KEY).tolist()[0]
+    instruction = decode_instruction(trajectory.get(INSTRUCTION_BYTES_KEY)[0])
     success = bool(rows.get(("next", "success"))[-1])
     record = EpisodeRecord(task, int(seeds[0]), success, length, instruction, kept=False)
     return rows, record
