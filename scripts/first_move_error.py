@@ -1,0 +1,56 @@
+"""Where does a policy send the arm? Its planned displacement against the expert's, by step in the episode.
+
+For the first ``--episodes`` demonstrations of a dataset, the policy plans a chunk at steps 0, 8, 16
+and 24 of the recorded observations; the table gives how far (cm) the sum of the chunk's first 8
+position deltas is from the sum of the expert's next 8 (delta control: 2 cm per unit). At step 0 the
+arm is at home and the expert heads for the named object, so that row says whether the policy knows
+where to go; later rows are easier, since moving on as the arm already moves fits them. Run it on the
+training data and on demonstrations of other seeds: a policy that cannot fit its own step-0 rows
+cannot use the cameras for that decision.
+
+    .venv/bin/python scripts/first_move_error.py --policy runs/train/T/policy.pt --dataset runs/data/T
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from dust_rl.agents import load_policy, unwrap
+from dust_rl.data import DemoDataset
+from dust_rl.envs.env import MAX_TRANSLATION
+from dust_rl.keys import EXPERT_ACTION_KEY
+
+STEPS, SPAN = (0, 8, 16, 24), 8
+CM_PER_UNIT = 100 * MAX_TRANSLATION  # delta control: the pinch point moves this far per unit and step
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--policy", required=True)
+    parser.add_argument("--dataset", required=True)
+    parser.add_argument("--episodes", type=int, default=30)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    policy = unwrap(load_policy(args.policy)).eval()
+    dataset = DemoDataset(args.dataset)
+    generator = torch.Generator().manual_seed(0)
+    errors: dict[int, list[float]] = {step: [] for step in STEPS}
+    for episode in dataset.meta["episodes"][:args.episodes]:
+        steps = [step for step in STEPS if step + SPAN <= episode["length"]]
+        rows = [episode["row_start"] + step for step in steps]
+        chunk = policy.plan(dataset.with_instructions(dataset.data[rows]), generator).get("action_chunk")
+        for i, (step, row) in enumerate(zip(steps, rows)):
+            planned = chunk[i, :SPAN, :3].sum(0)
+            expert = dataset.data[EXPERT_ACTION_KEY][row:row + SPAN, :3].sum(0)
+            errors[step].append(CM_PER_UNIT * (planned - expert).norm().item())
+    print("| step | episodes | planned 8-step displacement to the expert's (cm, mean) | median |")
+    print("|---|---|---|---|")
+    for step, values in errors.items():
+        values_t = torch.tensor(values)
+        print(f"| {step} | {len(values)} | {values_t.mean():.1f} | {values_t.median():.1f} |")
+
+
+if __name__ == "__main__":
+    main()
