@@ -48,6 +48,8 @@ def main() -> None:
     print("| step | episodes | planned 8-step displacement to the expert's (cm, mean) | median |")
     print("|---|---|---|---|")
     for step, values in errors.items():
+        if not values:  # every episode ended before this step
+            continue
         values_t = torch.tensor(values)
         print(f"| {step} | {len(values)} | {values_t.mean():.1f} | {values_t.median():.1f} |")
 
