@@ -16,6 +16,7 @@ from conftest import DEMO_ENV_KWARGS
 from dust_rl.data import DatasetError, DemoDataset, collect_demos
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.data.policy import ExpertPolicy
+from dust_rl.data.seeding import INSTRUCTION_BYTES, decode_instruction, encode_instruction
 from dust_rl.envs import DustEnv
 
 
@@ -123,3 +124,12 @@ def test_dart_noise_perturbs_execution_not_labels(tmp_path):
         obs, *_ = env.step(data["action"][t].numpy())
         assert np.array_equal(obs["observation.state"], data["observation", "state"][t + 1].numpy())
     env.close()
+
+
+def test_instructions_travel_as_bytes():
+    for text in ("put the red cube on the plate", "", "stelle den grünen Würfel ab"):
+        encoded = encode_instruction(text)
+        assert encoded.shape == (INSTRUCTION_BYTES,) and encoded.dtype == np.uint8
+        assert decode_instruction(torch.as_tensor(encoded)) == text
+    with pytest.raises(ValueError, match="UTF-8 bytes"):
+        encode_instruction("ü" * INSTRUCTION_BYTES)

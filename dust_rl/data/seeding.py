@@ -78,7 +78,7 @@ class EpisodeSeedWrapper(gym.Wrapper):
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         self._seed = next(self._seeds) if seed is None else int(seed)
         obs, info = self.env.reset(seed=self._seed, options=options)
-        text = obs[INSTRUCTION_KEY] if INSTRUCTION_KEY in obs else info[INSTRUCTION_KEY]  # rgb / state mode
+        text = obs.get(INSTRUCTION_KEY, info.get(INSTRUCTION_KEY, ""))  # rgb mode / state mode / none
         self._instruction = encode_instruction(text)
         return self._observation(obs, info), info
 
