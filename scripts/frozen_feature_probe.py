@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 
 import gymnasium as gym
 import torch
@@ -30,19 +31,25 @@ WIDTH, STEPS, BATCH, EVERY = 64, 4000, 128, 500
 
 
 class AttentionProbe(nn.Module):
-    """Tokens + a colour embedding -> one MLP residual -> softmax attention pooling -> xy."""
+    """Tokens + an embedded condition -> one MLP residual -> softmax attention pooling -> ``outputs`` numbers.
 
-    def __init__(self, tokens: int, dim: int) -> None:
+    Args:
+        tokens, dim: token count and size.
+        condition: builds the module that embeds the condition (the named colour, the instruction) to WIDTH.
+        outputs: size of the prediction.
+    """
+
+    def __init__(self, tokens: int, dim: int, condition: Callable[[], nn.Module], outputs: int) -> None:
         super().__init__()
         self.position = nn.Parameter(0.02 * torch.randn(tokens, WIDTH))
-        self.colour = nn.Embedding(len(COLORS), WIDTH)
+        self.condition = condition()
         self.project = nn.Linear(dim, WIDTH)
         self.mlp = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, WIDTH))
         self.attend = nn.Linear(WIDTH, 1)
-        self.head = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, 2))
+        self.head = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, outputs))
 
-    def forward(self, tokens: Tensor, colour: Tensor) -> Tensor:
-        h = self.project(tokens) + self.position + self.colour(colour)[:, None]
+    def forward(self, tokens: Tensor, condition: Tensor) -> Tensor:
+        h = self.project(tokens) + self.position + self.condition(condition)[:, None]
         h = h + self.mlp(h)
         return self.head((self.attend(h).softmax(1) * h).sum(1))
 
@@ -81,7 +88,7 @@ def main() -> None:
     mean, std = x.mean((0, 1)), x.std((0, 1)) + 1e-5
     x, x_val = (x - mean) / std, (x_val - mean) / std
     centre = target.mean(0)
-    probe = AttentionProbe(x.shape[1], x.shape[2])
+    probe = AttentionProbe(x.shape[1], x.shape[2], lambda: nn.Embedding(len(COLORS), WIDTH), outputs=2)
     optimizer = torch.optim.AdamW(probe.parameters(), lr=1e-3, weight_decay=1e-2)
     best = float("inf")
     for step in range(STEPS + 1):
