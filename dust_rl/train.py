@@ -98,6 +98,12 @@ class TrainSettings:
     """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
     (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
     more, once per dataset."""
+    start_rows: int = 0
+    """Rows at the start of every episode drawn more often (:mod:`dust_rl.data.windows`): the first frame is
+    where the policy must decide where to go, and uniform draws give it 1 window in an episode's length;
+    0: every row equally likely."""
+    start_fraction: float = 0.25
+    """Share of each batch drawn from those ``start_rows`` rows."""
     seed: int = 0
     """Seed of the initial weights, batch sampling and flow-matching noise."""
     log_every: int = 50
@@ -121,7 +127,7 @@ class TrainSettings:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
                        "eval_episodes", "eval_workers", "threads")
-        check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup")
+        check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup", "start_rows")
         check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
         check_finite(self, "weight_decay")
         if self.aux_frames and not (self.policy.lambda_aux and self.policy.keypoint_source == "pixels"):
@@ -131,6 +137,8 @@ class TrainSettings:
             raise ConfigError(f"aux_expert_fraction must be in [0, 1], got {self.aux_expert_fraction}")
         if self.aux_expert_fraction and not self.aux_frames:
             raise ConfigError("aux_expert_fraction needs --aux-frames > 0: it is a share of those frames")
+        if not 0 < self.start_fraction < 1:
+            raise ConfigError(f"start_fraction must be in (0, 1), got {self.start_fraction}")
         if not 0 < self.video_fraction < 1:
             raise ConfigError(f"video_fraction must be in (0, 1), got {self.video_fraction}")
         if self.video_dataset is not None and self.batch_size < 2:
@@ -214,7 +222,8 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     n_video = min(max(1, round(config.video_fraction * config.batch_size)), config.batch_size - 1) \
         if config.video_dataset else 0
     windows = DemoWindows(dataset, horizon=config.policy.horizon, batch_size=config.batch_size - n_video,
-                          images=False)
+                          images=False, start_rows=config.start_rows,
+                          start_fraction=config.start_fraction if config.start_rows else 0.0)
     video = (ActionFreeBatches(DemoDataset(config.video_dataset), policy, n_video, config.progress)
              if config.video_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)

@@ -6,7 +6,8 @@ position deltas is from the sum of the expert's next 8 (delta control: 2 cm per 
 arm is at home and the expert heads for the named object, so that row says whether the policy knows
 where to go; later rows are easier, since moving on as the arm already moves fits them. Run it on the
 training data and on demonstrations of other seeds: a policy that cannot fit its own step-0 rows
-cannot use the cameras for that decision.
+cannot use the cameras for that decision. ``--swap-cameras`` gives each row the camera images of the
+same step of the next episode (another layout): a policy whose error does not grow ignores the cameras.
 
     .venv/bin/python scripts/first_move_error.py --policy runs/train/T/policy.pt --dataset runs/data/T
 """
@@ -20,7 +21,7 @@ import torch
 from dust_rl.agents import load_policy, unwrap
 from dust_rl.data import DemoDataset
 from dust_rl.envs.env import MAX_TRANSLATION
-from dust_rl.keys import EXPERT_ACTION_KEY
+from dust_rl.keys import EXPERT_ACTION_KEY, IMAGE_KEY
 
 STEPS, SPAN = (0, 8, 16, 24), 8
 CM_PER_UNIT = 100 * MAX_TRANSLATION  # delta control: the pinch point moves this far per unit and step
@@ -31,16 +32,22 @@ def main() -> None:
     parser.add_argument("--policy", required=True)
     parser.add_argument("--dataset", required=True)
     parser.add_argument("--episodes", type=int, default=30)
+    parser.add_argument("--swap-cameras", action="store_true", help="feed the next episode's images")
     args = parser.parse_args()
     torch.set_num_threads(1)
     policy = unwrap(load_policy(args.policy)).eval()
     dataset = DemoDataset(args.dataset)
     generator = torch.Generator().manual_seed(0)
     errors: dict[int, list[float]] = {step: [] for step in STEPS}
-    for episode in dataset.meta["episodes"][:args.episodes]:
-        steps = [step for step in STEPS if step + SPAN <= episode["length"]]
+    episodes = dataset.meta["episodes"][:args.episodes]
+    for index, episode in enumerate(episodes):
+        other = episodes[(index + 1) % len(episodes)]
+        steps = [step for step in STEPS if step + SPAN <= min(episode["length"], other["length"])]
         rows = [episode["row_start"] + step for step in steps]
-        chunk = policy.plan(dataset.with_instructions(dataset.data[rows]), generator).get("action_chunk")
+        observed = dataset.with_instructions(dataset.data[rows])
+        if args.swap_cameras:
+            observed.set(IMAGE_KEY, dataset.data[[other["row_start"] + step for step in steps]].get(IMAGE_KEY))
+        chunk = policy.plan(observed, generator).get("action_chunk")
         for i, (step, row) in enumerate(zip(steps, rows)):
             planned = chunk[i, :SPAN, :3].sum(0)
             expert = dataset.data[EXPERT_ACTION_KEY][row:row + SPAN, :3].sum(0)

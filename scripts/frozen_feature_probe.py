@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
 
 import gymnasium as gym
 import torch
@@ -23,35 +22,12 @@ from torch import Tensor, nn
 import dust_rl  # noqa: F401  (registers the envs)
 from dust_rl.agents.efficientnet_lite import EfficientNetLite
 from dust_rl.agents.image_encoder import image_tokens
+from dust_rl.attention_probe import WIDTH, AttentionProbe, standardise
 from dust_rl.envs.tasks.base import COLORS
 from dust_rl.keys import ENV_STATE_KEY, INSTRUCTION_KEY, flat_name
 
 TRAIN_SEED, VAL_SEEDS = 100_000, range(5000, 5200)
-WIDTH, STEPS, BATCH, EVERY = 64, 4000, 128, 500
-
-
-class AttentionProbe(nn.Module):
-    """Tokens + an embedded condition -> one MLP residual -> softmax attention pooling -> ``outputs`` numbers.
-
-    Args:
-        tokens, dim: token count and size.
-        condition: builds the module that embeds the condition (the named colour, the instruction) to WIDTH.
-        outputs: size of the prediction.
-    """
-
-    def __init__(self, tokens: int, dim: int, condition: Callable[[], nn.Module], outputs: int) -> None:
-        super().__init__()
-        self.position = nn.Parameter(0.02 * torch.randn(tokens, WIDTH))
-        self.condition = condition()
-        self.project = nn.Linear(dim, WIDTH)
-        self.mlp = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, WIDTH))
-        self.attend = nn.Linear(WIDTH, 1)
-        self.head = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, outputs))
-
-    def forward(self, tokens: Tensor, condition: Tensor) -> Tensor:
-        h = self.project(tokens) + self.position + self.condition(condition)[:, None]
-        h = h + self.mlp(h)
-        return self.head((self.attend(h).softmax(1) * h).sum(1))
+STEPS, BATCH, EVERY = 4000, 128, 500
 
 
 def layouts(env: gym.Env, encoder: EfficientNetLite, seeds: range, grid: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -85,8 +61,7 @@ def main() -> None:
     x, colour, target = layouts(env, encoder, range(TRAIN_SEED, TRAIN_SEED + args.train), grid)
     x_val, colour_val, target_val = layouts(env, encoder, VAL_SEEDS, grid)
     env.close()
-    mean, std = x.mean((0, 1)), x.std((0, 1)) + 1e-5
-    x, x_val = (x - mean) / std, (x_val - mean) / std
+    x, x_val = standardise(x, x_val)
     centre = target.mean(0)
     probe = AttentionProbe(x.shape[1], x.shape[2], lambda: nn.Embedding(len(COLORS), WIDTH), outputs=2)
     optimizer = torch.optim.AdamW(probe.parameters(), lr=1e-3, weight_decay=1e-2)

@@ -69,3 +69,29 @@ def test_epoch_sampling_without_replacement_covers_every_row(demo_dir):
 def test_invalid_window_sizes_are_refused(demo_dir):
     with pytest.raises(ValueError, match="horizon"):
         DemoWindows(DemoDataset(demo_dir), horizon=0)
+
+
+def test_start_rows_take_the_requested_share_of_each_batch(demo_dir):
+    dataset = DemoDataset(demo_dir)
+    start_rows, fraction, draws = 2, 0.4, 4000
+    windows = DemoWindows(dataset, horizon=4, batch_size=draws, images=False, start_rows=start_rows,
+                          start_fraction=fraction)
+    torch.manual_seed(0)
+    batch = windows.sample()
+    rows = batch["index"]
+    steps = rows - dataset.episode_starts[dataset.data["episode"][rows]]
+    for i in range(0, draws, 400):  # each drawn window is still that row's window
+        assert torch.equal(batch["vla_action", "chunk"][i], _expected_window(dataset, int(rows[i]), 4, 4)["chunk"])
+    share = (steps < start_rows).double().mean().item()
+    sigma = (fraction * (1 - fraction) / draws) ** 0.5
+    assert abs(share - fraction) < 5 * sigma  # binomial spread of the draw
+    is_start = steps < start_rows
+    assert len(set(rows[~is_start].tolist())) > 0.5 * (len(dataset) - start_rows * dataset.num_episodes)
+
+
+@pytest.mark.parametrize("start_rows,fraction,replacement", [(2, 0.0, True), (0, 0.3, True), (2, 1.0, True),
+                                                             (2, 0.3, False), (10_000, 0.3, True)])
+def test_inconsistent_start_row_weighting_is_refused(demo_dir, start_rows, fraction, replacement):
+    with pytest.raises(ValueError, match="start_rows"):
+        DemoWindows(DemoDataset(demo_dir), horizon=4, start_rows=start_rows, start_fraction=fraction,
+                    replacement=replacement)

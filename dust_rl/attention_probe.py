@@ -1,0 +1,50 @@
+"""A small attention-pooling read-out for diagnostics: can frozen tokens give a number a policy needs?
+
+A linear probe of the mean token misses what one object in one place says; a policy's
+cross-attention does not. This head is the smallest thing that attends like the policy:
+tokens plus an embedded condition (the named colour, the instruction) pass one MLP
+residual, a softmax over tokens pools them, and an MLP gives the numbers. Used by
+``scripts/frozen_feature_probe.py`` (where the named cube is) and
+``scripts/first_move_probe.py`` (the expert's first move).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+WIDTH = 64
+
+
+class AttentionProbe(nn.Module):
+    """Tokens [B, N, D] + condition -> ``outputs`` numbers per sample.
+
+    Args:
+        tokens: token count ``N`` (each token position has its own learnt embedding).
+        dim: token size ``D``.
+        condition: builds the module that embeds the condition to ``WIDTH`` (a factory, so the
+            parameters are created in a fixed order and a seed gives the same head).
+        outputs: size of the prediction.
+    """
+
+    def __init__(self, tokens: int, dim: int, condition: Callable[[], nn.Module], outputs: int) -> None:
+        super().__init__()
+        self.position = nn.Parameter(0.02 * torch.randn(tokens, WIDTH))
+        self.condition = condition()
+        self.project = nn.Linear(dim, WIDTH)
+        self.mlp = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, WIDTH))
+        self.attend = nn.Linear(WIDTH, 1)
+        self.head = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, outputs))
+
+    def forward(self, tokens: Tensor, condition: Tensor) -> Tensor:
+        h = self.project(tokens) + self.position + self.condition(condition)[:, None]
+        h = h + self.mlp(h)
+        return self.head((self.attend(h).softmax(1) * h).sum(1))
+
+
+def standardise(train: Tensor, *others: Tensor) -> tuple[Tensor, ...]:
+    """Tokens scaled per channel by the training set's mean and spread (all tokens of all samples)."""
+    mean, std = train.mean((0, 1)), train.std((0, 1)) + 1e-5
+    return tuple((x - mean) / std for x in (train, *others))
