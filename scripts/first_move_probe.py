@@ -4,7 +4,8 @@ For every demonstration of ``--dataset`` the frozen tokens of all cameras at ste
 own encoder and condition grid) and the pooled instruction embedding (its text encoder) are fitted
 to the expert's first 8-step displacement (cm) by an attention-pooling head
 (:mod:`dust_rl.attention_probe`); the error (the best of its periodic checks) is on step 0 of
-``--val-dataset``'s demonstrations, beside the error of predicting no move. ``scripts/first_move_error.py`` gives the same number for
+``--val-dataset``'s demonstrations, beside the error of predicting no move.
+``scripts/first_move_error.py`` gives the same number for
 the policy itself: where the head is far better, the information is in the inputs and the policy
 does not learn to use it.
 
