@@ -69,7 +69,8 @@ class FrozenBackbone(nn.Module):
             tokens, mask = self.text(new)
             self._text_cache.update({t: (tokens[i], mask[i]) for i, t in enumerate(new)})
         cached = [self._text_cache[t] for t in texts]
-        return torch.stack([c[0] for c in cached]), torch.stack([c[1] for c in cached])
+        device = next(self.text.parameters()).device  # the cache may predate a move of the backbone
+        return torch.stack([c[0] for c in cached]).to(device), torch.stack([c[1] for c in cached]).to(device)
 
     def reference(self) -> dict:
         """How to rebuild both encoders (see :func:`build_image_encoder`, :func:`build_text_encoder`)."""

@@ -68,7 +68,7 @@ from torch import Tensor, nn
 from .adaln import Modulation
 from .config import DustConfig
 from .embeddings import TimestepEmbedder, TokenDecoder, TokenEncoder, sincos_positions_1d, sincos_positions_2d
-from .flow_matching import action_validity, decoupled_loss, interpolate, sample_tau, velocity_target
+from .flow_matching import action_validity, cpu_drawn, decoupled_loss, interpolate, sample_tau, velocity_target
 from .mmdit import KV, AttentionKind, Block
 from .samplers import DenoiseStep, run_schedule
 
@@ -292,7 +292,7 @@ class DustModel(nn.Module):
         tau_o = sample_tau(b, s=cfg.tau_s, alpha=cfg.tau_alpha, generator=generator, device=device)
         if not cfg.decoupled:
             tau_o = tau_a
-        eps_a = torch.randn(action.shape, generator=generator, device=device)
+        eps_a = cpu_drawn(torch.randn, *action.shape, generator=generator, device=device)
         noisy_action = interpolate(action, eps_a, tau_a)
         if has_action is not None:
             # No action to interpolate towards: the action tokens are pure noise.
@@ -303,7 +303,7 @@ class DustModel(nn.Module):
         noisy_vision = target_vision = None
         if cfg.has_vision:
             future = batch["future_tokens"]
-            eps_o = torch.randn(future.shape, generator=generator, device=device)
+            eps_o = cpu_drawn(torch.randn, *future.shape, generator=generator, device=device)
             noisy_vision = interpolate(future, eps_o, tau_o)
             target_vision = velocity_target(future, eps_o)
         v_a, v_o = self(ctx, noisy_action, noisy_vision, tau_a, tau_o if cfg.has_vision else None)

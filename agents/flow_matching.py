@@ -11,6 +11,14 @@ import torch
 from torch import Tensor
 
 
+def cpu_drawn(draw, *shape: int, generator: torch.Generator | None = None,
+              device: torch.device | str | None = None) -> Tensor:
+    """``draw`` (``torch.randn``, ``torch.rand``) on the CPU, from ``generator`` or torch's global CPU
+    generator, then moved to ``device``: a seed gives the same noise, hence the same samples, on any device
+    (a CUDA generator draws other numbers), and a CPU generator serves a policy on any device."""
+    return draw(shape, generator=generator).to(device)
+
+
 def sample_tau(
     batch_size: int,
     *,
@@ -35,7 +43,7 @@ def sample_tau(
     Returns:
         Float tensor [batch_size] in [0, 1].
     """
-    u = torch.rand(batch_size, generator=generator, device=device).pow(1.0 / alpha)
+    u = cpu_drawn(torch.rand, batch_size, generator=generator, device=device).pow(1.0 / alpha)
     return ((s - u) / s).clamp_(0.0, 1.0)
 
 

@@ -199,6 +199,12 @@ class DustPolicy(VLAWrapperBase):
         return view
 
     @property
+    def weights_device(self) -> torch.device:
+        """Where the policy's weights are, after any ``policy.to(device)`` (torchrl's ``device`` attribute is
+        the one given at construction)."""
+        return self.normalizer.state_mean.device
+
+    @property
     def reads_pixels(self) -> bool:
         """Whether feature batches must carry the raw frames (``pixels``) besides the frozen tokens."""
         return self.config.keypoints > 0 and self.config.keypoint_source == "pixels"
@@ -231,7 +237,7 @@ class DustPolicy(VLAWrapperBase):
 
     def observation_features(self, td: TensorDictBase) -> TensorDict:
         """Feature batch (flat [B], no training targets) of raw observations of any batch shape."""
-        td = self.canonical_view(td)
+        td = self.canonical_view(td).to(self.weights_device)
         frames = self.frames(td)
         frames = frames.reshape(-1, *frames.shape[-4:])
         image = self._frame_tokens(frames)

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from .config import DustConfig
+from .flow_matching import cpu_drawn
 
 if TYPE_CHECKING:  # the model imports this module to sample
     from .dust_model import ChunkContext, DustModel
@@ -108,7 +109,7 @@ def run_schedule(
     """
     cfg = model.config
     b, device = ctx.batch_size, ctx.state_token.device
-    action = torch.randn(b, cfg.horizon, cfg.action_dim, generator=generator, device=device)
+    action = cpu_drawn(torch.randn, b, cfg.horizon, cfg.action_dim, generator=generator, device=device)
     if action_noise is not None:
         if action_noise.shape != action.shape:
             raise ValueError(f"action_noise must have shape {tuple(action.shape)} [B, H, Da], "
@@ -116,7 +117,7 @@ def run_schedule(
         action = action_noise.to(action)
     vision = None
     if cfg.has_vision:
-        vision = torch.randn(b, cfg.n_vision_tokens, cfg.vision_dim, generator=generator, device=device)
+        vision = cpu_drawn(torch.randn, b, cfg.n_vision_tokens, cfg.vision_dim, generator=generator, device=device)
     for step in schedule:
         tau_a = torch.full((b,), step.tau_a, device=device)
         tau_o = None if vision is None else torch.full((b,), step.tau_o, device=device)

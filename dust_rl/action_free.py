@@ -50,11 +50,11 @@ class ActionFreeBatches:
         batch = self.features.batch(self.windows.sample())
         chunk = batch.get("action_chunk")
         batch.set("action_chunk", torch.zeros_like(chunk))
-        batch.set(ACTION_IS_PAD_KEY, torch.ones(chunk.shape[:-1], dtype=torch.bool))
-        return batch.set("has_action", torch.zeros(chunk.shape[0], dtype=torch.bool))
+        batch.set(ACTION_IS_PAD_KEY, torch.ones(chunk.shape[:-1], dtype=torch.bool, device=chunk.device))
+        return batch.set("has_action", torch.zeros(chunk.shape[0], dtype=torch.bool, device=chunk.device))
 
 
 def with_action_free(batch: TensorDict, action_free: TensorDict) -> TensorDict:
     """The demonstrations' ``batch`` (``has_action`` True) and the ``action_free`` rows, in one batch."""
-    batch.set("has_action", torch.ones(batch.batch_size[0], dtype=torch.bool))
+    batch.set("has_action", torch.ones(batch.batch_size[0], dtype=torch.bool, device=batch.get("state").device))
     return torch.cat([batch, action_free.select(*batch.keys(include_nested=True, leaves_only=True))])

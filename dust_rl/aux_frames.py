@@ -114,6 +114,7 @@ class AuxFrameBatches:
     def __init__(self, rows: TensorDict, instructions: list[str], policy: DustPolicy,
                  env_state_stats: tuple[torch.Tensor, torch.Tensor]) -> None:
         mean, std = env_state_stats
+        self.device = policy.weights_device
         self.pixels = policy.frames(rows)
         distinct = {text: i for i, text in enumerate(dict.fromkeys(instructions))}  # tokens once per instruction
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(list(distinct))
@@ -132,4 +133,4 @@ class AuxFrameBatches:
         text = self.instruction_index[index]
         return TensorDict({"pixels": self.pixels[index], "text_tokens": self.text_tokens[text],
                            "text_mask": self.text_mask[text], "env_state": self.env_state[index]},
-                          batch_size=[len(index)])
+                          batch_size=[len(index)], device=self.device)

@@ -44,6 +44,7 @@ from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.config_json import config_json
 from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule
+from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, check_at_least
@@ -85,12 +86,16 @@ class EvalConfig:
     """Training run folder whose CSV logs give the loss curves; default: the policy file's folder."""
     threads: int = 1
     """Torch threads per process."""
+    device: str = "auto"
+    """Where the policy runs (:mod:`dust_rl.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
+    cuda:N, mps; the envs run on the CPU."""
     progress: bool = True
     """Show progress bars."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "episodes", "workers", "threads", "max_steps", "execute_steps")
         check_at_least(self, 0, "videos", "seed")
+        resolve_device(self.device)
 
 
 def describe_sampler(sampler: SamplerConfig) -> dict:
@@ -112,6 +117,7 @@ class EvalSetup:
     sampler: SamplerConfig  # resolved: its name is set
     execute_steps: int
     fps: int  # of the env's control loop: the videos' frame rate
+    device: str  # where each worker's policy runs (resolved, e.g. "cuda:0")
 
 
 def episode_digest(actions: torch.Tensor, final_state: torch.Tensor) -> str:
@@ -152,7 +158,7 @@ def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> Tran
 
 def make_eval_policy(setup: EvalSetup) -> ChunkExecutor:
     """The policy of one worker process, built from the checkpoint file (a live policy is not pickled)."""
-    policy = unwrap(load_policy(setup.policy_path, execute_steps=setup.execute_steps))
+    policy = unwrap(load_policy(setup.policy_path, execute_steps=setup.execute_steps)).to(setup.device)
     policy.set_sampler(setup.sampler)
     return seeded_executor(policy)
 
@@ -180,7 +186,8 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
         CheckpointError: missing or corrupt policy file, or a policy that does not fit the env.
         ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
     """
-    policy = unwrap(load_policy(config.policy, execute_steps=config.execute_steps))  # the policy checks the range
+    device = resolve_device(config.device)
+    policy = unwrap(load_policy(config.policy, execute_steps=config.execute_steps)).to(device)  # checks the range
     env_id = config.env_id or policy.info.get("env_id")
     tasks = tuple(config.tasks or policy.info.get("tasks", ()))
     if not env_id or not tasks:
@@ -201,7 +208,7 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
     except ValueError as err:  # the policy's own config check (e.g. async sampling of a shared-timestep variant)
         raise ConfigError(f"{config.policy}: sampling {config_json(config.sampling)} does not apply: {err}") from err
     sampler = replace(policy.config.sampler_settings, sampler=policy.config.sampler_name)
-    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps)
+    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps, str(device))
 
 
 def make_eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: int, seed: int,
@@ -218,6 +225,8 @@ def make_eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers
     else:
         source = {"create_env_fn": env_fns, "policy_factory": functools.partial(make_eval_policy, setup),
                   "num_collectors": workers, "sync": False, "num_threads": threads, "num_sub_threads": threads}
+    if torch.device(setup.device).type != "cpu":  # the collector moves observations there and actions back
+        source |= {"policy_device": setup.device, "env_device": "cpu", "storing_device": "cpu"}
     with warnings.catch_warnings():  # workers build their own policy: there are no weights to send them
         warnings.filterwarnings("ignore", message="weight_updater is None")
         return Collector(**source, frames_per_batch=32 * workers, total_frames=-1, trajs_per_batch=1,

@@ -117,12 +117,14 @@ class FeatureCache:
         """
         keys = self._image_keys()
         rows = self.dataset.data.select(*keys)[start:start + self.batch_size]
-        encoded = [self.policy.image_features(rows).half()]
-        for view in range(1, views):
+        device = self.policy.weights_device
+        encoded = [self.policy.image_features(rows.to(device)).half()]
+        for view in range(1, views):  # augmented on the CPU, from a CPU generator: the same views on any device
             generator = view_generator(start, view)
             frames = {key: augment_frames(rows.get(key), generator) for key in keys}
-            encoded.append(self.policy.image_features(TensorDict(frames, batch_size=rows.batch_size)).half())
-        return torch.stack(encoded)
+            encoded.append(self.policy.image_features(TensorDict(frames, batch_size=rows.batch_size,
+                                                                 device=device)).half())
+        return torch.stack(encoded).cpu()
 
     def batch(self, windows: TensorDictBase) -> TensorDict:
         """The policy's feature batch (see :mod:`dust_rl.agents.policy`) for a ``DemoWindows`` batch."""
@@ -137,10 +139,13 @@ class FeatureCache:
         frames = None
         if self.policy.reads_pixels:  # read from the dataset's memmap per batch (the OS caches the pages)
             frames = self.policy.frames(self.dataset.data.select(*self._image_keys())[rows])
+        device = self.policy.weights_device
         return self.policy.feature_batch(
-            self.views[view, rows].float(), self.text_tokens[instructions], self.text_mask[instructions],
-            windows.get(STATE_KEY), frames, action_chunk=windows.get(ACTION_CHUNK_KEY),
-            future_image_tokens=self.image_tokens[windows.get((FUTURE_KEY, "index"))].float(), labels=labels)
+            self.views[view, rows].to(device).float(), self.text_tokens[instructions], self.text_mask[instructions],
+            windows.get(STATE_KEY).to(device), None if frames is None else frames.to(device),
+            action_chunk=windows.get(ACTION_CHUNK_KEY).to(device),
+            future_image_tokens=self.image_tokens[windows.get((FUTURE_KEY, "index"))].to(device).float(),
+            labels={key: value.to(device) for key, value in labels.items()})
 
 
 def env_state_width(dataset: DemoDataset) -> int:

@@ -52,7 +52,7 @@ def future_decoder(policy: DustPolicy) -> Decoder | None:
     if (not policy.config.has_vision or policy.config.sampler_name == "action_only"
             or not hasattr(encoder, "decode") or policy.config.vision_grid != (grid, grid)):
         return None
-    return encoder.decode
+    return lambda tokens: encoder.decode(tokens.to(policy.weights_device)).cpu()
 
 
 def labelled_row(panels: list[tuple[str, np.ndarray]]) -> np.ndarray:

@@ -39,6 +39,7 @@ from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.config import PolicyConfig
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset, DemoWindows
+from dust_rl.device import resolve_device
 from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
 from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats, env_state_width
@@ -48,7 +49,7 @@ from dust_rl.run_folder import check_run_folder, restore, write_run_config
 
 LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 # Fields that may differ between a run and its resumption.
-RESUMABLE_FIELDS = ("resume", "progress", "threads", "eval_every", "eval_episodes", "eval_workers", "loggers")
+RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "eval_every", "eval_episodes", "eval_workers", "loggers")
 
 
 @dataclass(kw_only=True)
@@ -118,6 +119,9 @@ class TrainSettings:
     """Env processes of each periodic evaluation."""
     threads: int | None = None
     """torch threads (default: torch's choice)."""
+    device: str = "auto"
+    """Where the policy trains (:mod:`dust_rl.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
+    cuda:N, mps. The feature cache and the saved policy stay on the CPU."""
     progress: bool = True
     """Show a progress bar."""
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
@@ -150,6 +154,7 @@ class TrainSettings:
             raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
                               "is where the gripper is' (dust_rl.aux_frames)")
         check_fraction(self, "warmup", "ema_decay")
+        resolve_device(self.device)
         unknown = set(self.loggers) - set(get_args(LoggerKind))
         if unknown:
             raise ConfigError(f"unknown loggers {sorted(unknown)}; choose from {list(get_args(LoggerKind))}")
@@ -211,7 +216,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     dataset.check_env(probe)
     probe.close()
     torch.manual_seed(config.seed)
-    policy = _build_policy(config, dataset)
+    policy = _build_policy(config, dataset).to(resolve_device(config.device))
     if not config.resume:
         write_run_config(config, command)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
@@ -355,7 +360,7 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int) -> dict[s
     path = save_policy(policy, folder / "policy.pt")
     with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
         report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.eval_episodes,
-                                     workers=config.eval_workers, videos=0, progress=False))
+                                     workers=config.eval_workers, videos=0, progress=False, device=config.device))
     return {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
         "eval/success_rate": report["overall"]["success_rate"]}
 

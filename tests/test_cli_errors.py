@@ -96,7 +96,7 @@ def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
     assert report["tasks"][0]["per_episode"][0][1:3] == [False, 103]
     assert not list(out.glob(".*.tmp"))  # the report files were moved into place
     for args in (["--episodes", "0"], ["--max-steps", "0"], ["--tasks", "press_button", "fly"],
-                 ["--execute-steps", "0"]):
+                 ["--execute-steps", "0"], ["--device", "tpu"]):
         error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"), *args])
     assert "needs a future scorer" in error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"),
                                                  "resample", "--candidates", "2"])
@@ -118,7 +118,8 @@ def test_train_refuses_bad_settings_before_writing(train_args, tmp_path, capsys)
     out = tmp_path / "run"
     for flags, field in ((["--lr", "inf"], "lr"), (["--grad-clip", "nan"], "grad_clip"), (["--lr", "0"], "lr"),
                          (["--steps", "0"], "steps"), (["--batch-size", "0"], "batch_size"),
-                         (["--warmup", "1"], "warmup")):
+                         (["--warmup", "1"], "warmup"), (["--device", "tpu"], "device"),
+                         (["--start-fraction", "1"], "start_fraction")):
         assert field in error_of([*train_args, "--out", str(out), *flags])
     # The nested policy settings are checked while tyro parses: a usage error (exit 2) naming the group and rule.
     for flags, reason in ((["--policy.execute-steps", "9"], "execute_steps must be in [1, horizon=4], got 9"),
