@@ -10,6 +10,12 @@ gets trainable spatial-softmax keypoints that become tokens of their own:
 coordinates finer than the grid, for grasping. Their heat maps come from the
 frozen grid (:mod:`.keypoints`) or from the raw frames through a small
 network trained with the policy (:mod:`.pixel_keypoints`).
+
+With ``text_fusion`` the image tokens also see the instruction before the
+trunk does: the pooled instruction is added to every image token and a
+residual MLP (hidden width ``FUSION_HIDDEN``) mixes the two per token, the
+structure of the attention probe (:mod:`dust_rl.attention_probe`) that reads
+the expert's first move off the frozen stride-8 tokens to 1.2 cm.
 """
 
 from __future__ import annotations
@@ -20,8 +26,10 @@ from torch import Tensor, nn
 from .config import KeypointSource
 from .keypoints import SpatialKeypoints
 from .pixel_keypoints import PixelKeypoints
+from .text_encoder import pooled_text
 
 EMBED_INIT_STD = 0.02
+FUSION_HIDDEN = 128
 
 
 class ConditionProjector(nn.Module):
@@ -35,10 +43,11 @@ class ConditionProjector(nn.Module):
         cond_dim: size of a condition token.
         n_keypoints: K, spatial-softmax keypoints per camera (0: none).
         keypoint_source: ``"features"`` (heat maps on the image tokens) or ``"pixels"`` (on the raw frames).
+        text_fusion: condition each image token on the pooled instruction (module doc).
     """
 
     def __init__(self, n_cameras: int, grid: tuple[int, int], image_dim: int, text_dim: int, cond_dim: int,
-                 n_keypoints: int = 0, keypoint_source: KeypointSource = "features") -> None:
+                 n_keypoints: int = 0, keypoint_source: KeypointSource = "features", text_fusion: bool = False) -> None:
         super().__init__()
         self.grid = tuple(grid)
         self.image_in = nn.Linear(image_dim, cond_dim)
@@ -53,6 +62,11 @@ class ConditionProjector(nn.Module):
             attended_dim = PixelKeypoints.feature_dim if self.from_pixels else image_dim
             self.keypoint_in = nn.Linear(2 + attended_dim, cond_dim)
             self.keypoint_embed = nn.Parameter(EMBED_INIT_STD * torch.randn(n_cameras * n_keypoints, cond_dim))
+        self.fusion = None
+        if text_fusion:
+            self.fusion_text_in = nn.Linear(text_dim, cond_dim)
+            self.fusion = nn.Sequential(nn.LayerNorm(cond_dim), nn.Linear(cond_dim, FUSION_HIDDEN), nn.GELU(),
+                                        nn.Linear(FUSION_HIDDEN, cond_dim))
 
     def keypoint_features(self, image_tokens: Tensor | None, pixels: Tensor | None = None, augment: bool = False,
                           generator: torch.Generator | None = None) -> Tensor:
@@ -86,6 +100,9 @@ class ConditionProjector(nn.Module):
             (condition tokens [B, C*(N + K) + L, cond_dim], bool mask of the same length).
         """
         image = [self.image_in(image_tokens.flatten(1, 2)) + self.image_embed]
+        if self.fusion is not None:
+            named = self.fusion_text_in(pooled_text(text_tokens, text_mask))[:, None]
+            image[0] = image[0] + self.fusion(image[0] + named)
         if self.keypoints:
             keypoints = self.keypoint_features(image_tokens) if keypoints is None else keypoints
             image.append(self.keypoint_in(keypoints) + self.keypoint_embed)

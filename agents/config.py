@@ -115,6 +115,11 @@ class ModelConfig:
     lambda_aux: float = 0.0
     """Weight of an auxiliary loss that teaches the keypoints the objects' positions from the privileged
     environment state (:mod:`.state_readout`; training only, the policy never reads that state). 0: off."""
+    text_fusion: bool = False
+    """Condition every image token on the instruction before the trunk (:mod:`.condition`): the pooled instruction
+    is added to each token, which then passes a residual MLP, so "is this the named object?" is answered per token,
+    as by the paper's VLM, whose vision tokens have seen the instruction. Without it the trunk's cross-attention
+    must first read the colour from the text tokens and then search the image tokens for it."""
     aux_state_input: bool = False
     """Also feed that read-out's estimate of the object state to the trunk beside the robot state (as the
     privileged-state oracle's true one); needs ``lambda_aux``."""

@@ -120,7 +120,7 @@ class DustPolicy(VLAWrapperBase):
         self.backbone = backbone
         self.condition = ConditionProjector(len(cameras), config.condition_grid, backbone.image_dim,
                                             backbone.text_dim, config.cond_dim, config.keypoints,
-                                            config.keypoint_source)
+                                            config.keypoint_source, config.text_fusion)
         self.config = config  # the policy's own: set_sampler replaces it; the model reads only its model fields
         self.model = DustModel(config)
         if config.aux_state_dim:

@@ -27,10 +27,14 @@ class AttentionProbe(nn.Module):
         condition: builds the module that embeds the condition to ``WIDTH`` (a factory, so the
             parameters are created in a fixed order and a seed gives the same head).
         outputs: size of the prediction.
+        early: add the condition to every token before the MLP and the pooling (True), or only to the pooled
+            vector (False: the pooling cannot depend on which object is named).
     """
 
-    def __init__(self, tokens: int, dim: int, condition: Callable[[], nn.Module], outputs: int) -> None:
+    def __init__(self, tokens: int, dim: int, condition: Callable[[], nn.Module], outputs: int,
+                 early: bool = True) -> None:
         super().__init__()
+        self.early = early
         self.position = nn.Parameter(0.02 * torch.randn(tokens, WIDTH))
         self.condition = condition()
         self.project = nn.Linear(dim, WIDTH)
@@ -39,9 +43,11 @@ class AttentionProbe(nn.Module):
         self.head = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, outputs))
 
     def forward(self, tokens: Tensor, condition: Tensor) -> Tensor:
-        h = self.project(tokens) + self.position + self.condition(condition)[:, None]
+        named = self.condition(condition)[:, None]
+        h = self.project(tokens) + self.position + (named if self.early else 0)
         h = h + self.mlp(h)
-        return self.head((self.attend(h).softmax(1) * h).sum(1))
+        pooled = (self.attend(h).softmax(1) * h).sum(1)
+        return self.head(pooled if self.early else pooled + named[:, 0])
 
 
 def standardise(train: Tensor, *others: Tensor) -> tuple[Tensor, ...]:

@@ -53,6 +53,8 @@ def main() -> None:
     parser.add_argument("--dataset", required=True, help="demonstrations to fit on")
     parser.add_argument("--val-dataset", required=True, help="demonstrations of other seeds to measure on")
     parser.add_argument("--seed", type=int, default=0, help="head weights and batches")
+    parser.add_argument("--late-text", action="store_true",
+                        help="the instruction joins after the pooling, not every token (as the trunk sees it)")
     args = parser.parse_args()
     began = time.perf_counter()
     torch.manual_seed(args.seed)
@@ -60,7 +62,8 @@ def main() -> None:
     x, text, move = first_moves(policy, args.dataset)
     x_val, text_val, move_val = first_moves(policy, args.val_dataset)
     x, x_val = standardise(x, x_val)
-    probe = AttentionProbe(x.shape[1], x.shape[2], lambda: nn.Linear(text.shape[1], WIDTH), outputs=3)
+    probe = AttentionProbe(x.shape[1], x.shape[2], lambda: nn.Linear(text.shape[1], WIDTH), outputs=3,
+                           early=not args.late_text)
     optimizer = torch.optim.AdamW(probe.parameters(), lr=1e-3, weight_decay=1e-2)
     best = float("inf")
     for step in trange(STEPS + 1, desc="probe"):
