@@ -21,11 +21,13 @@ e.g. to cache frozen-backbone features.
 first rows of the episodes. Why: where to go is decided at the first frame (the
 arm is at home; only the cameras and the instruction say which object and where),
 and from then on the arm's own motion gives most of the answer away. Drawn
-uniformly, a 80-step episode's first row is 1 window in 80: on pick_place with
+uniformly, an 80-step episode's first row is 1 window in 80: on pick_place with
 2,000 demos a trained policy's first 8-step move missed the expert's by 15 cm
 (chance) while moving on from step 8 was within 1.4 cm, and a small attention
-head on the same frozen tokens fitted the first move to 1.0 cm
-(``scripts/first_move_error.py``, README).
+head on the same frozen tokens fitted the first move to 1.2 cm
+(``scripts/first_move_error.py``, ``scripts/first_move_probe.py``). Measured:
+a quarter of each batch from the first 4 rows lowered that 15 cm to 13 cm
+only (README), so rarity was not the main cause.
 
 A note on ``SliceSampler``: in torchrl 0.14.1, ``SliceSampler(pad_output=True,
 span=(False, True))`` returns some slices with no real step at all (all-False
