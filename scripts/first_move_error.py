@@ -8,6 +8,8 @@ where to go; later rows are easier, since moving on as the arm already moves fit
 training data and on demonstrations of other seeds: a policy that cannot fit its own step-0 rows
 cannot use the cameras for that decision. ``--swap-cameras`` gives each row the camera images of the
 same step of the next episode (another layout): a policy whose error does not grow ignores the cameras.
+``--samples K`` plans K chunks per row and adds how far they scatter around their mean: a policy that
+knows where to go samples nearly the same move every time; one that guesses samples the spread of moves.
 
     .venv/bin/python scripts/first_move_error.py --policy runs/train/T/policy.pt --dataset runs/data/T
 """
@@ -33,12 +35,14 @@ def main() -> None:
     parser.add_argument("--dataset", required=True)
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--swap-cameras", action="store_true", help="feed the next episode's images")
+    parser.add_argument("--samples", type=int, default=1, help="chunks planned per row (> 1: their spread too)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     policy = unwrap(load_policy(args.policy)).eval()
     dataset = DemoDataset(args.dataset)
     generator = torch.Generator().manual_seed(0)
     errors: dict[int, list[float]] = {step: [] for step in STEPS}
+    spreads: dict[int, list[float]] = {step: [] for step in STEPS}
     episodes = dataset.meta["episodes"][:args.episodes]
     for index, episode in enumerate(episodes):
         other = episodes[(index + 1) % len(episodes)]
@@ -47,18 +51,22 @@ def main() -> None:
         observed = dataset.with_instructions(dataset.data[rows])
         if args.swap_cameras:
             observed.set(IMAGE_KEY, dataset.data[[other["row_start"] + step for step in steps]].get(IMAGE_KEY))
-        chunk = policy.plan(observed, generator).get("action_chunk")
+        moves = torch.stack([policy.plan(observed, generator).get("action_chunk")[:, :SPAN, :3].sum(1)
+                             for _ in range(args.samples)])  # [K, rows, 3]
         for i, (step, row) in enumerate(zip(steps, rows)):
-            planned = chunk[i, :SPAN, :3].sum(0)
             expert = dataset.data[EXPERT_ACTION_KEY][row:row + SPAN, :3].sum(0)
-            errors[step].append(CM_PER_UNIT * (planned - expert).norm().item())
-    print("| step | episodes | planned 8-step displacement to the expert's (cm, mean) | median |")
-    print("|---|---|---|---|")
+            errors[step].append(CM_PER_UNIT * (moves[0, i] - expert).norm().item())
+            spreads[step].append(CM_PER_UNIT * (moves[:, i] - moves[:, i].mean(0)).norm(dim=-1).mean().item())
+    spread = args.samples > 1
+    print("| step | episodes | planned 8-step displacement to the expert's (cm, mean) | median |"
+          + (f" spread of {args.samples} samples around their mean (cm) |" if spread else ""))
+    print("|---|---|---|---|" + ("---|" if spread else ""))
     for step, values in errors.items():
         if not values:  # every episode ended before this step
             continue
         values_t = torch.tensor(values)
-        print(f"| {step} | {len(values)} | {values_t.mean():.1f} | {values_t.median():.1f} |")
+        extra = f" {torch.tensor(spreads[step]).mean():.1f} |" if spread else ""
+        print(f"| {step} | {len(values)} | {values_t.mean():.1f} | {values_t.median():.1f} |{extra}")
 
 
 if __name__ == "__main__":
