@@ -7,11 +7,13 @@ velocity x - eps.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor
 
 
-def cpu_drawn(draw, *shape: int, generator: torch.Generator | None = None,
+def cpu_drawn(draw: Callable[..., Tensor], *shape: int, generator: torch.Generator | None = None,
               device: torch.device | str | None = None) -> Tensor:
     """``draw`` (``torch.randn``, ``torch.rand``) on the CPU, from ``generator`` or torch's global CPU
     generator, then moved to ``device``: a seed gives the same noise, hence the same samples, on any device
