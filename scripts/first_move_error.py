@@ -10,6 +10,7 @@ cannot use the cameras for that decision. ``--swap-cameras`` gives each row the 
 same step of the next episode (another layout): a policy whose error does not grow ignores the cameras.
 ``--samples K`` plans K chunks per row and adds how far they scatter around their mean: a policy that
 knows where to go samples nearly the same move every time; one that guesses samples the spread of moves.
+``--n-action-steps N`` samples with N denoising steps instead of the policy's own.
 
     .venv/bin/python scripts/first_move_error.py --policy runs/train/T/policy.pt --dataset runs/data/T
 """
@@ -17,6 +18,7 @@ knows where to go samples nearly the same move every time; one that guesses samp
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import torch
 
@@ -36,9 +38,12 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--swap-cameras", action="store_true", help="feed the next episode's images")
     parser.add_argument("--samples", type=int, default=1, help="chunks planned per row (> 1: their spread too)")
+    parser.add_argument("--n-action-steps", type=int, default=None, help="denoising steps (default: the policy's)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     policy = unwrap(load_policy(args.policy)).eval()
+    if args.n_action_steps is not None:
+        policy.set_sampler(replace(policy.config.sampler_settings, n_action_steps=args.n_action_steps))
     dataset = DemoDataset(args.dataset)
     generator = torch.Generator().manual_seed(0)
     errors: dict[int, list[float]] = {step: [] for step in STEPS}
