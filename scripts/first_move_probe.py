@@ -39,9 +39,9 @@ def first_moves(policy: DustPolicy, path: str) -> tuple[Tensor, Tensor, Tensor]:
     dataset = DemoDataset(path)
     rows = dataset.episode_starts
     moves = torch.stack([dataset.data[EXPERT_ACTION_KEY][row:row + SPAN, :3].sum(0) for row in rows.tolist()])
+    images = dataset.data.select(IMAGE_KEY)  # read only the frames of the rows below
     with torch.no_grad():
-        tokens = torch.cat([policy.image_features(dataset.data[rows[i:i + 64]].select(IMAGE_KEY))
-                            for i in range(0, len(rows), 64)])
+        tokens = torch.cat([policy.image_features(images[rows[i:i + 64]]) for i in range(0, len(rows), 64)])
         texts = [dataset.instructions[episode["instruction_index"]] for episode in dataset.meta["episodes"]]
         text = pooled_text(*policy.backbone.text_tokens(texts))
     return tokens.flatten(1, 2).float(), text.float(), CM_PER_UNIT * moves
