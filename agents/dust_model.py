@@ -68,7 +68,16 @@ from torch import Tensor, nn
 from .adaln import Modulation
 from .config import DustConfig
 from .embeddings import TimestepEmbedder, TokenDecoder, TokenEncoder, sincos_positions_1d, sincos_positions_2d
-from .flow_matching import action_validity, cpu_drawn, decoupled_loss, interpolate, sample_tau, velocity_target
+from .flow_matching import (
+    WHOLE_BATCH,
+    Shard,
+    action_validity,
+    cpu_drawn,
+    decoupled_loss,
+    interpolate,
+    sample_tau,
+    velocity_target,
+)
 from .mmdit import KV, AttentionKind, Block
 from .samplers import DenoiseStep, run_schedule
 
@@ -271,12 +280,14 @@ class DustModel(nn.Module):
             v_o = self.vision_out(x[0, :, n_a:], shift[0, :, rows], scale[0, :, rows])
         return v_a, v_o
 
-    def compute_loss(self, batch: TensorDict, generator: torch.Generator | None = None) -> TensorDict:
+    def compute_loss(self, batch: TensorDict, generator: torch.Generator | None = None,
+                     shard: Shard = WHOLE_BATCH) -> TensorDict:
         """Decoupled flow-matching loss of one batch.
 
         Args:
             batch: keys listed in the module docstring (``future_tokens`` unused by action_only).
             generator: random source of tau and noise (tau_A, tau_o, eps_A, eps_o in that order).
+            shard: ``batch`` is this shard of a data-parallel batch; its noise is the whole batch's, sliced.
 
         Returns:
             TensorDict with scalar ``loss`` (to minimise), ``loss_action`` and ``loss_vision``.
@@ -288,11 +299,11 @@ class DustModel(nn.Module):
         valid = action_validity(b, cfg.horizon, has_action, batch.get("action_is_pad", None), device)
         ctx = self.encode_context(batch["state"], batch["cond_tokens"], batch.get("cond_mask", None))
 
-        tau_a = sample_tau(b, s=cfg.tau_s, alpha=cfg.tau_alpha, generator=generator, device=device)
-        tau_o = sample_tau(b, s=cfg.tau_s, alpha=cfg.tau_alpha, generator=generator, device=device)
+        tau_a = sample_tau(b, s=cfg.tau_s, alpha=cfg.tau_alpha, generator=generator, device=device, shard=shard)
+        tau_o = sample_tau(b, s=cfg.tau_s, alpha=cfg.tau_alpha, generator=generator, device=device, shard=shard)
         if not cfg.decoupled:
             tau_o = tau_a
-        eps_a = cpu_drawn(torch.randn, *action.shape, generator=generator, device=device)
+        eps_a = cpu_drawn(torch.randn, *action.shape, generator=generator, device=device, shard=shard)
         noisy_action = interpolate(action, eps_a, tau_a)
         if has_action is not None:
             # No action to interpolate towards: the action tokens are pure noise.
@@ -303,7 +314,7 @@ class DustModel(nn.Module):
         noisy_vision = target_vision = None
         if cfg.has_vision:
             future = batch["future_tokens"]
-            eps_o = cpu_drawn(torch.randn, *future.shape, generator=generator, device=device)
+            eps_o = cpu_drawn(torch.randn, *future.shape, generator=generator, device=device, shard=shard)
             noisy_vision = interpolate(future, eps_o, tau_o)
             target_vision = velocity_target(future, eps_o)
         v_a, v_o = self(ctx, noisy_action, noisy_vision, tau_a, tau_o if cfg.has_vision else None)

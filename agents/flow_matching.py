@@ -8,17 +8,47 @@ velocity x - eps.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 
+@dataclass(frozen=True)
+class Shard:
+    """This process's part of a batch split evenly over ``count`` data-parallel processes (rows
+    ``index * b .. (index + 1) * b`` of ``count * b``).
+
+    Why: each process draws the noise of the whole batch from the same generator state and keeps its rows,
+    so every sample gets the noise it would get in one process, and all processes' generators stay equal.
+    """
+
+    index: int = 0
+    count: int = 1
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.index < self.count:
+            raise ValueError(f"shard {self.index} of {self.count}: need 0 <= index < count")
+
+    def rows(self, total: int) -> slice:
+        """This shard's rows of a batch of ``total`` (a multiple of ``count``)."""
+        if total % self.count:
+            raise ValueError(f"a batch of {total} does not split evenly over {self.count} processes")
+        size = total // self.count
+        return slice(self.index * size, (self.index + 1) * size)
+
+
+WHOLE_BATCH = Shard()  # one process: the batch is all there is
+
+
 def cpu_drawn(draw: Callable[..., Tensor], *shape: int, generator: torch.Generator | None = None,
-              device: torch.device | str | None = None) -> Tensor:
+              device: torch.device | str | None = None, shard: Shard = WHOLE_BATCH) -> Tensor:
     """``draw`` (``torch.randn``, ``torch.rand``) on the CPU, from ``generator`` or torch's global CPU
     generator, then moved to ``device``: a seed gives the same noise, hence the same samples, on any device
-    (a CUDA generator draws other numbers), and a CPU generator serves a policy on any device."""
-    return draw(shape, generator=generator).to(device)
+    (a CUDA generator draws other numbers), and a CPU generator serves a policy on any device. With a
+    ``shard``, ``shape[0]`` is the shard's rows: the whole batch is drawn and the shard's rows kept."""
+    whole = draw((shape[0] * shard.count, *shape[1:]), generator=generator)
+    return whole[shard.rows(len(whole))].to(device)
 
 
 def sample_tau(
@@ -28,6 +58,7 @@ def sample_tau(
     alpha: float = 1.5,
     generator: torch.Generator | None = None,
     device: torch.device | str | None = None,
+    shard: Shard = WHOLE_BATCH,
 ) -> Tensor:
     """Draw flow times tau = (s - u) / s with u ~ Beta(alpha, 1), clamped to [0, 1].
 
@@ -41,11 +72,12 @@ def sample_tau(
         alpha: first Beta parameter.
         generator: random source for reproducibility.
         device: device of the result.
+        shard: draw for the whole batch, keep this shard's ``batch_size`` times (:class:`Shard`).
 
     Returns:
         Float tensor [batch_size] in [0, 1].
     """
-    u = cpu_drawn(torch.rand, batch_size, generator=generator, device=device).pow(1.0 / alpha)
+    u = cpu_drawn(torch.rand, batch_size, generator=generator, device=device, shard=shard).pow(1.0 / alpha)
     return ((s - u) / s).clamp_(0.0, 1.0)
 
 

@@ -57,6 +57,7 @@ from .backbone import FrozenBackbone
 from .condition import ConditionProjector
 from .config import DustConfig, SamplerConfig
 from .dust_model import DustModel
+from .flow_matching import WHOLE_BATCH, Shard
 from .future_scorer import FutureScorer
 from .image_encoder import pool_tokens
 from .normalizer import Normalizer
@@ -306,8 +307,11 @@ class DustPolicy(VLAWrapperBase):
         return self.state_readout(model_batch.get("keypoints"), features.get("text_tokens"), features.get("text_mask"))
 
     # -- training and inference ---------------------------------------------
-    def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
+    def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None,
+                     shard: Shard = WHOLE_BATCH) -> TensorDict:
         """DUST's flow-matching loss of a feature batch (``loss``, ``loss_action``, ``loss_vision``).
+
+        ``shard``: the batch is this part of a data-parallel batch (:class:`~.flow_matching.Shard`).
 
         In training mode the frames of pixel keypoints are shifted at random (:mod:`.pixel_keypoints`).
 
@@ -315,7 +319,7 @@ class DustPolicy(VLAWrapperBase):
         ``lambda_aux`` times ``loss_aux``, the read-out error of the privileged state (:mod:`.state_readout`).
         """
         model_batch = self._model_batch(batch, augment=self.training, generator=generator)
-        losses = self.model.compute_loss(model_batch, generator)
+        losses = self.model.compute_loss(model_batch, generator, shard)
         if self.config.aux_state_dim and "env_state" in batch.keys():
             losses.set("loss_aux", _squared_error(self._state_estimate(model_batch, batch), batch.get("env_state")))
             losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))

@@ -15,6 +15,10 @@ A run folder holds
 * ``policy.pt``: the EMA policy (:func:`dust_rl.agents.save_policy`), whose ``info``
   names the env, tasks and dataset it was trained for; ``loss.png``.
 
+``--nproc N`` (or ``torchrun --nproc-per-node N -m dust_rl.train ...``) trains with
+``DistributedDataParallel`` over N processes, each on its slice of every global batch
+(:mod:`dust_rl.distributed`); rank 0 writes the run folder.
+
 The frozen backbone's features are cached once per dataset (:class:`~dust_rl.features.FeatureCache`).
 Every setting is checked when the config is built, and the dataset, env and model before the run
 folder is touched; a loss or gradient that stops being finite ends the run before it reaches the
@@ -23,12 +27,14 @@ weights, so no checkpoint or ``policy.pt`` holds NaN weights.
 
 from __future__ import annotations
 
+import os
 import pathlib
 import time
 from dataclasses import dataclass, field, fields
 from typing import Literal, get_args
 
 import torch
+from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from torchrl.record.loggers import Logger, get_logger
@@ -37,9 +43,11 @@ from tqdm.auto import tqdm
 from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.config import PolicyConfig
+from dust_rl.agents.flow_matching import Shard
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.device import resolve_device
+from dust_rl.distributed import Ranks, data_parallel, join_process_group, leave_process_group, rank_device, spawn
 from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
 from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats, env_state_width
@@ -50,6 +58,8 @@ from dust_rl.run_folder import check_run_folder, restore, write_run_config
 LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 # Fields that may differ between a run and its resumption.
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "eval_every", "eval_episodes", "eval_workers", "loggers")
+# Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
+NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset")
 
 
 @dataclass(kw_only=True)
@@ -62,7 +72,7 @@ class TrainSettings:
     steps: int = 3000
     """Optimiser steps."""
     batch_size: int = 64
-    """Training windows per step."""
+    """Training windows per step (over all processes: each of ``nproc`` takes ``batch_size / nproc``)."""
     lr: float = 1e-4
     """Peak learning rate (paper: 1e-4)."""
     betas: tuple[float, float] = (0.95, 0.999)
@@ -118,7 +128,10 @@ class TrainSettings:
     eval_workers: int = 2
     """Env processes of each periodic evaluation."""
     threads: int | None = None
-    """torch threads (default: torch's choice)."""
+    """torch threads, per process (default: torch's choice)."""
+    nproc: int = 1
+    """Processes training data-parallel (``DistributedDataParallel``; gloo on the CPU, NCCL with one GPU per
+    process on CUDA). Under ``torchrun`` leave it at 1 or give torchrun's ``--nproc-per-node``."""
     device: str = "auto"
     """Where the policy trains (:mod:`dust_rl.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
     cuda:N, mps. The feature cache and the saved policy stay on the CPU."""
@@ -130,7 +143,7 @@ class TrainSettings:
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
-                       "eval_episodes", "eval_workers", "threads")
+                       "eval_episodes", "eval_workers", "threads", "nproc")
         check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup", "start_rows")
         check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
         check_finite(self, "weight_decay")
@@ -160,6 +173,17 @@ class TrainSettings:
             raise ConfigError(f"unknown loggers {sorted(unknown)}; choose from {list(get_args(LoggerKind))}")
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
+        self.check_data_parallel(self.nproc)
+
+    def check_data_parallel(self, nproc: int) -> None:
+        """Raise unless these settings can train over ``nproc`` processes."""
+        if nproc == 1:
+            return
+        if self.batch_size % nproc:
+            raise ConfigError(f"--batch-size {self.batch_size} does not split evenly over {nproc} processes")
+        used = [name for name in NOT_DATA_PARALLEL if getattr(self, name)]
+        if used:
+            raise ConfigError(f"{', '.join(used)} cannot train over several processes yet; train them with one")
 
 
 @dataclass(kw_only=True)
@@ -198,16 +222,29 @@ class TrainResult:
 def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     """Train (or resume training) a policy as described by ``config``; returns where it went.
 
+    With ``nproc`` > 1 it starts that many processes that train data-parallel (unless torchrun started this
+    one as one of them).
+
     Raises:
         DatasetError, CheckpointError, ConfigError: unusable dataset, encoder file or model settings.
         FileExistsError, FileNotFoundError: ``out`` holds a run (without ``resume``), or none (with it).
         ConfigError: ``resume`` with settings other than the stored run's.
         NonFiniteLossError: training diverged (the message names the step).
+        RankFailedError: with ``nproc`` > 1, a process stopped with one of the errors above.
     """
+    if config.nproc > 1 and "WORLD_SIZE" not in os.environ:  # not started by torchrun: start the processes
+        return spawn(config.nproc, _train_rank, config, command)
+    return _train_rank(config, command)
+
+
+def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
+    """:func:`train` in this process, as one rank of the run when there are several."""
     if config.threads:
         torch.set_num_threads(config.threads)
     out = config.out
+    ranks = _join(config)
     check_run_folder(config, RESUMABLE_FIELDS)
+    ranks.barrier()  # every rank has seen the folder before rank 0 writes it
 
     # Data, env check, policy (all checked before the run folder is written), cached frozen features.
     dataset = DemoDataset(config.dataset)
@@ -216,13 +253,13 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     dataset.check_env(probe)
     probe.close()
     torch.manual_seed(config.seed)
-    policy = _build_policy(config, dataset).to(resolve_device(config.device))
-    if not config.resume:
+    policy = _build_policy(config, dataset).to(rank_device(resolve_device(config.device), ranks))
+    if not config.resume and ranks.is_main:
         write_run_config(config, command)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
                    "dataset": str(config.dataset), "variant": config.policy.variant, "steps": config.steps,
                    "video_dataset": str(config.video_dataset) if config.video_dataset else None}
-    features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
+    features = _cached_features(config, dataset, policy, ranks)
     policy.normalizer.set_vision_stats(features.image_tokens)
     n_video = min(max(1, round(config.video_fraction * config.batch_size)), config.batch_size - 1) \
         if config.video_dataset else 0
@@ -232,7 +269,8 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     video = (ActionFreeBatches(DemoDataset(config.video_dataset), policy, n_video, config.progress)
              if config.video_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
-    loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers]
+    loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers] if ranks.is_main else []
+    progress = config.progress and ranks.is_main
     policy.train()
 
     # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it, so
@@ -258,15 +296,15 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     ema = weight_average(trained, config.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
     start = int(restore(checkpoint, rotation).get("step", 0)) if config.resume else 0
+    loss_of = data_parallel(_ShardLoss(policy, ranks.shard), ranks)
 
     # The loop.
-    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc="training",
-               disable=not config.progress)
+    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc="training", disable=not progress)
     tick, samples, losses = time.perf_counter(), 0, None
     began = tick
     for step in bar:
-        batch = features.batch(windows.sample())
-        losses = policy.compute_loss(batch if video is None else with_action_free(batch, video.sample()))
+        batch = features.batch(windows.sample())[ranks.shard.rows(config.batch_size - n_video)]
+        losses = loss_of(batch if video is None else with_action_free(batch, video.sample()))
         if aux is not None:
             losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.batch_size)))
             losses.set("loss", losses.get("loss") + config.policy.lambda_aux * losses.get("loss_aux_frames"))
@@ -281,24 +319,29 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
         samples += config.batch_size
         if done % config.log_every == 0 or done == config.steps:
             speed = samples / (time.perf_counter() - tick)
-            scalars = {f"train/{k}": v.item() for k, v in losses.items()}
+            scalars = {f"train/{k}": ranks.mean(v).item() for k, v in losses.items()}
             scalars |= {"train/lr": schedule.get_last_lr()[0], "train/grad_norm": grad_norm.item(),
                         "train/samples_per_second": speed}
             _log(loggers, scalars, done)
             bar.set_postfix(loss=f"{scalars['train/loss']:.4f}", samples_s=f"{speed:.0f}")
             tick, samples = time.perf_counter(), 0
-        if done % config.checkpoint_every == 0 or done == config.steps:
+        if ranks.is_main and (done % config.checkpoint_every == 0 or done == config.steps):
             rotation.save(checkpoint, step=done, metadata={"step": done})
-        if config.eval_every and (done % config.eval_every == 0 or done == config.steps):
+        if ranks.is_main and config.eval_every and (done % config.eval_every == 0 or done == config.steps):
             with averaged_weights(ema, trained):
                 _log(loggers, _periodic_eval(config, policy, done), done)
     bar.close()
     seconds = time.perf_counter() - began
+    ranks.check_same(nn.utils.parameters_to_vector(trained.parameters()).detach())
+    final = ranks.mean(losses["loss"]).item() if losses is not None else float("nan")
+    ranks.barrier()  # rank 0's last checkpoint is written before any rank returns
+    leave_process_group()
 
-    with averaged_weights(ema, trained):
-        path = save_policy(policy, out / "policy.pt")
-    _plot_losses(out)
-    final = losses["loss"].item() if losses is not None else float("nan")
+    path = out / "policy.pt"
+    if ranks.is_main:
+        with averaged_weights(ema, trained):
+            save_policy(policy, path)
+        _plot_losses(out)
     trained_steps = config.steps - start
     return TrainResult(path, out, config.steps, final, seconds,
                        trained_steps * config.batch_size / seconds if seconds and trained_steps else 0.0)
@@ -307,10 +350,44 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
 def train_command(config: TrainConfig, command: str | None = None) -> None:
     """``dust-rl train``: train, then say where the policy and logs are."""
     result = train(config, command)
+    if int(os.environ.get("RANK", "0")):  # torchrun's other ranks stay quiet
+        return
     print(f"trained {result.steps} steps in {result.seconds:.0f} s ({result.samples_per_second:.0f} samples/s); "
           f"final loss {result.final_loss:.4f}")
     print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} ({', '.join(config.loggers)}); "
           f"loss curve: {result.out / 'loss.png'}")
+
+
+def _join(config: TrainConfig) -> Ranks:
+    """This process's ranks; under torchrun, ``nproc`` must be 1 or torchrun's process count."""
+    ranks = join_process_group(resolve_device(config.device))
+    if config.nproc not in (1, ranks.world_size):
+        raise ConfigError(f"--nproc {config.nproc}, but this process is one of {ranks.world_size} (torchrun); "
+                          "give one of the two")
+    config.check_data_parallel(ranks.world_size)
+    return ranks
+
+
+def _cached_features(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, ranks: Ranks) -> FeatureCache:
+    """The dataset's frozen features: rank 0 encodes and stores them, the other ranks then read the file."""
+    if ranks.is_main:
+        features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
+    ranks.barrier()
+    if not ranks.is_main:
+        features = FeatureCache(dataset, policy, progress=False, store=True, views=config.augment_views)
+    return features
+
+
+class _ShardLoss(nn.Module):
+    """The policy's loss on one rank's shard of a batch, as a module's forward pass: what
+    ``DistributedDataParallel`` wraps (its gradient hooks are armed by its forward)."""
+
+    def __init__(self, policy: DustPolicy, shard: Shard) -> None:
+        super().__init__()
+        self.policy, self.shard = policy, shard
+
+    def forward(self, batch: TensorDictBase) -> TensorDict:
+        return self.policy.compute_loss(batch, shard=self.shard)
 
 
 def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkpoints: CheckpointRotation) -> None:
@@ -370,3 +447,10 @@ def _plot_losses(out: pathlib.Path) -> None:
 
     plot_loss_curves(out, out / "loss.png")
 
+
+if __name__ == "__main__":  # torchrun --nproc-per-node N -m dust_rl.train ARGS: as dust-rl train ARGS
+    import sys
+
+    from dust_rl.cli import main
+
+    main(["train", *sys.argv[1:]])
