@@ -60,15 +60,16 @@ class Normalizer(nn.Module):
     @torch.no_grad()
     def set_vision_stats(self, tokens: Tensor) -> None:
         """Per-channel statistics of image tokens [..., vision_dim] (e.g. every cached token of the dataset)."""
-        flat = tokens.reshape(-1, tokens.shape[-1])
-        if flat.shape[-1] != self.vision_mean.shape[0] or flat.shape[0] < 2:
+        n = tokens.numel() // tokens.shape[-1] if tokens.numel() else 0
+        if tokens.shape[-1] != self.vision_mean.shape[0] or n < 2:
             raise ValueError(f"need >= 2 tokens of size {self.vision_mean.shape[0]}, got shape {tuple(tokens.shape)}")
         mean = torch.zeros_like(self.vision_mean, dtype=torch.float64)
         square = torch.zeros_like(mean)
-        for chunk in flat.split(1 << 16):  # float64 sums in chunks: the cache may be float16 and large
-            mean += chunk.double().sum(0)
-            square += chunk.double().square().sum(0)
-        n = flat.shape[0]
+        rows = max(1, (1 << 16) * tokens.shape[0] // n)  # about 65,536 tokens per chunk
+        for chunk in tokens.split(rows):  # float64 sums in chunks: the cache may be float16, large, memory-mapped
+            chunk = chunk.reshape(-1, tokens.shape[-1]).double()
+            mean += chunk.sum(0)
+            square += chunk.square().sum(0)
         mean /= n
         var = (square / n - mean.square()).clamp_min(0.0) * n / (n - 1)
         self.vision_mean.copy_(mean)

@@ -8,26 +8,26 @@ from the window's row, the world-model target from its t+H row, state and
 action chunk normalised with the policy's statistics.
 
 The features depend only on the dataset rows and the backbone, so they are
-also kept on disk (``<dataset>/features/<key>.pt``, written atomically), keyed
+also kept on disk (``<dataset>/features/<key>.npy``, written atomically), keyed
 by a hash of the backbone's weights, the cameras and the token grid: a second
-training run, or a resumed one, on the same data loads them instead of
+training run, or a resumed one, on the same data reads them instead of
 re-encoding every frame. Tokens are kept as float16 (half the memory and
 disk; features of a 200-episode pick_place dataset at 2 x 8x8x112 tokens per
-row take ~450 MB) and turned back into float32 per batch.
+row take ~450 MB) and turned back into float32 per batch. A stored cache is
+streamed to disk while encoding and read memory-mapped (:mod:`dust_rl.token_store`),
+so a dataset's features need not fit in memory.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
-from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.normalizer import MIN_STD
 from dust_rl.augment import JITTER, MAX_SHIFT, augment_frames, view_generator
 from dust_rl.data import DatasetError, DemoDataset
@@ -41,8 +41,7 @@ from dust_rl.keys import (
     STATE_KEY,
     flat_name,
 )
-
-FEATURES_KIND = "dust-rl-features"
+from dust_rl.token_store import read_rows, write_rows
 
 
 def dataset_policy_kwargs(dataset: DemoDataset, action_key: str = EXPERT_ACTION_KEY) -> dict:
@@ -84,21 +83,19 @@ class FeatureCache:
             raise ValueError(f"views must be >= 1, got {views}")
         self.policy, self.dataset, self.batch_size = policy, dataset, batch_size
         key = feature_key(dataset, policy, views, batch_size)
-        self.path = dataset.root / "features" / f"{key}.pt" if store else None
-        shape = (views, len(dataset), len(policy.cameras), policy.config.n_cond_image_tokens, policy.config.vision_dim)
-        if self.path is not None and self.path.is_file():
-            stored = load_checkpoint(self.path, FEATURES_KIND)["image_tokens"]
-            if stored.numel() != math.prod(shape) or stored.dtype != torch.float16:
-                raise DatasetError(f"{self.path}: feature cache of shape {tuple(stored.shape)} ({stored.dtype}), "
-                                   f"expected {shape} float16; delete the file to rebuild it")
-            self.views = stored.view(shape)
+        self.path = dataset.root / "features" / f"{key}.npy" if store else None
+        # Stored row-major, [rows, views, ...], so encoding appends batch after batch of rows.
+        shape = (len(dataset), views, len(policy.cameras), policy.config.n_cond_image_tokens,
+                 policy.config.vision_dim)
+        starts = tqdm(range(0, len(dataset), batch_size), desc="encoding frames", disable=not progress)
+        encoded = (self._encode(start, views).transpose(0, 1) for start in starts)
+        if self.path is None:
+            rows = torch.cat(list(encoded))
         else:
-            starts = range(0, len(dataset), batch_size)
-            encoded = [self._encode(start, views) for start in tqdm(starts, desc="encoding frames",
-                                                                    disable=not progress)]
-            self.views = torch.cat(encoded, dim=1)
-            if self.path is not None:
-                save_checkpoint({"image_tokens": self.views}, self.path, FEATURES_KIND)
+            if not self.path.is_file():
+                write_rows(self.path, shape, encoded)
+            rows = read_rows(self.path, shape)
+        self.views = rows.transpose(0, 1)
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(dataset.instructions)
         self.env_state_stats = env_state_stats(dataset) if policy.config.aux_state_dim else None
 

@@ -104,7 +104,7 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     assert [p.name for p in sorted((out / "checkpoints").iterdir())] == ["checkpoint-000000000008",
                                                                         "checkpoint-000000000012"]
     assert (out / "loss.png").stat().st_size > 0
-    assert list((tmp_path / "data" / "features").glob("*.pt"))  # cached for the next run on this dataset
+    assert list((tmp_path / "data" / "features").glob("*.npy"))  # cached for the next run on this dataset
 
 
 def test_loggers_are_chosen_by_name(run_inputs, tmp_path):
