@@ -61,6 +61,7 @@ from .flow_matching import WHOLE_BATCH, Shard
 from .future_scorer import FutureScorer
 from .image_encoder import pool_tokens
 from .normalizer import Normalizer
+from .precision import Precision, autocast
 from .samplers import schedule_for
 from .state_readout import StateReadout
 
@@ -133,6 +134,7 @@ class DustPolicy(VLAWrapperBase):
         self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
         self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
         self.info: dict = {}
+        self.precision: Precision = "fp32"
 
     def _update_keys(self) -> None:
         super()._update_keys()
@@ -146,6 +148,14 @@ class DustPolicy(VLAWrapperBase):
         """Clamp sampled actions to the env's action box."""
         self.action_low.copy_(torch.as_tensor(low, dtype=torch.float32))
         self.action_high.copy_(torch.as_tensor(high, dtype=torch.float32))
+
+    def set_runtime(self, precision: Precision = "fp32", compile: bool = False) -> None:
+        """How sampling runs here (not stored in the policy file): the trunk's precision
+        (:mod:`.precision`) and whether its forward pass is compiled with ``torch.compile`` (every step of
+        the sampler's loop then runs the compiled graph; the first call pays the compilation)."""
+        self.precision = precision
+        if compile:
+            self.model.compile()
 
     def set_sampler(self, sampler: SamplerConfig) -> None:
         """Switch between synchronous, asynchronous (N_o = q * N_A) and action-only sampling.
@@ -371,7 +381,9 @@ class DustPolicy(VLAWrapperBase):
         candidates = self.config.candidates
         if candidates > 1:  # K joint samples of each observation, side by side: [B * K]
             batch = batch[torch.arange(batch.batch_size[0], device=batch.device).repeat_interleave(candidates)]
-        out = self.model.predict_action(batch, schedule_for(self.config), generator)
+        with autocast(self.weights_device, self.precision):
+            out = self.model.predict_action(batch, schedule_for(self.config), generator)
+        out = out.apply(lambda tensor: tensor.float() if tensor.is_floating_point() else tensor)
         if candidates > 1:  # keep, per observation, the sample whose predicted future scores best
             scores = self.future_scores(out.get("future_tokens")).view(-1, candidates)
             out = out.view(-1, candidates)[torch.arange(scores.shape[0], device=scores.device), scores.argmax(-1)]

@@ -42,6 +42,7 @@ from tqdm import tqdm
 
 from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy, unwrap
 from dust_rl.agents.factory import check_fits_env
+from dust_rl.agents.precision import Precision
 from dust_rl.config_json import config_json
 from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule
 from dust_rl.device import resolve_device
@@ -89,6 +90,10 @@ class EvalConfig:
     device: str = "auto"
     """Where the policy runs (:mod:`dust_rl.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
     cuda:N, mps; the envs run on the CPU."""
+    precision: Precision = "fp32"
+    """The trunk's precision while sampling: fp32, or bf16 autocast (:mod:`dust_rl.agents.precision`)."""
+    compile: bool = False
+    """Compile the trunk's forward pass with ``torch.compile`` in every worker (each pays the compilation once)."""
     progress: bool = True
     """Show progress bars."""
 
@@ -118,6 +123,8 @@ class EvalSetup:
     execute_steps: int
     fps: int  # of the env's control loop: the videos' frame rate
     device: str  # where each worker's policy runs (resolved, e.g. "cuda:0")
+    precision: Precision = "fp32"
+    compile: bool = False
 
 
 def episode_digest(actions: torch.Tensor, final_state: torch.Tensor) -> str:
@@ -160,6 +167,7 @@ def make_eval_policy(setup: EvalSetup) -> ChunkExecutor:
     """The policy of one worker process, built from the checkpoint file (a live policy is not pickled)."""
     policy = unwrap(load_policy(setup.policy_path, execute_steps=setup.execute_steps)).to(setup.device)
     policy.set_sampler(setup.sampler)
+    policy.set_runtime(setup.precision, setup.compile)
     return seeded_executor(policy)
 
 
@@ -208,7 +216,9 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
     except ValueError as err:  # the policy's own config check (e.g. async sampling of a shared-timestep variant)
         raise ConfigError(f"{config.policy}: sampling {config_json(config.sampling)} does not apply: {err}") from err
     sampler = replace(policy.config.sampler_settings, sampler=policy.config.sampler_name)
-    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps, str(device))
+    policy.set_runtime(config.precision, config.compile)
+    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps, str(device),
+                             config.precision, config.compile)
 
 
 def make_eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: int, seed: int,

@@ -44,6 +44,7 @@ from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
 from dust_rl.agents.config import PolicyConfig
 from dust_rl.agents.flow_matching import Shard
+from dust_rl.agents.precision import Precision, autocast
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.device import resolve_device
@@ -57,7 +58,8 @@ from dust_rl.run_folder import check_run_folder, restore, write_run_config
 
 LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 # Fields that may differ between a run and its resumption.
-RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "eval_every", "eval_episodes", "eval_workers", "loggers")
+RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "compile", "eval_every", "eval_episodes", "eval_workers",
+                    "loggers")
 # Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
 NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset")
 
@@ -135,6 +137,12 @@ class TrainSettings:
     device: str = "auto"
     """Where the policy trains (:mod:`dust_rl.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
     cuda:N, mps. The feature cache and the saved policy stay on the CPU."""
+    precision: Precision = "fp32"
+    """The trunk's precision while training: fp32, or bf16 autocast (:mod:`dust_rl.agents.precision`; weights,
+    optimiser and the saved policy stay float32)."""
+    compile: bool = False
+    """Compile the trunk's forward pass with ``torch.compile`` (the first steps pay the compilation; its
+    cost on this machine is in BENCHMARKS.md)."""
     progress: bool = True
     """Show a progress bar."""
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
@@ -272,6 +280,8 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers] if ranks.is_main else []
     progress = config.progress and ranks.is_main
     policy.train()
+    if config.compile:
+        policy.model.compile()
 
     # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it, so
     # its aux frames are not rendered again); otherwise the aux frames join every step's loss.
@@ -304,7 +314,8 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     began = tick
     for step in bar:
         batch = features.batch(windows.sample())[ranks.shard.rows(config.batch_size - n_video)]
-        losses = loss_of(batch if video is None else with_action_free(batch, video.sample()))
+        with autocast(policy.weights_device, config.precision):
+            losses = loss_of(batch if video is None else with_action_free(batch, video.sample()))
         if aux is not None:
             losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.batch_size)))
             losses.set("loss", losses.get("loss") + config.policy.lambda_aux * losses.get("loss_aux_frames"))
