@@ -9,10 +9,14 @@ wall time of one ``predict_action`` call (context encoding plus all denoising
 steps); the table gives the median and the best of ``--repeats`` calls, the
 best being the better estimate on a machine shared with other jobs, and the
 median process CPU time per call, which with ``--threads 1`` estimates the
-latency on an idle core even while other jobs share the machine.
+latency on an idle core even while other jobs share the machine. ``--compile``
+(``torch.compile`` of the trunk, as ``--compile`` of train and eval) and
+``--precision bf16`` (autocast) apply to the trunk rows and the training row;
+the "first" column is the first call's wall time, with ``--compile`` the
+compilation's cost.
 
 Usage: python scripts/bench_agent.py [--threads 2] [--repeats 30] [--train-steps 8] [--compile]
-       [--image-encoders conv-ae,efficientnet-lite0]
+       [--precision fp32|bf16] [--image-encoders conv-ae,efficientnet-lite0]
 """
 
 from __future__ import annotations
@@ -26,9 +30,17 @@ import torch
 from tensordict import TensorDict
 
 from dust_rl.agents import DustConfig, DustModel, SamplerConfig, make_policy, random_batch, schedule_for, unwrap
+from dust_rl.agents.precision import Precision, autocast
 
 N_COND_TOKENS = 40
 CAMERAS = ("front", "wrist")
+
+
+def first_call_s(fn: Callable[[], object]) -> float:
+    """Wall time in seconds of one call (the first: it includes any compilation)."""
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
 
 
 def timed(fn: Callable[[], object], repeats: int, warmup: int = 3) -> tuple[list[float], list[float]]:
@@ -44,16 +56,24 @@ def timed(fn: Callable[[], object], repeats: int, warmup: int = 3) -> tuple[list
     return wall, cpu
 
 
-def chunk_latency_ms(config: DustConfig, repeats: int, compile_model: bool) -> tuple[float, float, float]:
-    """Median and best wall time and median CPU time (ms) of one ``predict_action`` call at batch 1."""
+def chunk_latency_ms(config: DustConfig, repeats: int, compile_model: bool,
+                     precision: Precision) -> tuple[float, float, float, float]:
+    """Median and best wall time, median CPU time (ms) of one ``predict_action`` call at batch 1, and the
+    first call's wall time (s)."""
     agent = DustModel(config).eval()
     if compile_model:
         agent.compile()
     generator = torch.Generator().manual_seed(0)
     obs = random_batch(config, 1, N_COND_TOKENS, generator).select("state", "cond_tokens")
     schedule = schedule_for(config)
-    wall, cpu = timed(lambda: agent.predict_action(obs, schedule, generator), repeats)
-    return 1e3 * statistics.median(wall), 1e3 * min(wall), 1e3 * statistics.median(cpu)
+
+    def call() -> None:
+        with autocast(torch.device("cpu"), precision):
+            agent.predict_action(obs, schedule, generator)
+
+    first = first_call_s(call)
+    wall, cpu = timed(call, repeats)
+    return 1e3 * statistics.median(wall), 1e3 * min(wall), 1e3 * statistics.median(cpu), first
 
 
 def policy_latency_ms(repeats: int, image_encoder: str) -> list[tuple[str, float, float, float]]:
@@ -78,24 +98,30 @@ def policy_latency_ms(repeats: int, image_encoder: str) -> list[tuple[str, float
     return [(name, 1e3 * statistics.median(w), 1e3 * min(w), 1e3 * statistics.median(c)) for name, w, c in rows]
 
 
-def train_samples_per_s(config: DustConfig, batch_size: int, steps: int) -> tuple[float, float, float]:
+def train_samples_per_s(config: DustConfig, batch_size: int, steps: int, compile_model: bool,
+                        precision: Precision) -> tuple[float, float, float, float]:
     """Training throughput (forward, backward, fused AdamW step) on random cached features.
 
-    Returns samples/s from the median and the best wall time, and from the median CPU time.
+    Returns samples/s from the median and the best wall time, and from the median CPU time, and the first
+    step's wall time (s).
     """
     agent = DustModel(config).train()
+    if compile_model:
+        agent.compile()
     optimizer = torch.optim.AdamW(agent.parameters(), lr=1e-4, fused=True)  # fused: ~5x faster step on CPU
     generator = torch.Generator().manual_seed(0)
     batch = random_batch(config, batch_size, N_COND_TOKENS, generator)
 
     def step() -> None:
-        loss = agent.compute_loss(batch, generator)["loss"]
+        with autocast(torch.device("cpu"), precision):
+            loss = agent.compute_loss(batch, generator)["loss"]
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
 
+    first = first_call_s(step)
     wall, cpu = timed(step, steps, warmup=2)
-    return batch_size / statistics.median(wall), batch_size / min(wall), batch_size / statistics.median(cpu)
+    return batch_size / statistics.median(wall), batch_size / min(wall), batch_size / statistics.median(cpu), first
 
 
 def main() -> None:
@@ -104,7 +130,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--train-steps", type=int, default=8)
     parser.add_argument("--batch-size", type=int, default=64)
-    parser.add_argument("--compile", action="store_true", help="torch.compile the trunk (latency rows only)")
+    parser.add_argument("--compile", action="store_true", help="torch.compile the trunk (trunk and training rows)")
+    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32", help="autocast of the trunk rows")
     parser.add_argument("--image-encoders", default="conv-ae,efficientnet-lite0",
                         help="comma-separated encoders of the policy rows")
     args = parser.parse_args()
@@ -116,7 +143,7 @@ def main() -> None:
     print(
         f"DUST d_model={base.d_model} heads={base.n_heads} blocks={base.n_mmdit}+{base.n_dit} "
         f"params={params / 1e6:.2f}M H={base.horizon} N_o={base.n_vision_tokens} Nc={N_COND_TOKENS} "
-        f"threads={args.threads} compile={args.compile}"
+        f"threads={args.threads} compile={args.compile} precision={args.precision}"
     )
     rows = [
         ("DUST N_A=4, N_o=4 (ms/chunk, batch 1)", DustConfig(), "<= 25"),
@@ -124,18 +151,19 @@ def main() -> None:
         ("DUST N_A=4, N_o=32 (ms/chunk, batch 1)", DustConfig(vision_step_ratio=8), ""),
         ("action_only N_A=4 (ms/chunk, batch 1)", DustConfig(variant="action_only"), ""),
     ]
-    print(f"| {'measurement':<44} | {'median':>8} | {'best':>8} | {'cpu':>8} | {'target':>8} |")
-    print(f"|{'-' * 46}|{'-' * 10}|{'-' * 10}|{'-' * 10}|{'-' * 10}|")
+    print(f"| {'measurement':<44} | {'median':>8} | {'best':>8} | {'cpu':>8} | {'first (s)':>9} | {'target':>8} |")
+    print(f"|{'-' * 46}|{'-' * 10}|{'-' * 10}|{'-' * 10}|{'-' * 11}|{'-' * 10}|")
     for name, config, target in rows:
-        median, best, cpu = chunk_latency_ms(config, args.repeats, args.compile)
-        print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {target:>8} |", flush=True)
+        median, best, cpu, first = chunk_latency_ms(config, args.repeats, args.compile, args.precision)
+        print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {first:9.2f} | {target:>8} |", flush=True)
     for encoder in args.image_encoders.split(","):
         for name, median, best, cpu in policy_latency_ms(args.repeats, encoder):
             target = "<= 25" if "N_A=4, N_o=4" in name else ""
-            print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {target:>8} |", flush=True)
-    median, best, cpu = train_samples_per_s(base, args.batch_size, args.train_steps)
+            print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {'':>9} | {target:>8} |", flush=True)
+    median, best, cpu, first = train_samples_per_s(base, args.batch_size, args.train_steps, args.compile,
+                                                   args.precision)
     name = f"DUST training (samples/s, batch {args.batch_size})"
-    print(f"| {name:<44} | {median:8.1f} | {best:8.1f} | {cpu:8.1f} | {'>= 300':>8} |")
+    print(f"| {name:<44} | {median:8.1f} | {best:8.1f} | {cpu:8.1f} | {first:9.2f} | {'>= 300':>8} |")
 
 
 if __name__ == "__main__":

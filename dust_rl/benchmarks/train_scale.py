@@ -21,6 +21,8 @@ import sys
 import tempfile
 import time
 
+from dust_rl.data import DemoDataset
+
 MIB = 2**20
 
 
@@ -71,9 +73,10 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("train_args", nargs="*", help="more `dust-rl train` arguments, after `--`")
     args = parser.parse_args()
-    cache = sum(path.stat().st_size for path in (args.dataset / "features").glob("*.npy")) / MIB
-    lines = [f"`dust-rl train` on `{args.dataset}`, {args.steps} steps, {' '.join(args.train_args) or 'defaults'}; "
-             f"feature caches there: {cache:.0f} MiB.", "",
+    rows = DemoDataset(args.dataset).meta["num_rows"]
+    caches = ", ".join(f"{path.stat().st_size / MIB:.0f}" for path in sorted((args.dataset / "features").glob("*.npy")))
+    lines = [f"`dust-rl train` on `{args.dataset}` ({rows} rows; feature cache files there, MiB: {caches or 'none'}), "
+             f"{args.steps} steps, {' '.join(args.train_args) or 'defaults'}.", "",
              "| processes | samples/s | peak anonymous memory (MiB) | peak file-backed resident (MiB) |",
              "|---|---|---|---|"]
     for nproc in args.nproc:
