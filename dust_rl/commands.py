@@ -14,6 +14,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from dust_rl.device import resolve_device
 from dust_rl.env_factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
 
@@ -261,6 +262,11 @@ class PretrainEncoderCommand:
     """Token size."""
     width: int = 16
     """Channels of the first conv stage."""
+    device: str = "auto"
+    """Where the autoencoder trains: auto | cpu | cuda | cuda:N | mps (:mod:`dust_rl.device`)."""
+
+    def __post_init__(self) -> None:
+        resolve_device(self.device)
 
 
 def run_pretrain_encoder(config: PretrainEncoderCommand, command_line: str) -> None:
@@ -273,7 +279,8 @@ def run_pretrain_encoder(config: PretrainEncoderCommand, command_line: str) -> N
     encoder = AutoencoderConfig(image_size=config.image_size, latent_grid=config.grid, dim=config.dim,
                                 width=config.width)
     report = pretrain_encoder([DemoDataset(d) for d in config.dataset], config.out, encoder, steps=config.steps,
-                              batch_size=config.batch_size, lr=config.lr, seed=config.seed, command=command_line)
+                              batch_size=config.batch_size, lr=config.lr, seed=config.seed, command=command_line,
+                              device=resolve_device(config.device))
     heldout = "n/a" if report.heldout_loss is None else f"{report.heldout_loss:.5f}"
     print(f"{report.path}: {report.steps} steps in {report.seconds:.0f} s on {report.train_frames} frames; "
           f"pixel MSE train {report.train_loss:.5f}, held-out {heldout}")

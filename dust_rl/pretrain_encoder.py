@@ -95,7 +95,7 @@ def cosine_with_warmup(steps: int, warmup: int):
 @torch.no_grad()
 def standardise_latent(model: ConvAutoencoder, pool: FramePool, n_frames: int, generator: torch.Generator) -> None:
     """Set the encoder's latent statistics from ``n_frames`` training frames."""
-    frames = pool.sample(n_frames, model.image_size, generator)
+    frames = pool.sample(n_frames, model.image_size, generator).to(_device_of(model))
     latent = torch.cat([model.raw_latent(chunk) for chunk in frames.split(256)])
     channels = latent.transpose(0, 1).flatten(1)
     model.set_latent_stats(channels.mean(1), channels.std(1))
@@ -106,14 +106,15 @@ def heldout_loss(model: ConvAutoencoder, pool: FramePool, n_frames: int, generat
     """Mean pixel MSE on held-out frames (None without any)."""
     if not pool.count(pool.heldout):
         return None
-    frames = pool.heldout_frames(n_frames, model.image_size, generator)
+    frames = pool.heldout_frames(n_frames, model.image_size, generator).to(_device_of(model))
     return float(torch.stack([model.reconstruction_loss(chunk) for chunk in frames.split(256)]).mean())
 
 
 def pretrain_encoder(datasets: Sequence[DemoDataset], out: str | pathlib.Path,
                      config: AutoencoderConfig = AutoencoderConfig(), steps: int = 3000, batch_size: int = 64,
                      lr: float = 2e-3, warmup: int = 100, seed: int = 0, holdout_every: int = 10,
-                     progress: bool = True, command: str | None = None) -> PretrainReport:
+                     progress: bool = True, command: str | None = None,
+                     device: torch.device | str = "cpu") -> PretrainReport:
     """Train a :class:`ConvAutoencoder` on the datasets' frames and write it atomically to ``out``.
 
     Args:
@@ -128,6 +129,8 @@ def pretrain_encoder(datasets: Sequence[DemoDataset], out: str | pathlib.Path,
         holdout_every: hold out every n-th episode for the held-out loss (0: none).
         progress: show a progress bar.
         command: the command line, kept in the file for provenance.
+        device: where the autoencoder trains (frames are read and drawn on the CPU; the file is written from
+            the CPU).
 
     Raises:
         ConfigError: a count or rate out of range, or an image size the latent grid does not divide.
@@ -142,13 +145,13 @@ def pretrain_encoder(datasets: Sequence[DemoDataset], out: str | pathlib.Path,
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     pool = FramePool(datasets, holdout_every)
-    model = ConvAutoencoder(config)
+    model = ConvAutoencoder(config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, cosine_with_warmup(steps, warmup))
     start, recent = time.perf_counter(), []
     bar = tqdm(range(steps), desc="pretraining encoder", disable=not progress)
     for _ in bar:
-        loss = model.reconstruction_loss(pool.sample(batch_size, config.image_size, generator))
+        loss = model.reconstruction_loss(pool.sample(batch_size, config.image_size, generator).to(device))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -163,5 +166,9 @@ def pretrain_encoder(datasets: Sequence[DemoDataset], out: str | pathlib.Path,
     info = {"datasets": [str(d.root) for d in pool.datasets], "steps": steps, "batch_size": batch_size, "lr": lr,
             "seed": seed, "train_frames": report.train_frames, "train_mse": report.train_loss,
             "heldout_mse": report.heldout_loss, "seconds": round(seconds, 1), "command": command}
-    save_image_encoder(model, out, info)
+    save_image_encoder(model.cpu(), out, info)
     return report
+
+
+def _device_of(model: torch.nn.Module) -> torch.device:
+    return next(model.parameters()).device

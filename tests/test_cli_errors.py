@@ -119,7 +119,7 @@ def test_train_refuses_bad_settings_before_writing(train_args, tmp_path, capsys)
     for flags, field in ((["--lr", "inf"], "lr"), (["--grad-clip", "nan"], "grad_clip"), (["--lr", "0"], "lr"),
                          (["--steps", "0"], "steps"), (["--batch-size", "0"], "batch_size"),
                          (["--warmup", "1"], "warmup"), (["--device", "tpu"], "device"),
-                         (["--start-fraction", "1"], "start_fraction")):
+                         (["--start-fraction", "1"], "start_fraction"), (["--nproc", "3"], "split evenly")):
         assert field in error_of([*train_args, "--out", str(out), *flags])
     # The nested policy settings are checked while tyro parses: a usage error (exit 2) naming the group and rule.
     for flags, reason in ((["--policy.execute-steps", "9"], "execute_steps must be in [1, horizon=4], got 9"),

@@ -58,8 +58,11 @@ def test_committed_default_encoder_fits_env_frames(dataset):
 
 def test_pretrain_encoder_command(demo_dir, tmp_path, capsys):
     out = tmp_path / "enc.pt"
-    main(["pretrain-encoder", "--dataset", str(demo_dir), "--out", str(out), "--steps", "2", "--batch-size", "4",
-          "--image-size", "32", "--width", "8", "--dim", "16"])
+    args = ["pretrain-encoder", "--dataset", str(demo_dir), "--out", str(out), "--steps", "2", "--batch-size", "4",
+            "--image-size", "32", "--width", "8", "--dim", "16"]
+    with pytest.raises(SystemExit, match="dust-rl: error: unknown device 'tpu'"):
+        main([*args, "--device", "tpu"])
+    main([*args, "--device", "cpu"])
     assert "2 steps" in capsys.readouterr().out
     assert load_image_encoder(out).config == AutoencoderConfig(image_size=32, dim=16, width=8)
     payload = torch.load(out, weights_only=True)
