@@ -43,6 +43,7 @@ from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.agents.checkpoint_io import save_checkpoint
 from dust_rl.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.config_json import config_json
+from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.evaluate import Episode, episode_digest, summary_row, torch_threads
@@ -124,6 +125,10 @@ class FinetuneConfig:
     """Continue the run in ``out`` from its newest checkpoint."""
     threads: int = 1
     """torch threads."""
+    device: str = "auto"
+    """Where the frozen DUST policy and the SB3 agent run (:mod:`dust_rl.device`): auto, cpu, cuda, cuda:N, mps;
+    the envs run on the CPU (wm_select: its rollouts and evaluations run the policy there, the scorer fits on the
+    CPU)."""
     progress: bool = True
     """Show progress bars."""
 
@@ -140,6 +145,7 @@ class FinetuneConfig:
         check_finite(self, "noise_bound", "residual_scale", positive=True)
         if not self.net_arch or min(self.net_arch) < 1:
             raise ConfigError(f"net_arch must list positive layer widths, got {self.net_arch}")
+        resolve_device(self.device)
 
 
 def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
@@ -157,6 +163,7 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
                      "policy_file": result["policy_file"]}
             trained_s = result["train_seconds"]
         else:
+            policy.to(resolve_device(config.device))
             episodes, trained_s = train_rl(config, make)
             extra = {"rl_agent": str(config.out / "rl_agent.pt")}
     report = {
@@ -229,7 +236,7 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
     else:  # a rollout no longer than the run, minibatches no larger than a rollout
         n_steps = min(2048, config.steps)
         kwargs = {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
-    return algorithm("MultiInputPolicy", env, seed=config.seed, device="cpu",
+    return algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
                      policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
 
 

@@ -101,7 +101,7 @@ class FrozenPolicyEnv(gym.Env):
         self.features = self.policy.observation_features(observation_td(obs))
         image = self.policy.normalizer.normalize_vision(self.features.get("image_tokens")).mean(2).flatten(1)
         text = pooled_text(self.features.get("text_tokens"), self.features.get("text_mask"))
-        features = torch.cat([image, text], dim=-1)[0].numpy().astype(np.float32)
+        features = torch.cat([image, text], dim=-1)[0].cpu().numpy().astype(np.float32)
         return {"robot_state": np.asarray(obs[STATE_NAME], dtype=np.float32), "features": features}
 
     def step_base(self) -> tuple[dict, float, bool, bool, dict]:
@@ -109,8 +109,10 @@ class FrozenPolicyEnv(gym.Env):
         raise NotImplementedError
 
     def plan(self, action_noise: torch.Tensor | None = None) -> torch.Tensor:
-        """The policy's chunk [H, Da] for the newest observation, from the episode's noise generator."""
-        return self.policy.plan_features(self.features, self.generator, action_noise).get("action_chunk")[0]
+        """The policy's chunk [H, Da] (on the CPU) for the newest observation, from the episode's noise generator."""
+        if action_noise is not None:
+            action_noise = action_noise.to(self.policy.weights_device)
+        return self.policy.plan_features(self.features, self.generator, action_noise).get("action_chunk")[0].cpu()
 
     def close(self) -> None:
         self.env.close()

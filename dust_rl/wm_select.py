@@ -54,7 +54,7 @@ def collect_rollouts(config: FinetuneConfig, task: str) -> Rollouts:
     seeds = range(config.rollout_seed, config.rollout_seed + config.rollouts)
     eval_config = EvalConfig(policy=config.policy, out=config.out, tasks=(task,), episodes=config.rollouts,
                              seed=config.rollout_seed, workers=1, videos=0, threads=config.threads,
-                             max_steps=config.max_steps, progress=config.progress)
+                             max_steps=config.max_steps, progress=config.progress, device=config.device)
     policy, setup = prepare(eval_config)
     collector = make_eval_collector(setup, task, policy, 1, config.rollout_seed, config.threads)
     with tqdm(total=config.rollouts, desc="rollouts", disable=not config.progress) as bar:
@@ -137,7 +137,7 @@ def wm_select(config: FinetuneConfig, task: str, base: DustPolicy) -> dict:
         return evaluate(EvalConfig(policy=policy_path, out=config.out / "eval" / name, tasks=(task,),
                                    episodes=config.eval_episodes, seed=config.eval_seed, workers=1, videos=0,
                                    threads=config.threads, max_steps=config.max_steps, sampling=sampling,
-                                   progress=config.progress))["tasks"][0]
+                                   progress=config.progress, device=config.device))["tasks"][0]
 
     sampling = base.config.sampler_settings
     rows = {"base policy": run(config.policy, "base", sampling)}

@@ -91,6 +91,8 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         FinetuneConfig(policy=policy_path, noise_bound=0.0)
     with pytest.raises(ConfigError, match="net_arch"):
         FinetuneConfig(policy=policy_path, net_arch=())
+    with pytest.raises(ConfigError, match="unknown device 'tpu'"):
+        FinetuneConfig(policy=policy_path, device="tpu")
     with pytest.raises(ConfigError, match="no_such_task"):
         finetune(FinetuneConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
 
