@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Iterator
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -87,8 +88,7 @@ class FeatureCache:
         # Stored row-major, [rows, views, ...], so encoding appends batch after batch of rows.
         shape = (len(dataset), views, len(policy.cameras), policy.config.n_cond_image_tokens,
                  policy.config.vision_dim)
-        starts = tqdm(range(0, len(dataset), batch_size), desc="encoding frames", disable=not progress)
-        encoded = (self._encode(start, views).transpose(0, 1) for start in starts)
+        encoded = self._encoded_rows(views, progress)
         if self.path is None:
             rows = torch.cat(list(encoded))
         else:
@@ -106,6 +106,12 @@ class FeatureCache:
 
     def _image_keys(self) -> list[tuple[str, ...]]:
         return [(*IMAGE_KEY, cam) for cam in self.policy.cameras]
+
+    def _encoded_rows(self, views: int, progress: bool) -> Iterator[torch.Tensor]:
+        """Tokens [rows, views, ...] of batch after batch of rows, encoded when asked for (a cache read from
+        disk starts no progress bar)."""
+        for start in tqdm(range(0, len(self.dataset), self.batch_size), desc="encoding frames", disable=not progress):
+            yield self._encode(start, views).transpose(0, 1)
 
     def _encode(self, start: int, views: int) -> torch.Tensor:
         """Tokens [views, rows, ...] of the batch of rows from ``start``: as they are, then augmented copies.
