@@ -27,6 +27,7 @@ weights, so no checkpoint or ``policy.pt`` holds NaN weights.
 
 from __future__ import annotations
 
+import gc
 import os
 import pathlib
 import time
@@ -345,6 +346,8 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     seconds = time.perf_counter() - began
     ranks.check_same(nn.utils.parameters_to_vector(trained.parameters()).detach())
     final = ranks.mean(losses["loss"]).item() if losses is not None else float("nan")
+    del loss_of, losses  # DistributedDataParallel's reducer (also held by the losses' graph) goes before its
+    gc.collect()         # process group: the other order can hang in the process group's destructor
     ranks.barrier()  # rank 0's last checkpoint is written before any rank returns
     leave_process_group()
 
