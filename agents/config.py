@@ -223,6 +223,17 @@ class PolicyConfig(ModelConfig):
         return {f.name: getattr(self, f.name) for f in fields(ModelConfig)}
 
 
+# Named trunk sizes (``dust-rl train --preset NAME``, then any ``--policy.*`` flag on top). ``cpu-small`` is the
+# default, sized and measured for 2 CPU cores; ``gpu-base`` is a paper-scale trunk for GPUs (pair it with a
+# large pretrained image encoder, an encoder file wrapping SigLIP/DINOv2 (``hf_vision.TransformersImageEncoder``),
+# and frames collected at 224 px, ``dust-rl collect --image-size 224``). Parameter counts and one step's CPU cost:
+# BENCHMARKS.md.
+POLICY_PRESETS: dict[str, PolicyConfig] = {
+    "cpu-small": PolicyConfig(),
+    "gpu-base": PolicyConfig(d_model=768, n_heads=12, n_mmdit=12, n_dit=4),
+}
+
+
 @dataclass(frozen=True)
 class DustConfig(ModelConfig, SamplerConfig):
     """Everything that builds a DUST agent: the chosen model and sampler settings and the sizes the data and

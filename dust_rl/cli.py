@@ -1,5 +1,8 @@
 """``dust-rl`` command line.
 
+``dust-rl train --preset NAME ...`` (first, or anywhere) starts from a named policy size
+(:data:`dust_rl.agents.config.POLICY_PRESETS`); ``--policy.*`` flags still override it.
+
 Bad input ends in one line, ``dust-rl: error: <what is wrong and what to do>`` (exit code 1):
 a :class:`~dust_rl.errors.UserError` (bad settings, unusable datasets, a busy dataset folder, a
 diverged training run), a corrupt or unfitting checkpoint, or a file system error. Argument syntax
@@ -16,7 +19,7 @@ from typing import Annotated, Union
 
 import tyro
 
-from dust_rl.errors import UserError
+from dust_rl.errors import ConfigError, UserError
 
 GROUPS = (tyro.conf.OmitSubcommandPrefixes,)  # "dust-rl dataset info", not "dust-rl dataset action:info"
 DESCRIPTION = ("DUST (dual-stream diffusion) for torchrl and gymnasium: collect demonstrations, train, evaluate, "
@@ -58,12 +61,35 @@ def main(argv: list[str] | None = None) -> None:
         if name in table:  # parsed on its own, so messages name the command ("dust-rl train --help")
             config_class, runner = table[name]
             words = len(name.split())
-            runner(tyro.cli(config_class, args=argv[words:], prog=f"dust-rl {name}", config=GROUPS), command_line)
+            args, default = with_preset(name, argv[words:])
+            runner(tyro.cli(config_class, args=args, prog=f"dust-rl {name}", config=GROUPS, default=default),
+                   command_line)
         else:  # no or an unknown command: tyro lists them all and exits
             choices = Union[tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, (cls, _) in table.items())]  # noqa: UP007
             tyro.cli(choices, args=argv, prog="dust-rl", description=DESCRIPTION, config=GROUPS)
     except (UserError, CheckpointError, OSError) as err:
         raise SystemExit(f"dust-rl: error: {err}") from err
+
+
+def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:
+    """``args`` without ``--preset NAME``, and the default config that preset gives (None: no preset).
+
+    Raises:
+        ConfigError: ``--preset`` on a command other than train, without a name, or with an unknown one.
+    """
+    if "--preset" not in args:
+        return args, None
+    from dust_rl.agents.config import POLICY_PRESETS
+    from dust_rl.train import TrainConfig
+
+    at = args.index("--preset")
+    if name != "train":
+        raise ConfigError(f"--preset applies to dust-rl train, not dust-rl {name}")
+    if at + 1 >= len(args) or args[at + 1] not in POLICY_PRESETS:
+        given = args[at + 1] if at + 1 < len(args) else "nothing"
+        raise ConfigError(f"--preset takes one of {sorted(POLICY_PRESETS)}, got {given}")
+    default = TrainConfig(dataset=tyro.MISSING, policy=POLICY_PRESETS[args[at + 1]])
+    return args[:at] + args[at + 2:], default
 
 
 if __name__ == "__main__":

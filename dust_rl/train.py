@@ -197,7 +197,8 @@ class TrainSettings:
 
 @dataclass(kw_only=True)
 class TrainConfig(TrainSettings):
-    """Imitation training of a DUST policy on a demonstration dataset."""
+    """Imitation training of a DUST policy on a demonstration dataset. ``--preset cpu-small|gpu-base`` starts
+    from a named policy size (``--policy.*`` flags override it)."""
 
     dataset: pathlib.Path
     """Dataset folder written by ``dust-rl collect`` (or ``dust-rl dataset import``)."""

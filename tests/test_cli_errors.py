@@ -9,6 +9,7 @@ import sys
 
 import pytest
 import torch
+import tyro
 from tensordict import TensorDict
 from test_evaluate import tiny_policy_file
 from test_train import TINY_ARGS
@@ -161,3 +162,20 @@ def test_task_all_is_the_suite_of_the_env_ids_robot():
     assert env_tasks("DustFranka-v0", "press_button, open_drawer") == ["press_button", "open_drawer"]
     with pytest.raises(ConfigError, match="unknown humanoid task 'press_button'"):
         env_tasks("DustHumanoid-v0", "press_button")
+
+
+def test_preset_sets_the_policy_size_and_flags_override_it(train_args, tmp_path):
+    from dust_rl.agents.config import POLICY_PRESETS
+    from dust_rl.cli import with_preset
+    from dust_rl.train import TrainConfig
+
+    args, default = with_preset("train", ["--dataset", "d", "--preset", "gpu-base", "--policy.n-dit", "2"])
+    assert args == ["--dataset", "d", "--policy.n-dit", "2"]
+    config = tyro.cli(TrainConfig, args=args, default=default)
+    gpu = POLICY_PRESETS["gpu-base"]
+    assert (config.policy.d_model, config.policy.n_mmdit, config.policy.n_dit) == (gpu.d_model, gpu.n_mmdit, 2)
+    assert with_preset("train", ["--dataset", "d"]) == (["--dataset", "d"], None)
+    assert "one of ['cpu-small', 'gpu-base'], got huge" in error_of([*train_args, "--out", str(tmp_path / "r"),
+                                                                        "--preset", "huge"])
+    assert "applies to dust-rl train" in error_of(["eval", "--policy", "p.pt", "--preset", "gpu-base"])
+    assert not (tmp_path / "r").exists()
