@@ -17,6 +17,7 @@ import tyro
 from dust_rl.device import resolve_device
 from dust_rl.env_factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
+from dust_rl.workers import Backend, Workers
 
 
 @dataclass
@@ -106,7 +107,12 @@ class CollectCommand:
     episodes: int = 100
     """Successful episodes per task."""
     workers: int = 1
-    """Env processes."""
+    """Env processes (or Ray actors)."""
+    backend: Backend = "local"
+    """Where the workers run: processes on this machine, or actors on a Ray cluster (``pip install
+    "dust-rl[ray]"``); same dataset either way."""
+    ray_address: str | None = None
+    """Ray cluster to join with ``--backend ray`` (e.g. ``auto``); default: start a local one for the command."""
     seed: int = 0
     """First episode seed of every task."""
     image_size: int = 128
@@ -131,8 +137,9 @@ def run_collect(config: CollectCommand, command_line: str) -> None:
         env_kwargs["cameras"] = list(config.cameras)
     if config.privileged_state:
         env_kwargs["privileged_state"] = True
+    workers = Workers(config.workers, config.backend, ray_address=config.ray_address)
     collect_demos(config.out, config.env, env_tasks(config.env, config.task), config.episodes,
-                  env_kwargs=env_kwargs, workers=config.workers, start_seed=config.seed, noise_std=config.noise_std,
+                  env_kwargs=env_kwargs, workers=workers, start_seed=config.seed, noise_std=config.noise_std,
                   keep_failed=config.keep_failed)
     print(dataset_summary(DemoDataset(config.out)))
 

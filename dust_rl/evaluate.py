@@ -28,7 +28,6 @@ import hashlib
 import math
 import pathlib
 import time
-import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import Annotated, NamedTuple
@@ -36,7 +35,7 @@ from typing import Annotated, NamedTuple
 import torch
 import tyro
 from tensordict import TensorDictBase
-from torchrl.collectors import BaseCollector, Collector
+from torchrl.collectors import BaseCollector
 from torchrl.envs import InitTracker, TransformedEnv
 from tqdm import tqdm
 
@@ -48,10 +47,12 @@ from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule
 from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
+from dust_rl.episode_collector import episode_collector
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.keys import SEED_KEY, STATE_KEY, SUCCESS_KEY
 from dust_rl.report import plot_loss_curves, write_report
 from dust_rl.rollout_video import write_episode_video
+from dust_rl.workers import Backend, Workers, ray_runtime
 
 
 @dataclass
@@ -69,7 +70,12 @@ class EvalConfig:
     episodes: int = 20
     """Episodes per task."""
     workers: int = 2
-    """Env processes per task (1 runs in this process)."""
+    """Env processes (or Ray actors) per task; 1 local worker runs in this process."""
+    backend: Backend = "local"
+    """Where the workers run: processes on this machine, or actors on a Ray cluster (``pip install
+    "dust-rl[ray]"``); same episodes either way."""
+    ray_address: str | None = None
+    """Ray cluster to join with ``--backend ray`` (e.g. ``auto``); default: start a local one for the command."""
     seed: int = 10_000
     """Episode k of a task resets from seed + k (training data uses seeds from 0 on)."""
     sampling: (Annotated[SamplerConfig, tyro.conf.subcommand("resample")]
@@ -101,6 +107,11 @@ class EvalConfig:
         check_at_least(self, 1, "episodes", "workers", "threads", "max_steps", "execute_steps")
         check_at_least(self, 0, "videos", "seed")
         resolve_device(self.device)
+        self.worker_pool()
+
+    def worker_pool(self) -> Workers:
+        """Where and how many workers run episodes."""
+        return Workers(self.workers, self.backend, self.threads, self.ray_address)
 
 
 def describe_sampler(sampler: SamplerConfig) -> dict:
@@ -221,26 +232,18 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
                              config.precision, config.compile)
 
 
-def make_eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: int, seed: int,
-                        threads: int) -> BaseCollector:
-    """A collector yielding one whole episode of ``task`` at a time, seeds from ``seed`` on.
+def eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: Workers,
+                   seed: int) -> contextlib.AbstractContextManager[BaseCollector]:
+    """A collector yielding one whole episode of ``task`` at a time, seeds from ``seed`` on (a context).
 
-    One worker runs in this process with ``policy``; more build theirs from the checkpoint and run
-    with ``threads`` torch threads each.
+    One local worker runs in this process with ``policy``; other workers build theirs from the checkpoint.
     """
     env_fns = [functools.partial(make_eval_env, setup.env_id, {**setup.env_kwargs, "task": task},
-                                 SeedSchedule(seed, worker=worker, num_workers=workers)) for worker in range(workers)]
-    if workers == 1:
-        source = {"create_env_fn": env_fns[0], "policy": seeded_executor(policy)}
-    else:
-        source = {"create_env_fn": env_fns, "policy_factory": functools.partial(make_eval_policy, setup),
-                  "num_collectors": workers, "sync": False, "num_threads": threads, "num_sub_threads": threads}
-    if torch.device(setup.device).type != "cpu":  # the collector moves observations there and actions back
-        source |= {"policy_device": setup.device, "env_device": "cpu", "storing_device": "cpu"}
-    with warnings.catch_warnings():  # workers build their own policy: there are no weights to send them
-        warnings.filterwarnings("ignore", message="weight_updater is None")
-        return Collector(**source, frames_per_batch=32 * workers, total_frames=-1, trajs_per_batch=1,
-                         traj_format="cat", trust_policy=True, auto_register_policy_transforms=False)
+                                 SeedSchedule(seed, worker=worker, num_workers=workers.count))
+               for worker in range(workers.count)]
+    return episode_collector(env_fns, workers, policy=seeded_executor(policy),
+                             policy_factory=None if workers.count == 1 and workers.backend == "local"
+                             else functools.partial(make_eval_policy, setup), policy_device=setup.device)
 
 
 def episode_of(trajectory: TensorDictBase) -> Episode:
@@ -256,23 +259,20 @@ def episode_of(trajectory: TensorDictBase) -> Episode:
 
 def run_task(collector: BaseCollector, seeds: range, bar: tqdm,
              keep: int = 0) -> tuple[list[Episode], dict[int, TensorDictBase]]:
-    """The episodes of exactly ``seeds``, in seed order, from a collector (shut down afterwards), and the
-    trajectories of the first ``keep`` seeds by seed (for videos)."""
+    """The episodes of exactly ``seeds``, in seed order, from a collector, and the trajectories of the first
+    ``keep`` seeds by seed (for videos)."""
     episodes: dict[int, Episode] = {}
     kept: dict[int, TensorDictBase] = {}
-    try:
-        for trajectory in collector:
-            episode = episode_of(trajectory)
-            if episode.seed in seeds and episode.seed not in episodes:
-                episodes[episode.seed] = episode
-                if episode.seed in seeds[:keep]:
-                    kept[episode.seed] = trajectory
-                bar.update(1)
-                bar.set_postfix(success=sum(e.success for e in episodes.values()))
-                if len(episodes) == len(seeds):
-                    break
-    finally:
-        collector.shutdown()
+    for trajectory in collector:
+        episode = episode_of(trajectory)
+        if episode.seed in seeds and episode.seed not in episodes:
+            episodes[episode.seed] = episode
+            if episode.seed in seeds[:keep]:
+                kept[episode.seed] = trajectory
+            bar.update(1)
+            bar.set_postfix(success=sum(e.success for e in episodes.values()))
+            if len(episodes) == len(seeds):
+                break
     return [episodes[seed] for seed in seeds], kept
 
 
@@ -298,9 +298,9 @@ def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy,
     """The episodes of ``task``, the trajectories of the first ``config.videos`` of them, the collector's
     start-up seconds and the seconds spent running episodes."""
     start = time.perf_counter()
-    collector = make_eval_collector(setup, task, policy, config.workers, config.seed, config.threads)
-    started = time.perf_counter()
-    with tqdm(total=config.episodes, desc=f"eval {task}", disable=not config.progress) as bar:
+    with (eval_collector(setup, task, policy, config.worker_pool(), config.seed) as collector,
+          tqdm(total=config.episodes, desc=f"eval {task}", disable=not config.progress) as bar):
+        started = time.perf_counter()
         episodes, kept = run_task(collector, range(config.seed, config.seed + config.episodes), bar, config.videos)
     # A multi-process collector's shutdown raises this process's thread count; more threads than
     # cores next to the renderer's own threads slow torch down many times over.
@@ -338,7 +338,7 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
     """
     start = time.perf_counter()
     rows, startup, running = [], 0.0, 0.0
-    with torch_threads(config.threads):
+    with torch_threads(config.threads), ray_runtime(config.worker_pool()):
         policy, setup = prepare(config)
         for task in setup.tasks:
             episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config)

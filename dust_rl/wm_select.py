@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, SamplerConfig, save_policy
-from dust_rl.evaluate import EvalConfig, evaluate, make_eval_collector, prepare, run_task
+from dust_rl.evaluate import EvalConfig, eval_collector, evaluate, prepare, run_task
 from dust_rl.keys import PREDICTED_FUTURE_KEY
 
 if TYPE_CHECKING:
@@ -56,8 +56,8 @@ def collect_rollouts(config: FinetuneConfig, task: str) -> Rollouts:
                              seed=config.rollout_seed, workers=1, videos=0, threads=config.threads,
                              max_steps=config.max_steps, progress=config.progress, device=config.device)
     policy, setup = prepare(eval_config)
-    collector = make_eval_collector(setup, task, policy, 1, config.rollout_seed, config.threads)
-    with tqdm(total=config.rollouts, desc="rollouts", disable=not config.progress) as bar:
+    with (eval_collector(setup, task, policy, eval_config.worker_pool(), config.rollout_seed) as collector,
+          tqdm(total=config.rollouts, desc="rollouts", disable=not config.progress) as bar):
         episodes, trajectories = run_task(collector, seeds, bar, keep=config.rollouts)
     futures, success, episode = [], [], []
     for index, record in enumerate(episodes):

@@ -3,9 +3,9 @@
 LeRobot export/import live in ``dust_rl.data.lerobot_export`` / ``lerobot_import`` (they load pyarrow and PyAV).
 """
 
-from .collect import collect_demos, make_demo_collector
+from .collect import collect_demos, demo_collector
 from .dataset import DemoDataset
 from .errors import DatasetError
 from .windows import DemoWindows
 
-__all__ = ["DatasetError", "DemoDataset", "DemoWindows", "collect_demos", "make_demo_collector"]
+__all__ = ["DatasetError", "DemoDataset", "DemoWindows", "collect_demos", "demo_collector"]

@@ -1,8 +1,8 @@
 """Collect scripted-expert demonstrations with torchrl collectors into a dataset folder.
 
-One ``Collector`` per task (``num_collectors=workers`` env processes when
-``workers > 1``) runs the expert policy and yields whole trajectories; each is
-written as soon as it finishes. Re-running the same call resumes: seeds with a
+One torchrl collector per task (:mod:`dust_rl.episode_collector`: ``workers``
+env processes, or Ray actors) runs the expert policy and yields whole
+trajectories; each is written as soon as it finishes. Re-running the same call resumes: seeds with a
 record are not run again, and the dataset is the first ``episodes`` successful
 seeds of each task whatever the interruptions or the number of workers.
 
@@ -14,16 +14,19 @@ to honour it).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import pathlib
 from collections.abc import Sequence
 
-from torchrl.collectors import BaseCollector, Collector
+from torchrl.collectors import BaseCollector
 from tqdm import tqdm
 
 from dust_rl.env_factory import check_tasks, make_env
+from dust_rl.episode_collector import episode_collector
 from dust_rl.errors import ConfigError
+from dust_rl.workers import Workers, ray_runtime
 
 from .collection_env import collection_env_fns
 from .episodes import EpisodeRecord, scan_episodes, trajectory_to_episode, write_episode
@@ -39,8 +42,9 @@ MAX_SEEDS_PER_EPISODE = 3
 
 
 def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks: Sequence[str] = ("pick_place",),
-                  episodes: int = 100, *, env_kwargs: dict | None = None, workers: int = 1, start_seed: int = 0,
-                  noise_std: float = 0.0, keep_failed: bool = False, progress: bool = True) -> dict:
+                  episodes: int = 100, *, env_kwargs: dict | None = None, workers: int | Workers = 1,
+                  start_seed: int = 0, noise_std: float = 0.0, keep_failed: bool = False,
+                  progress: bool = True) -> dict:
     """Collect (or resume collecting) ``episodes`` successful expert demos per task into ``root``.
 
     Args:
@@ -48,7 +52,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         env_id: gymnasium id; ``env_kwargs`` (image size, cameras...) go to the env constructor with ``task``.
         tasks: task names; their episodes share one dataset, each with its own instructions.
         episodes: successful episodes per task.
-        workers: env processes per collector (1 runs in this process).
+        workers: env processes per collector (1 runs in this process), or where and how many workers run.
         start_seed: first seed of every task; episode ``k`` of a task uses seed ``start_seed + k``.
         noise_std: DART perturbation of the executed action (the stored label stays the expert's).
         keep_failed: also store failed episodes (flagged ``success=False``).
@@ -62,8 +66,9 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         DatasetLockedError: another process is collecting into ``root``.
     """
     tasks = list(dict.fromkeys(tasks))
-    if not (isinstance(episodes, int) and episodes >= 1 and isinstance(workers, int) and workers >= 1):
-        raise ConfigError(f"episodes and workers must be ints >= 1, got {episodes!r} and {workers!r}")
+    workers = workers if isinstance(workers, Workers) else Workers(workers)
+    if not (isinstance(episodes, int) and episodes >= 1 and isinstance(workers.count, int) and workers.count >= 1):
+        raise ConfigError(f"episodes and workers must be ints >= 1, got {episodes!r} and {workers.count!r}")
     if not (isinstance(start_seed, int) and start_seed >= 0) or not (math.isfinite(noise_std) and noise_std >= 0):
         raise ConfigError(f"start_seed must be an int >= 0 and noise_std a finite number >= 0, "
                           f"got {start_seed!r} and {noise_std!r}")
@@ -81,7 +86,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
               "noise_std": float(noise_std), "keep_failed": keep_failed}
     root = pathlib.Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    with dataset_lock(root):
+    with dataset_lock(root), ray_runtime(workers):
         clear_staging(root)
         meta = open_meta(root, config, tasks, episodes, spec)
         for task in tasks:
@@ -96,28 +101,22 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
     return meta
 
 
-def make_demo_collector(env_id: str, env_kwargs: dict, workers: int = 1, start_seed: int = 0,
-                        known_seeds: frozenset[int] = frozenset(), noise_std: float = 0.0) -> BaseCollector:
-    """A torchrl collector yielding one whole expert episode ``[T]`` at a time, seeds from ``start_seed`` on.
-
-    ``workers > 1`` runs that many env processes (``Collector(num_collectors=...)``, asynchronous);
-    ``known_seeds`` are skipped.
-    """
-    env_fns = collection_env_fns(env_id, env_kwargs, start_seed, known_seeds, workers)
-    processes = {"num_collectors": workers, "sync": False} if workers > 1 else {}
-    return Collector(env_fns[0] if workers == 1 else env_fns, make_expert_policy(noise_std),
-                     frames_per_batch=32 * workers, total_frames=-1, trajs_per_batch=1, traj_format="cat",
-                     trust_policy=True, auto_register_policy_transforms=False, **processes)
+def demo_collector(env_id: str, env_kwargs: dict, workers: Workers, start_seed: int = 0,
+                   known_seeds: frozenset[int] = frozenset(),
+                   noise_std: float = 0.0) -> contextlib.AbstractContextManager[BaseCollector]:
+    """A torchrl collector yielding one whole expert episode ``[T]`` at a time, seeds from ``start_seed`` on,
+    ``known_seeds`` skipped (a context)."""
+    env_fns = collection_env_fns(env_id, env_kwargs, start_seed, known_seeds, workers.count)
+    return episode_collector(env_fns, workers, policy=make_expert_policy(noise_std))
 
 
-def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, episodes: int, workers: int,
+def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, episodes: int, workers: Workers,
                   start_seed: int, noise_std: float, keep_failed: bool, progress: bool) -> None:
     records = scan_episodes(root).get(task, {})
     if select_episodes(records, start_seed, episodes, keep_failed) is not None:
         return
-    collector = make_demo_collector(env_id, env_kwargs, workers, start_seed, frozenset(records), noise_std)
-    bar = tqdm(total=episodes, initial=_successes(records), desc=f"collecting {task}", disable=not progress)
-    try:
+    with (demo_collector(env_id, env_kwargs, workers, start_seed, frozenset(records), noise_std) as collector,
+          tqdm(total=episodes, initial=_successes(records), desc=f"collecting {task}", disable=not progress) as bar):
         for trajectory in collector:
             rows, record = trajectory_to_episode(trajectory, task)
             keep = record.success or keep_failed
@@ -128,9 +127,6 @@ def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, 
             if len(records) >= MAX_SEEDS_PER_EPISODE * episodes + 10:
                 raise RuntimeError(f"the {task} expert succeeded in only {_successes(records)} of {len(records)} "
                                    f"episodes; {episodes} successes are out of reach")
-    finally:
-        bar.close()
-        collector.shutdown()
 
 
 def _successes(records: dict[int, EpisodeRecord]) -> int:
