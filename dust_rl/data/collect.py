@@ -2,9 +2,10 @@
 
 One torchrl collector per task (:mod:`dust_rl.episode_collector`: ``workers``
 env processes, or Ray actors) runs the expert policy and yields whole
-trajectories; each is written as soon as it finishes. Re-running the same call resumes: seeds with a
-record are not run again, and the dataset is the first ``episodes`` successful
-seeds of each task whatever the interruptions or the number of workers.
+trajectories; each is written as soon as it finishes. Re-running the same call
+resumes: seeds with a record are not run again, and the dataset is the first
+``episodes`` successful seeds of each task whatever the interruptions, the
+number of workers or where they run.
 
 Every argument is checked before anything is written; one collection at a time
 writes into a folder (:func:`~dust_rl.data.lock.dataset_lock`); and a smaller
