@@ -13,7 +13,11 @@ first of
 * ``dropped off the plate``: lifted, and at the end lying off the plate;
 * ``on the plate, not released``: lifted and on the plate, the gripper still touching it.
 
-    .venv/bin/python scripts/failure_modes.py --policy runs/train/T/policy.pt --seed 5000 --episodes 30 [--max-steps N]
+``--sheet PNG`` also draws, for the first episodes of each class, the cameras at four moments of the
+episode (its last step included), so the classes can be looked at, not only counted.
+
+    .venv/bin/python scripts/failure_modes.py --policy runs/train/T/policy.pt --seed 5000 --episodes 30 \
+        [--max-steps N] [--sheet runs/eval/T/failure_modes.png]
 """
 
 from __future__ import annotations
@@ -23,14 +27,22 @@ import collections
 import json
 import pathlib
 
+import matplotlib
 import torch
+from tensordict import TensorDictBase
 
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
 from dust_rl.evaluate import EvalConfig, evaluate_task, prepare
-from dust_rl.keys import ENV_STATE_KEY
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 
 MOVED = 0.01  # m
 LIFTED = CUBE_HALF + 0.02  # m: the task's own "lifted" height of the cube's centre
+MODES = ("success", "wrong cube", "untouched", "not lifted", "held at the end", "dropped off the plate",
+         "on the plate, not released")
+MOMENTS = (0.25, 0.5, 0.75, 1.0)  # fractions of an episode drawn on the sheet
 
 
 def failure_mode(env_state: torch.Tensor, success: bool) -> str:
@@ -51,6 +63,27 @@ def failure_mode(env_state: torch.Tensor, success: bool) -> str:
     return "on the plate, not released"
 
 
+def contact_sheet(trajectories: dict[int, TensorDictBase], modes: dict[int, str], cameras: tuple[str, ...],
+                  per_mode: int, path: pathlib.Path) -> None:
+    """One row per episode (the first ``per_mode`` of each class), the cameras side by side at each moment."""
+    rows = [(seed, mode) for mode in MODES for seed in [s for s, m in modes.items() if m == mode][:per_mode]]
+    figure, axes = plt.subplots(len(rows), len(MOMENTS), figsize=(2.4 * len(cameras) * len(MOMENTS), 2.6 * len(rows)),
+                                squeeze=False)
+    for (seed, mode), row in zip(rows, axes):
+        trajectory = trajectories[seed]
+        for moment, axis in zip(MOMENTS, row):
+            step = round(moment * (trajectory.shape[0] - 1))
+            views = [trajectory[step].get((*IMAGE_KEY, camera)).permute(1, 2, 0) for camera in cameras]
+            axis.imshow(torch.cat(views, dim=1).numpy())
+            axis.set_title(f"seed {seed}, {mode}, step {step}" if moment == MOMENTS[0] else f"step {step}",
+                           fontsize=8)
+            axis.axis("off")
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=80)
+    plt.close(figure)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", type=pathlib.Path, required=True)
@@ -58,6 +91,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--max-steps", type=int, default=None, help="time limit per episode (default: the task's)")
+    parser.add_argument("--sheet", type=pathlib.Path, default=None, help="also draw the episodes into this PNG")
+    parser.add_argument("--per-class", type=int, default=3, help="episodes per class on the sheet")
     args = parser.parse_args()
     config = EvalConfig(policy=args.policy, seed=args.seed, episodes=args.episodes, workers=1, videos=args.episodes,
                         threads=args.threads, max_steps=args.max_steps, device="cpu")
@@ -69,10 +104,12 @@ def main() -> None:
     modes = {e.seed: failure_mode(trajectories[e.seed].get(("next", *ENV_STATE_KEY)), e.success) for e in episodes}
     counts = collections.Counter(modes.values())
     print(f"{args.policy}, seeds {args.seed}..{args.seed + args.episodes - 1}:")
-    for mode in ("success", "wrong cube", "untouched", "not lifted", "held at the end", "dropped off the plate",
-                 "on the plate, not released"):
+    for mode in MODES:
         print(f"  {mode}: {counts[mode]}")
     print(json.dumps(modes))
+    if args.sheet:
+        contact_sheet(trajectories, modes, policy.cameras, args.per_class, args.sheet)
+        print(f"sheet: {args.sheet}")
 
 
 if __name__ == "__main__":
