@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal
 
-from dust_rl.errors import ConfigError
+from dust_rl.errors import ConfigError, check_at_least
 
 Backend = Literal["local", "ray"]
 
@@ -33,6 +33,7 @@ class Workers:
     """Ray cluster to join (``ray.init(address=...)``, e.g. ``auto``); default: start a local one."""
 
     def __post_init__(self) -> None:
+        check_at_least(self, 1, "count", "threads")
         if self.backend not in ("local", "ray"):
             raise ConfigError(f"unknown backend {self.backend!r}: choose local or ray")
         if self.ray_address is not None and self.backend != "ray":

@@ -27,6 +27,10 @@ def test_bad_backend_settings_are_refused():
         Workers(2, "dask")
     with pytest.raises(ConfigError, match="ray_address needs backend='ray'"):
         Workers(2, "local", ray_address="auto")
+    with pytest.raises(ConfigError, match="count must be >= 1, got 0"):
+        Workers(0)
+    with pytest.raises(ConfigError, match="threads must be >= 1, got 0"):
+        Workers(2, threads=0)
     assert "ray_address needs backend='ray'" in error_of([*collect_args("unused"), "--ray-address", "auto"])
 
 
