@@ -16,12 +16,15 @@ the "first" column is the first call's wall time, with ``--compile`` the
 compilation's cost.
 
 Usage: python scripts/bench_agent.py [--threads 2] [--repeats 30] [--train-steps 8] [--compile]
-       [--precision fp32|bf16] [--image-encoders conv-ae,efficientnet-lite0]
+       [--precision fp32|bf16] [--image-encoders conv-ae,efficientnet-lite0] [--policies PATH ...]
+
+``--policies`` times trained policy files (their encoder, condition grid, variant and sampler as trained).
 """
 
 from __future__ import annotations
 
 import argparse
+import pathlib
 import statistics
 import time
 from collections.abc import Callable
@@ -29,11 +32,25 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDict
 
-from dust_rl.agents import DustConfig, DustModel, SamplerConfig, make_policy, random_batch, schedule_for, unwrap
+from dust_rl.agents import (
+    DustConfig,
+    DustModel,
+    DustPolicy,
+    SamplerConfig,
+    load_policy,
+    make_policy,
+    random_batch,
+    schedule_for,
+    unwrap,
+)
 from dust_rl.agents.precision import Precision, autocast
 
 N_COND_TOKENS = 40
 CAMERAS = ("front", "wrist")
+DEFAULT_POLICY_SAMPLERS = [("N_A=4, N_o=4", SamplerConfig("async", 4, 1)),
+                           ("N_A=4, N_o=16", SamplerConfig("async", 4, 4)),
+                           ("sync 4 steps", SamplerConfig("sync", 4, 1)),
+                           ("action-only 4 steps", SamplerConfig("action_only", 4, 1))]
 
 
 def first_call_s(fn: Callable[[], object]) -> float:
@@ -76,23 +93,23 @@ def chunk_latency_ms(config: DustConfig, repeats: int, compile_model: bool,
     return 1e3 * statistics.median(wall), 1e3 * min(wall), 1e3 * statistics.median(cpu), first
 
 
-def policy_latency_ms(repeats: int, image_encoder: str) -> list[tuple[str, float, float, float]]:
-    """Median and best wall time and median CPU time (ms) of a default policy on raw observations at batch 1.
+def policy_latency_ms(policy: DustPolicy, label: str, repeats: int,
+                      samplers: list[tuple[str, SamplerConfig]]) -> list[tuple[str, float, float, float]]:
+    """Median and best wall time and median CPU time (ms) of ``policy`` on raw observations at batch 1.
 
     Rows: the frozen backbone alone, then one ``plan`` call per sampler.
     """
-    policy = unwrap(make_policy("dust", image_encoder=image_encoder, cameras=CAMERAS, action_dim=7, state_dim=17))
-    images = {cam: torch.randint(0, 256, (1, 3, 128, 128), dtype=torch.uint8) for cam in CAMERAS}
-    obs = TensorDict({"observation": {"image": images, "state": torch.randn(1, 17)}}, batch_size=[1])
+    images = {cam: torch.randint(0, 256, (1, 3, 128, 128), dtype=torch.uint8) for cam in policy.cameras}
+    state_dim = policy.normalizer.state_mean.shape[-1]
+    obs = TensorDict({"observation": {"image": images, "state": torch.randn(1, state_dim)}}, batch_size=[1])
     obs["language_instruction"] = "press the red button"
     generator = torch.Generator().manual_seed(0)
     rows = []
     wall, cpu = timed(lambda: policy.observation_features(obs), repeats)
     grid = "x".join(map(str, policy.config.condition_grid))
-    rows.append((f"{image_encoder} ({grid}/camera): 2 cameras 128 px", wall, cpu))
-    for name, sampler, ratio in [("N_A=4, N_o=4", "async", 1), ("N_A=4, N_o=16", "async", 4),
-                                 ("sync 4 steps", "sync", 1), ("action-only 4 steps", "action_only", 1)]:
-        policy.set_sampler(SamplerConfig(sampler, 4, ratio))
+    rows.append((f"{label} ({grid}/camera): {len(policy.cameras)} cameras 128 px", wall, cpu))
+    for name, sampler in samplers:
+        policy.set_sampler(sampler)
         wall, cpu = timed(lambda: policy.plan(obs, generator), repeats)
         rows.append((f"  policy {name} (ms/chunk)", wall, cpu))
     return [(name, 1e3 * statistics.median(w), 1e3 * min(w), 1e3 * statistics.median(c)) for name, w, c in rows]
@@ -133,7 +150,9 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true", help="torch.compile the trunk (trunk and training rows)")
     parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32", help="autocast of the trunk rows")
     parser.add_argument("--image-encoders", default="conv-ae,efficientnet-lite0",
-                        help="comma-separated encoders of the policy rows")
+                        help="comma-separated encoders of the default-size policy rows ('' for none)")
+    parser.add_argument("--policies", nargs="*", default=[], metavar="PATH",
+                        help="trained policy files (dust-rl train) to time with the sampler they were trained for")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -156,8 +175,16 @@ def main() -> None:
     for name, config, target in rows:
         median, best, cpu, first = chunk_latency_ms(config, args.repeats, args.compile, args.precision)
         print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {first:9.2f} | {target:>8} |", flush=True)
-    for encoder in args.image_encoders.split(","):
-        for name, median, best, cpu in policy_latency_ms(args.repeats, encoder):
+    policies = [(encoder, unwrap(make_policy("dust", image_encoder=encoder, cameras=CAMERAS, action_dim=7,
+                                              state_dim=17)), DEFAULT_POLICY_SAMPLERS)
+                for encoder in args.image_encoders.split(",") if encoder]
+    for path in args.policies:
+        policy = unwrap(load_policy(path))
+        sampler = policy.config.sampler_settings
+        name = f"{policy.config.variant}, N_A={sampler.n_action_steps}, q={sampler.vision_step_ratio}"
+        policies.append((pathlib.Path(path).parent.name, policy, [(name, sampler)]))
+    for label, policy, samplers in policies:
+        for name, median, best, cpu in policy_latency_ms(policy, label, args.repeats, samplers):
             target = "<= 25" if "N_A=4, N_o=4" in name else ""
             print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {'':>9} | {target:>8} |", flush=True)
     median, best, cpu, first = train_samples_per_s(base, args.batch_size, args.train_steps, args.compile,
