@@ -52,6 +52,7 @@ from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
+from dust_rl.start_at_base import WarmStartSAC, start_at_base
 from dust_rl.steering import NoiseSteeringEnv
 from dust_rl.wm_select import VALIDATION_EVERY, wm_select
 
@@ -88,7 +89,11 @@ class FinetuneConfig:
     residual_scale: float = 0.1
     """Residual: what an RL action of +-1 adds, as a fraction of the action box's half-width."""
     learning_starts: int = 1000
-    """SAC: steps of random actions before the first update."""
+    """SAC: steps before the first update (uniformly random actions, unless ``initial_std`` is set)."""
+    initial_std: float | None = None
+    """Start the RL agent at the base policy (:mod:`dust_rl.start_at_base`): mean action 0 (no residual; steering:
+    the centre of the base policy's noise) and this exploration standard deviation (SAC: before the tanh), acting so
+    from the first step. None: SB3's initialisation (random mean, std ~1, uniformly random warm-up)."""
     batch_size: int = 256
     """SAC/PPO minibatch size."""
     net_arch: tuple[int, ...] = (256, 256)
@@ -143,6 +148,8 @@ class FinetuneConfig:
             raise ConfigError(f"wm_select needs rollouts >= {VALIDATION_EVERY}: every {VALIDATION_EVERY}th episode "
                               "validates the scorer")
         check_finite(self, "noise_bound", "residual_scale", positive=True)
+        if self.initial_std is not None:
+            check_finite(self, "initial_std", positive=True)
         if not self.net_arch or min(self.net_arch) < 1:
             raise ConfigError(f"net_arch must list positive layer widths, got {self.net_arch}")
         resolve_device(self.device)
@@ -236,8 +243,13 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
     else:  # a rollout no longer than the run, minibatches no larger than a rollout
         n_steps = min(2048, config.steps)
         kwargs = {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
-    return algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
-                     policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
+    if algorithm is SAC and config.initial_std is not None:
+        algorithm = WarmStartSAC
+    agent = algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
+                      policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
+    if config.initial_std is not None:
+        start_at_base(agent, config.initial_std)
+    return agent
 
 
 def finetune_command(config: FinetuneConfig, command: str | None = None) -> dict:
