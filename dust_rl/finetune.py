@@ -94,10 +94,6 @@ class FinetuneConfig:
     """Start the RL agent at the base policy (:mod:`dust_rl.start_at_base`): mean action 0 (no residual; steering:
     the centre of the base policy's noise) and this exploration standard deviation (SAC: before the tanh), acting so
     from the first step. None: SB3's initialisation (random mean, std ~1, uniformly random warm-up)."""
-    ent_coef_init: float = 1.0
-    """SAC: initial entropy coefficient, tuned from there towards the entropy of ``-action_dim``. With a sparse
-    reward that is still 0 everywhere, 1.0 widens an ``initial_std`` of 0.1 to ~0.9 in 4,000 updates (measured on
-    pick_place); 0.01 keeps it."""
     batch_size: int = 256
     """SAC/PPO minibatch size."""
     net_arch: tuple[int, ...] = (256, 256)
@@ -151,7 +147,7 @@ class FinetuneConfig:
         if self.method == "wm_select" and self.rollouts < VALIDATION_EVERY:
             raise ConfigError(f"wm_select needs rollouts >= {VALIDATION_EVERY}: every {VALIDATION_EVERY}th episode "
                               "validates the scorer")
-        check_finite(self, "noise_bound", "residual_scale", "ent_coef_init", positive=True)
+        check_finite(self, "noise_bound", "residual_scale", positive=True)
         if self.initial_std is not None:
             check_finite(self, "initial_std", positive=True)
         if not self.net_arch or min(self.net_arch) < 1:
@@ -243,7 +239,7 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
     algorithm = ALGORITHMS[config.algorithm]
     if algorithm is SAC:  # a replay buffer no larger than the run
         kwargs = {"learning_starts": config.learning_starts, "batch_size": config.batch_size,
-                  "buffer_size": config.steps, "ent_coef": f"auto_{config.ent_coef_init}"}
+                  "buffer_size": config.steps}
     else:  # a rollout no longer than the run, minibatches no larger than a rollout
         n_steps = min(2048, config.steps)
         kwargs = {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
