@@ -93,7 +93,8 @@ class FinetuneConfig:
     initial_std: float | None = None
     """Start the RL agent at the base policy (:mod:`dust_rl.start_at_base`): mean action 0 (no residual; steering:
     the centre of the base policy's noise) and this exploration standard deviation (SAC: before the tanh), acting so
-    from the first step. None: SB3's initialisation (random mean, std ~1, uniformly random warm-up)."""
+    from the first step, the std fixed. None: SB3's initialisation (random mean, std ~1 and learnt, uniformly random
+    warm-up)."""
     batch_size: int = 256
     """SAC/PPO minibatch size."""
     net_arch: tuple[int, ...] = (256, 256)
