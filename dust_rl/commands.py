@@ -126,6 +126,8 @@ class CollectCommand:
     privileged_state: bool = False
     """Append the objects' state to observation.state: an oracle (policies trained on it need not see the
     objects; compare with an image-only dataset to measure what perception costs)."""
+    progress: bool = True
+    """Show progress bars."""
 
 
 def run_collect(config: CollectCommand, command_line: str) -> None:
@@ -140,7 +142,7 @@ def run_collect(config: CollectCommand, command_line: str) -> None:
     workers = Workers(config.workers, config.backend, ray_address=config.ray_address)
     collect_demos(config.out, config.env, env_tasks(config.env, config.task), config.episodes,
                   env_kwargs=env_kwargs, workers=workers, start_seed=config.seed, noise_std=config.noise_std,
-                  keep_failed=config.keep_failed)
+                  keep_failed=config.keep_failed, progress=config.progress)
     print(dataset_summary(DemoDataset(config.out)))
 
 

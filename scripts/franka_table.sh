@@ -5,7 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 for task in ${TASKS:-open_drawer close_drawer press_button push pick_place stack peg_insert pick_into_bin}; do
-  .venv/bin/dust-rl collect --task "$task" --episodes 200 --out "runs/data/$task" --workers 1
+  .venv/bin/dust-rl collect --task "$task" --episodes 200 --out "runs/data/$task" --workers 1 --no-progress
   if [ ! -f "runs/train/$task/policy.pt" ]; then
     resume=()
     [ -f "runs/train/$task/config.json" ] && resume=(--resume)

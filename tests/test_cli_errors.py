@@ -57,6 +57,13 @@ def test_smaller_episode_count_keeps_every_episode(dataset_copy, capsys):
         assert len(dataset.episode(5)) == before[5]["length"]  # the rows are all still there
 
 
+@pytest.mark.parametrize("progress", ["--progress", "--no-progress"])
+def test_collection_progress_bars_can_be_turned_off(progress, dataset_copy, capsys):
+    main([*collect_args(dataset_copy, episodes=4, task="press_button"), progress])  # one more episode
+    assert DemoDataset(dataset_copy).meta["episodes_per_task"]["press_button"] == 4
+    assert ("collecting press_button" in capsys.readouterr().err) == (progress == "--progress")
+
+
 def test_bad_task_list_writes_nothing(dataset_copy, tmp_path):
     meta = (dataset_copy / "meta.json").read_bytes()
     assert "unknown franka task 'nope'" in error_of(collect_args(dataset_copy, task="press_button,nope"))
