@@ -36,6 +36,12 @@ class WarmStartSAC(SAC):
         return super()._sample_action(0, action_noise, n_envs)
 
 
+def check_initial_std(std: float) -> None:
+    """Raise ValueError unless ``std`` is a finite number > 0."""
+    if not (math.isfinite(std) and std > 0):
+        raise ValueError(f"the initial exploration std must be a finite number > 0, got {std}")
+
+
 def start_at_base(agent: BaseAlgorithm, std: float) -> None:
     """Make ``agent``'s mean action 0 for every observation and its exploration standard deviation ``std``, fixed.
 
@@ -45,8 +51,7 @@ def start_at_base(agent: BaseAlgorithm, std: float) -> None:
         ValueError: ``std`` is not a finite positive number.
         TypeError: an algorithm other than SAC or PPO.
     """
-    if not (math.isfinite(std) and std > 0):
-        raise ValueError(f"the initial exploration std must be a finite number > 0, got {std}")
+    check_initial_std(std)
     with torch.no_grad():
         if isinstance(agent, SAC):
             mean, log_std = agent.actor.mu, agent.actor.log_std

@@ -6,6 +6,10 @@ torchrl's ``GymWrapper`` takes them as they are; their two observation entries a
 action box, two Q networks (``ValueOperator``), ``SACLoss`` with a learned temperature, ``SoftUpdate`` target
 networks, a ``Collector`` that takes uniformly random actions for the first ``learning_starts`` frames, and a
 ``ReplayBuffer`` on ``LazyTensorStorage``. Read top to bottom, CleanRL style.
+
+``initial_std`` starts the actor at the base policy, as :mod:`dust_rl.start_at_base` does for SB3 (why: there):
+the mean is 0 for every observation (the output layer zeroed), the pre-tanh standard deviation is fixed at
+``initial_std``, and the warm-up frames act with that actor instead of uniformly.
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate
 from tqdm.auto import tqdm
 
+from dust_rl.start_at_base import check_initial_std
+
 OBSERVATION_ENTRIES = ("robot_state", "features")  # of the fine-tuning envs' observation dict
 
 
@@ -31,10 +37,29 @@ def torchrl_env(env: gym.Env) -> TransformedEnv:
     return TransformedEnv(GymWrapper(env), CatTensors(list(OBSERVATION_ENTRIES), "observation", del_keys=False))
 
 
-def sac_actor(env: TransformedEnv, net_arch: tuple[int, ...]) -> ProbabilisticActor:
-    """A tanh-squashed Gaussian policy over ``env``'s action box."""
+class FixedScale(nn.Module):
+    """Maps a mean to (mean, ``std``): a Gaussian head whose standard deviation is not learnt."""
+
+    def __init__(self, std: float) -> None:
+        super().__init__()
+        self.register_buffer("std", torch.tensor(float(std)))
+
+    def forward(self, loc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return loc, self.std.expand_as(loc)
+
+
+def sac_actor(env: TransformedEnv, net_arch: tuple[int, ...], initial_std: float | None = None) -> ProbabilisticActor:
+    """A tanh-squashed Gaussian policy over ``env``'s action box; with ``initial_std``, started at the base policy."""
     action_dim = env.action_spec.shape[-1]
-    net = nn.Sequential(MLP(out_features=2 * action_dim, num_cells=list(net_arch)), NormalParamExtractor())
+    if initial_std is None:
+        net = nn.Sequential(MLP(out_features=2 * action_dim, num_cells=list(net_arch)), NormalParamExtractor())
+    else:
+        mean = MLP(in_features=env.observation_spec["observation"].shape[-1], out_features=action_dim,
+                   num_cells=list(net_arch))
+        with torch.no_grad():
+            mean[-1].weight.zero_()
+            mean[-1].bias.zero_()
+        net = nn.Sequential(mean, FixedScale(initial_std))
     module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
     space = env.action_spec.space
     return ProbabilisticActor(module, in_keys=["loc", "scale"], spec=env.action_spec, distribution_class=TanhNormal,
@@ -43,7 +68,7 @@ def sac_actor(env: TransformedEnv, net_arch: tuple[int, ...]) -> ProbabilisticAc
 
 def train_sac(make_env: Callable[[], gym.Env], steps: int, *, learning_starts: int = 1000, batch_size: int = 256,
               net_arch: tuple[int, ...] = (256, 256), lr: float = 3e-4, gamma: float = 0.99, tau: float = 0.005,
-              seed: int = 0, progress: bool = True,
+              seed: int = 0, initial_std: float | None = None, progress: bool = True,
               log: Callable[[dict[str, float], int], None] | None = None) -> ProbabilisticActor:
     """Train SAC for ``steps`` env steps of ``make_env()``; returns the actor (its mean is the greedy policy).
 
@@ -54,13 +79,16 @@ def train_sac(make_env: Callable[[], gym.Env], steps: int, *, learning_starts: i
         batch_size, net_arch, lr, gamma, tau: SAC's minibatch size, hidden layers, Adam rate, discount, and
             target-network rate.
         seed: seeds torch and the env.
+        initial_std: start at the base policy (zero mean, this fixed pre-tanh std, no uniform warm-up).
         progress: show a progress bar.
         log: receives the losses and temperature after each update, with the frame count.
     """
+    if initial_std is not None:
+        check_initial_std(initial_std)
     torch.manual_seed(seed)
     env = torchrl_env(make_env())
     env.set_seed(seed)
-    actor = sac_actor(env, net_arch)
+    actor = sac_actor(env, net_arch, initial_std)
     qvalue = ValueOperator(MLP(out_features=1, num_cells=list(net_arch)), in_keys=["observation", "action"])
     with torch.no_grad():  # materialise the lazy layers on one real step
         qvalue(actor(env.reset()))
@@ -69,7 +97,8 @@ def train_sac(make_env: Callable[[], gym.Env], steps: int, *, learning_starts: i
     target_update = SoftUpdate(loss, tau=tau)
     optimizer = torch.optim.Adam(loss.parameters(), lr=lr)
     buffer = ReplayBuffer(storage=LazyTensorStorage(steps), batch_size=batch_size)
-    collector = Collector(env, actor, frames_per_batch=1, total_frames=steps, init_random_frames=learning_starts,
+    random_frames = learning_starts if initial_std is None else 0
+    collector = Collector(env, actor, frames_per_batch=1, total_frames=steps, init_random_frames=random_frames,
                           auto_register_policy_transforms=False)  # the actor needs no InitTracker
 
     frames = 0

@@ -146,3 +146,22 @@ def test_torchrl_sac_trains_on_the_steering_env(steering):
     td = torchrl_env(env).reset()
     assert actor(td)["action"].shape == (28,) and (actor(td)["action"].abs() <= 1).all()
     assert all(torch.equal(v, before[k]) for k, v in policy.state_dict().items())  # DUST stays frozen
+
+
+def test_torchrl_sac_starts_at_the_base_policy_with_initial_std(steering):
+    env, policy = steering
+    td = torchrl_env(env).reset()
+
+    def make_steering_env():
+        return NoiseSteeringEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE}), policy)
+
+    actor = train_sac(make_steering_env, steps=6, learning_starts=8, batch_size=4, net_arch=(16,), initial_std=0.1,
+                      progress=False)
+    out = actor(td)  # no update yet: the mean is the base policy's (noise 0), the std the one asked for
+    assert torch.equal(out["loc"], torch.zeros(28)) and torch.equal(out["scale"], torch.full((28,), 0.1))
+    out = train_sac(make_steering_env, steps=12, learning_starts=4, batch_size=4, net_arch=(16,), initial_std=0.1,
+                    progress=False)(td)
+    assert not torch.equal(out["loc"], torch.zeros(28))  # the updates moved the mean ...
+    assert torch.equal(out["scale"], torch.full((28,), 0.1))  # ... and not the std
+    with pytest.raises(ValueError, match="initial exploration std must be a finite number > 0"):
+        train_sac(make_steering_env, steps=1, initial_std=float("nan"), progress=False)
