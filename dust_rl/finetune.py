@@ -93,8 +93,8 @@ class FinetuneConfig:
     initial_std: float | None = None
     """Start the RL agent at the base policy (:mod:`dust_rl.start_at_base`): mean action 0 (no residual; steering:
     the centre of the base policy's noise) and this exploration standard deviation (SAC: before the tanh), acting so
-    from the first step, the std fixed. None: SB3's initialisation (random mean, std ~1 and learnt, uniformly random
-    warm-up)."""
+    from the first step, the std fixed (SAC: no entropy bonus). None: SB3's initialisation (random mean, std ~1 and
+    learnt, uniformly random warm-up)."""
     batch_size: int = 256
     """SAC/PPO minibatch size."""
     net_arch: tuple[int, ...] = (256, 256)
@@ -246,6 +246,7 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
         kwargs = {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
     if algorithm is SAC and config.initial_std is not None:
         algorithm = WarmStartSAC
+        kwargs["ent_coef"] = 0.0  # the std is fixed: an entropy bonus would only swamp the reward (start_at_base)
     agent = algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
                       policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
     if config.initial_std is not None:

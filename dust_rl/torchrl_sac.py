@@ -9,7 +9,7 @@ networks, a ``Collector`` that takes uniformly random actions for the first ``le
 
 ``initial_std`` starts the actor at the base policy, as :mod:`dust_rl.start_at_base` does for SB3 (why: there):
 the mean is 0 for every observation (the output layer zeroed), the pre-tanh standard deviation is fixed at
-``initial_std``, and the warm-up frames act with that actor instead of uniformly.
+``initial_std``, the warm-up frames act with that actor instead of uniformly, and the entropy bonus is (all but) off.
 """
 
 from __future__ import annotations
@@ -30,6 +30,9 @@ from tqdm.auto import tqdm
 from dust_rl.start_at_base import check_initial_std
 
 OBSERVATION_ENTRIES = ("robot_state", "features")  # of the fine-tuning envs' observation dict
+FIXED_STD_ALPHA = 1e-6
+"""Entropy coefficient, kept fixed, when the std is fixed (``initial_std``): SB3's ``ent_coef=0`` as near as torchrl's
+``SACLoss`` allows (it stores log alpha); why none: :mod:`dust_rl.start_at_base`."""
 
 
 def torchrl_env(env: gym.Env) -> TransformedEnv:
@@ -79,7 +82,8 @@ def train_sac(make_env: Callable[[], gym.Env], steps: int, *, learning_starts: i
         batch_size, net_arch, lr, gamma, tau: SAC's minibatch size, hidden layers, Adam rate, discount, and
             target-network rate.
         seed: seeds torch and the env.
-        initial_std: start at the base policy (zero mean, this fixed pre-tanh std, no uniform warm-up).
+        initial_std: start at the base policy (zero mean, this fixed pre-tanh std, no uniform warm-up, no entropy
+            bonus to speak of).
         progress: show a progress bar.
         log: receives the losses and temperature after each update, with the frame count.
     """
@@ -92,7 +96,9 @@ def train_sac(make_env: Callable[[], gym.Env], steps: int, *, learning_starts: i
     qvalue = ValueOperator(MLP(out_features=1, num_cells=list(net_arch)), in_keys=["observation", "action"])
     with torch.no_grad():  # materialise the lazy layers on one real step
         qvalue(actor(env.reset()))
-    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=env.action_spec)
+    fixed_std = initial_std is not None
+    loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=env.action_spec, fixed_alpha=fixed_std,
+                   alpha_init=FIXED_STD_ALPHA if fixed_std else 1.0)
     loss.make_value_estimator(gamma=gamma)
     target_update = SoftUpdate(loss, tau=tau)
     optimizer = torch.optim.Adam(loss.parameters(), lr=lr)

@@ -101,6 +101,7 @@ def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path)
     if algorithm == "sac":  # warm-up steps act with that actor: small actions, where SB3's are uniform in [-1, 1]
         warm_up = agent.replay_buffer.actions[:8]
         assert 0 < np.abs(warm_up).max() < 0.5
+        assert agent.ent_coef_tensor.item() == 0.0  # a fixed std leaves the entropy bonus nothing to do
     env.close()
 
 

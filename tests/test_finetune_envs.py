@@ -17,7 +17,7 @@ from dust_rl.env_factory import make_env
 from dust_rl.frozen_policy_env import observation_td
 from dust_rl.residual import ResidualEnv
 from dust_rl.steering import NoiseSteeringEnv
-from dust_rl.torchrl_sac import torchrl_env, train_sac
+from dust_rl.torchrl_sac import FIXED_STD_ALPHA, torchrl_env, train_sac
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -159,8 +159,10 @@ def test_torchrl_sac_starts_at_the_base_policy_with_initial_std(steering):
                       progress=False)
     out = actor(td)  # no update yet: the mean is the base policy's (noise 0), the std the one asked for
     assert torch.equal(out["loc"], torch.zeros(28)) and torch.equal(out["scale"], torch.full((28,), 0.1))
+    alphas = []
     out = train_sac(make_steering_env, steps=12, learning_starts=4, batch_size=4, net_arch=(16,), initial_std=0.1,
-                    progress=False)(td)
+                    progress=False, log=lambda scalars, frames: alphas.append(scalars["alpha"]))(td)
+    assert len(alphas) == 9 and all(alpha == pytest.approx(FIXED_STD_ALPHA) for alpha in alphas)
     assert not torch.equal(out["loc"], torch.zeros(28))  # the updates moved the mean ...
     assert torch.equal(out["scale"], torch.full((28,), 0.1))  # ... and not the std
     with pytest.raises(ValueError, match="initial exploration std must be a finite number > 0"):
