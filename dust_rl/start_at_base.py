@@ -51,7 +51,8 @@ def check_initial_std(std: float) -> None:
 def start_at_base(agent: BaseAlgorithm, std: float) -> None:
     """Make ``agent``'s mean action 0 for every observation and its exploration standard deviation ``std``, fixed.
 
-    SAC: ``std`` is before the tanh squashing (the action is ``tanh`` of a Gaussian). PPO: of the Gaussian itself.
+    SAC: ``std`` is before the tanh squashing (the action is ``tanh`` of a Gaussian), and the agent should be built
+    with ``ent_coef=0`` (as ``dust-rl finetune`` does; the module docstring says why). PPO: of the Gaussian itself.
 
     Raises:
         ValueError: ``std`` is not a finite positive number.

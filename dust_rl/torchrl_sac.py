@@ -87,7 +87,8 @@ def train_sac(make_env: Callable[[], gym.Env], steps: int, *, learning_starts: i
         progress: show a progress bar.
         log: receives the losses and temperature after each update, with the frame count.
     """
-    if initial_std is not None:
+    fixed_std = initial_std is not None
+    if fixed_std:
         check_initial_std(initial_std)
     torch.manual_seed(seed)
     env = torchrl_env(make_env())
@@ -96,15 +97,14 @@ def train_sac(make_env: Callable[[], gym.Env], steps: int, *, learning_starts: i
     qvalue = ValueOperator(MLP(out_features=1, num_cells=list(net_arch)), in_keys=["observation", "action"])
     with torch.no_grad():  # materialise the lazy layers on one real step
         qvalue(actor(env.reset()))
-    fixed_std = initial_std is not None
     loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=env.action_spec, fixed_alpha=fixed_std,
                    alpha_init=FIXED_STD_ALPHA if fixed_std else 1.0)
     loss.make_value_estimator(gamma=gamma)
     target_update = SoftUpdate(loss, tau=tau)
     optimizer = torch.optim.Adam(loss.parameters(), lr=lr)
     buffer = ReplayBuffer(storage=LazyTensorStorage(steps), batch_size=batch_size)
-    random_frames = learning_starts if initial_std is None else 0
-    collector = Collector(env, actor, frames_per_batch=1, total_frames=steps, init_random_frames=random_frames,
+    collector = Collector(env, actor, frames_per_batch=1, total_frames=steps,
+                          init_random_frames=0 if fixed_std else learning_starts,
                           auto_register_policy_transforms=False)  # the actor needs no InitTracker
 
     frames = 0
