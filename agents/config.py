@@ -30,9 +30,11 @@ from typing import Literal, get_args
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 SamplerName = Literal["async", "sync", "action_only"]
 KeypointSource = Literal["features", "pixels"]
+ReadoutInput = Literal["keypoints", "tokens"]
 
 VARIANTS: tuple[str, ...] = get_args(Variant)
 KEYPOINT_SOURCES: tuple[str, ...] = get_args(KeypointSource)
+READOUT_INPUTS: tuple[str, ...] = get_args(ReadoutInput)
 SAMPLERS: tuple[str, ...] = get_args(SamplerName)
 
 # Caps on sizes, checked before anything is allocated: a policy file names its sizes, and a file
@@ -115,6 +117,10 @@ class ModelConfig:
     lambda_aux: float = 0.0
     """Weight of an auxiliary loss that teaches the keypoints the objects' positions from the privileged
     environment state (:mod:`.state_readout`; training only, the policy never reads that state). 0: off."""
+    readout: ReadoutInput = "keypoints"
+    """What that state read-out reads: ``keypoints`` (their coordinates and the instruction, :mod:`.state_readout`)
+    or ``tokens`` (every camera's frozen condition tokens pooled by an attention the instruction steers,
+    :mod:`.token_readout`; no keypoints needed)."""
     text_fusion: bool = False
     """Condition every image token on the instruction before the trunk (:mod:`.condition`): the pooled instruction
     is added to each token, which then passes a residual MLP, so "is this the named object?" is answered per token,
@@ -175,10 +181,17 @@ class ModelConfig:
         if self.cond_grid is not None and any(c % v for c, v in zip(self.cond_grid, self.vision_grid)):
             raise ValueError(f"cond_grid {tuple(self.cond_grid)} must be a multiple of vision_grid "
                              f"{tuple(self.vision_grid)}")
+        if self.readout not in READOUT_INPUTS:
+            raise ValueError(f"unknown readout {self.readout!r}; expected one of {READOUT_INPUTS}")
         if self.keypoint_source not in KEYPOINT_SOURCES:
             raise ValueError(f"unknown keypoint_source {self.keypoint_source!r}; expected one of {KEYPOINT_SOURCES}")
         if self.keypoint_source == "pixels" and not self.keypoints:
             raise ValueError("keypoint_source 'pixels' needs keypoints > 0")
+
+    @property
+    def readout_inputs_exist(self) -> bool:
+        """Whether the state read-out has something to read: image tokens always, keypoints only if there are any."""
+        return self.readout == "tokens" or self.keypoints > 0
 
     @property
     def two_streams(self) -> bool:
@@ -211,8 +224,9 @@ class PolicyConfig(ModelConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         # Here, not in ModelConfig: policy files written when lambda_aux defaulted to 1 store it without keypoints.
-        if self.lambda_aux and not self.keypoints:
-            raise ValueError("lambda_aux needs keypoints > 0: the auxiliary loss is read off the keypoints")
+        if self.lambda_aux and not self.readout_inputs_exist:
+            raise ValueError("lambda_aux with readout 'keypoints' needs keypoints > 0: the auxiliary loss is read "
+                             "off the keypoints (or choose --policy.readout tokens)")
         if self.aux_state_input and not self.lambda_aux:
             raise ValueError("aux_state_input needs lambda_aux > 0: it feeds that read-out's estimate")
         if self.execute_steps is not None and not 1 <= self.execute_steps <= self.horizon:
@@ -259,8 +273,9 @@ class DustConfig(ModelConfig, SamplerConfig):
         SamplerConfig.__post_init__(self)
         ModelConfig.__post_init__(self)
         self._check_sizes()
-        if self.aux_state_dim and not self.keypoints:
-            raise ValueError("aux_state_dim needs keypoints > 0: the auxiliary loss is read off the keypoints")
+        if self.aux_state_dim and not self.readout_inputs_exist:
+            raise ValueError("aux_state_dim with readout 'keypoints' needs keypoints > 0: the auxiliary loss is read "
+                             "off the keypoints")
         if self.aux_state_dim and not self.lambda_aux:
             raise ValueError("aux_state_dim needs lambda_aux > 0: a read-out nothing trains")
         if self.aux_state_input and not self.aux_state_dim:

@@ -64,6 +64,7 @@ from .normalizer import Normalizer
 from .precision import Precision, autocast
 from .samplers import schedule_for
 from .state_readout import StateReadout
+from .token_readout import TokenReadout
 
 FEATURE_KEYS = ("image_tokens", "text_tokens", "text_mask", "pixels")
 
@@ -125,7 +126,10 @@ class DustPolicy(VLAWrapperBase):
                                             config.keypoint_source, config.text_fusion)
         self.config = config  # the policy's own: set_sampler replaces it; the model reads only its model fields
         self.model = DustModel(config)
-        if config.aux_state_dim:
+        if config.aux_state_dim and config.readout == "tokens":
+            self.state_readout = TokenReadout(len(cameras) * config.n_cond_image_tokens, backbone.image_dim,
+                                              backbone.text_dim, config.aux_state_dim)
+        elif config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
                                               config.aux_state_dim)
         if config.scorer_hidden:
@@ -177,18 +181,27 @@ class DustPolicy(VLAWrapperBase):
         return nn.ModuleDict(modules)
 
     def readout_modules(self) -> nn.ModuleDict:
-        """The pixel keypoint networks and the state read-out: what ``--readout-warmup`` fits and then freezes.
+        """The state read-out (and the pixel keypoint networks it reads): what ``--readout-warmup`` fits and then
+        freezes.
 
         Raises:
-            ValueError: the policy has no read-out on pixel keypoints.
+            ValueError: the policy has no read-out that frames alone can train.
         """
-        self._check_pixel_readout()
+        self._check_frame_readout()
+        if self.config.readout == "tokens":
+            return nn.ModuleDict({"state_readout": self.state_readout})
         return nn.ModuleDict({"keypoints": self.condition.keypoints, "state_readout": self.state_readout})
 
-    def _check_pixel_readout(self) -> None:
-        if not (self.config.aux_state_dim and self.reads_pixels):
-            raise ValueError("this needs a state read-out on pixel keypoints (--policy.lambda-aux with "
-                             "--policy.keypoint-source pixels)")
+    def _check_frame_readout(self) -> None:
+        if not (self.config.aux_state_dim and self.reads_frames_for_readout):
+            raise ValueError("this needs a state read-out on the image tokens (--policy.lambda-aux with "
+                             "--policy.readout tokens) or on pixel keypoints (--policy.keypoint-source pixels)")
+
+    @property
+    def reads_frames_for_readout(self) -> bool:
+        """Whether the read-out can be fitted on rendered frames: on their frozen tokens, or on pixel keypoints
+        (keypoints on the frozen tokens also train through the action loss, so they cannot)."""
+        return self.config.readout == "tokens" or self.reads_pixels
 
     # -- features ----------------------------------------------------------
     def canonical_view(self, td: TensorDictBase) -> TensorDictBase:
@@ -226,9 +239,9 @@ class DustPolicy(VLAWrapperBase):
 
     def image_features(self, td: TensorDictBase) -> Tensor:
         """Frozen tokens [*B, C, N, Dv] of every camera in ``td`` (canonical keys, any batch shape)."""
-        return self._frame_tokens(self.frames(td))
+        return self.frame_tokens(self.frames(td))
 
-    def _frame_tokens(self, frames: Tensor) -> Tensor:
+    def frame_tokens(self, frames: Tensor) -> Tensor:
         """Frozen tokens [*B, C, N, Dv] of frames [*B, C, 3, H, W]."""
         tokens = self.backbone.image_tokens(frames.reshape(-1, *frames.shape[-3:]), self.config.condition_grid)
         return tokens.view(*frames.shape[:-3], *tokens.shape[1:])
@@ -251,7 +264,7 @@ class DustPolicy(VLAWrapperBase):
         td = self.canonical_view(td).to(self.weights_device)
         frames = self.frames(td)
         frames = frames.reshape(-1, *frames.shape[-4:])
-        image = self._frame_tokens(frames)
+        image = self.frame_tokens(frames)
         text, mask = self.backbone.text_tokens(instruction_list(td.get(self.tensor_keys.instruction), image.shape[0]))
         return self.feature_batch(image, text, mask, td.get(self.tensor_keys.state).reshape(image.shape[0], -1), frames)
 
@@ -290,11 +303,10 @@ class DustPolicy(VLAWrapperBase):
                      if self.config.keypoints else None)
         cond, mask = self.condition(image, text, text_mask, keypoints)
         batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
-        if self.config.aux_state_dim:  # the loss and the diagnostics read the estimate; planning only if fed
-            batch.set("keypoints", keypoints)
+        if self.config.aux_state_dim:  # the loss and the diagnostics read the estimate; the trunk only if fed
+            batch.set("env_state_estimate", self._readout(image, keypoints, text, text_mask))
         if self.config.aux_state_input:
-            estimate = self._state_estimate(batch, features)
-            batch.set("env_state_estimate", estimate).set("state", torch.cat([batch.get("state"), estimate], dim=-1))
+            batch.set("state", torch.cat([batch.get("state"), batch.get("env_state_estimate")], dim=-1))
         if "future_tokens" in features.keys():
             batch.set("future_tokens", self.normalizer.normalize_vision(features.get("future_tokens")))
         return batch
@@ -308,13 +320,11 @@ class DustPolicy(VLAWrapperBase):
         """
         if not self.config.aux_state_dim:
             raise ValueError("this policy has no state read-out (trained without --policy.lambda-aux)")
-        return self._state_estimate(self._model_batch(features), features)
+        return self._model_batch(features).get("env_state_estimate")
 
-    def _state_estimate(self, model_batch: TensorDictBase, features: TensorDictBase) -> Tensor:
-        """The read-out's estimate from the keypoints in ``model_batch`` (reused when already there)."""
-        if "env_state_estimate" in model_batch.keys():
-            return model_batch.get("env_state_estimate")
-        return self.state_readout(model_batch.get("keypoints"), features.get("text_tokens"), features.get("text_mask"))
+    def _readout(self, image: Tensor, keypoints: Tensor | None, text: Tensor, text_mask: Tensor) -> Tensor:
+        """The read-out's estimate [B, S] from the standardised image tokens or the keypoints, whichever it reads."""
+        return self.state_readout(image if self.config.readout == "tokens" else keypoints, text, text_mask)
 
     # -- training and inference ---------------------------------------------
     def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None,
@@ -331,7 +341,7 @@ class DustPolicy(VLAWrapperBase):
         model_batch = self._model_batch(batch, augment=self.training, generator=generator)
         losses = self.model.compute_loss(model_batch, generator, shard)
         if self.config.aux_state_dim and "env_state" in batch.keys():
-            losses.set("loss_aux", _squared_error(self._state_estimate(model_batch, batch), batch.get("env_state")))
+            losses.set("loss_aux", _squared_error(model_batch.get("env_state_estimate"), batch.get("env_state")))
             losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))
         return losses
 
@@ -339,15 +349,20 @@ class DustPolicy(VLAWrapperBase):
         """The read-out's error of the normalised object state on frames without actions (unweighted).
 
         Args:
-            frames: ``pixels`` [B, C, 3, H, W] uint8, ``text_tokens``, ``text_mask`` and ``env_state``
-                (:class:`~dust_rl.aux_frames.AuxFrameBatches`); shifted at random in training mode.
+            frames: ``image_tokens`` [B, C, N, Dv] (token read-out) or ``pixels`` [B, C, 3, H, W] uint8 (pixel
+                keypoints; shifted at random in training mode), ``text_tokens``, ``text_mask`` and ``env_state``
+                (:class:`~dust_rl.aux_frames.AuxFrameBatches`).
 
         Raises:
-            ValueError: the policy has no read-out, or its keypoints are not computed from pixels.
+            ValueError: the policy has no read-out that frames alone can train.
         """
-        self._check_pixel_readout()
-        keypoints = self.condition.keypoint_features(None, frames.get("pixels"), self.training, generator)
-        estimate = self.state_readout(keypoints, frames.get("text_tokens"), frames.get("text_mask"))
+        self._check_frame_readout()
+        if self.config.readout == "tokens":
+            image, keypoints = self.normalizer.normalize_vision(frames.get("image_tokens")), None
+        else:
+            image, keypoints = None, self.condition.keypoint_features(None, frames.get("pixels"), self.training,
+                                                                      generator)
+        estimate = self._readout(image, keypoints, frames.get("text_tokens"), frames.get("text_mask"))
         return _squared_error(estimate, frames.get("env_state"))
 
     @torch.no_grad()

@@ -107,7 +107,7 @@ class AuxFrameBatches:
 
     Args:
         rows, instructions: :func:`render_aux_frames` output.
-        policy: supplies the cameras and the text encoder.
+        policy: supplies the cameras, the text encoder and (for a token read-out) the frozen image encoder.
         env_state_stats: mean and std that normalise the object state (the training data's).
     """
 
@@ -115,14 +115,17 @@ class AuxFrameBatches:
                  env_state_stats: tuple[torch.Tensor, torch.Tensor]) -> None:
         mean, std = env_state_stats
         self.device = policy.weights_device
-        self.pixels = policy.frames(rows)
+        # What the read-out reads, made once: the frozen tokens (encoded here) or the raw frames (shifted per draw).
+        self.frame_key = "image_tokens" if policy.config.readout == "tokens" else "pixels"
+        frames = policy.frames(rows)
+        self.frames = _encoded(policy, frames) if self.frame_key == "image_tokens" else frames
         distinct = {text: i for i, text in enumerate(dict.fromkeys(instructions))}  # tokens once per instruction
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(list(distinct))
         self.instruction_index = torch.tensor([distinct[text] for text in instructions])
         self.env_state = (rows.get(ENV_STATE_KEY) - mean) / std
 
     def __len__(self) -> int:
-        return self.pixels.shape[0]
+        return self.frames.shape[0]
 
     def sample(self, batch_size: int) -> TensorDict:
         """``batch_size`` frames drawn with replacement (torch's global generator, as the demo windows)."""
@@ -131,6 +134,13 @@ class AuxFrameBatches:
     def rows(self, index: torch.Tensor) -> TensorDict:
         """The frames at ``index`` (all of them: ``rows(torch.arange(len(batches)))``)."""
         text = self.instruction_index[index]
-        return TensorDict({"pixels": self.pixels[index], "text_tokens": self.text_tokens[text],
+        return TensorDict({self.frame_key: self.frames[index], "text_tokens": self.text_tokens[text],
                            "text_mask": self.text_mask[text], "env_state": self.env_state[index]},
                           batch_size=[len(index)], device=self.device)
+
+
+@torch.no_grad()
+def _encoded(policy: DustPolicy, frames: torch.Tensor, chunk: int = 256) -> torch.Tensor:
+    """Frozen condition tokens [F, C, N, Dv] of frames [F, C, 3, H, W], ``chunk`` frames at a time."""
+    return torch.cat([policy.frame_tokens(frames[i:i + chunk].to(policy.weights_device)).cpu()
+                      for i in range(0, len(frames), chunk)])

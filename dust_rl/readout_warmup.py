@@ -1,4 +1,4 @@
-"""Train the pixel keypoints and the state read-out alone first, then hold them fixed while the policy learns.
+"""Train the state read-out (and its pixel keypoints) alone first, then hold it fixed while the policy learns.
 
 Trained together with the action loss, the read-out does not localise the
 target cube well enough to grasp it: after 3,000 steps with 3,000 aux frames
@@ -44,10 +44,11 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
                     steps: int, lr: float, log: Callable[[dict[str, float], int], None], batch_size: int = 64,
                     *, heldout: AuxFrameBatches | None = None, log_every: int = LOG_EVERY,
                     progress: bool = True) -> None:
-    """Fit ``policy``'s pixel keypoints and read-out for ``steps`` steps, then freeze them.
+    """Fit ``policy``'s read-out (and its pixel keypoints) for ``steps`` steps, then freeze them.
 
     Args:
-        policy: a policy with a read-out on pixel keypoints, in training mode (frames are shifted at random).
+        policy: a policy with a read-out on image tokens or pixel keypoints, in training mode (pixel frames are
+            shifted at random).
         demo_batch: draws a feature batch of demonstration rows (with ``pixels`` and ``env_state``); None: aux
             frames only.
         aux: aux frames; each step draws ``batch_size`` of them.

@@ -92,12 +92,12 @@ class TrainSettings:
     """Frames of random resets and random arm motions (objects independent of the arm,
     :mod:`dust_rl.aux_frames`) rendered once at the start; every step adds the read-out's error on a batch
     of them to the loss (weight ``lambda_aux``), so the read-out cannot settle for "the target is where the
-    gripper is". Needs ``lambda_aux`` and ``keypoint_source pixels``; 0: off."""
+    gripper is". Needs ``lambda_aux`` and ``readout tokens`` or ``keypoint_source pixels``; 0: off."""
     aux_expert_fraction: float = 0.0
     """Share of the aux frames taken from the scripted expert's motion (a random number of steps into an expert
     episode on a fresh layout) instead of random actions, so the read-out also sees objects held and carried."""
     readout_warmup: int = 0
-    """Steps that fit the pixel keypoints and the read-out alone (on aux frames and demonstration rows) before
+    """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
     the policy trains; they are then frozen (:mod:`dust_rl.readout_warmup`). Needs ``aux_frames``; 0: off."""
     readout_lr: float = 1e-3
     """Learning rate of that warm-up (constant)."""
@@ -156,9 +156,10 @@ class TrainSettings:
         check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup", "start_rows")
         check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
         check_finite(self, "weight_decay")
-        if self.aux_frames and not (self.policy.lambda_aux and self.policy.keypoint_source == "pixels"):
-            raise ConfigError("aux_frames needs --policy.lambda-aux > 0 and --policy.keypoint-source pixels: the "
-                              "frames train the read-out of the pixel keypoints")
+        readout_on_frames = self.policy.readout == "tokens" or self.policy.keypoint_source == "pixels"
+        if self.aux_frames and not (self.policy.lambda_aux and readout_on_frames):
+            raise ConfigError("aux_frames needs --policy.lambda-aux > 0 and a read-out frames can train: "
+                              "--policy.readout tokens, or --policy.keypoint-source pixels")
         if not 0 <= self.aux_expert_fraction <= 1:
             raise ConfigError(f"aux_expert_fraction must be in [0, 1], got {self.aux_expert_fraction}")
         if self.aux_expert_fraction and not self.aux_frames:

@@ -70,8 +70,11 @@ def test_projector_appends_one_token_per_camera_keypoint():
 
 
 def test_config_checks_keypoint_settings():
-    with pytest.raises(ValueError, match="aux_state_dim needs keypoints"):
-        DustConfig(aux_state_dim=9)
+    with pytest.raises(ValueError, match="aux_state_dim with readout 'keypoints' needs keypoints"):
+        DustConfig(aux_state_dim=9, lambda_aux=1.0)
+    assert DustConfig(aux_state_dim=9, lambda_aux=1.0, readout="tokens").readout_inputs_exist
+    with pytest.raises(ValueError, match="unknown readout 'pixels'"):
+        DustConfig(readout="pixels")
     with pytest.raises(ValueError, match=r"keypoints must be an int in \[0, 256\]"):
         DustConfig(keypoints=-1)
     with pytest.raises(ValueError, match="lambda_aux must be a finite number"):

@@ -74,6 +74,27 @@ def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm)
     on_features = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                                      horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
                                      aux_state_dim=width, lambda_aux=1.0))
-    with pytest.raises(ValueError, match="needs a state read-out on pixel keypoints"):
+    with pytest.raises(ValueError, match="needs a state read-out on the image tokens"):
         on_features.readout_loss(frames)
 
+
+
+def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encoder, minilm):
+    dataset = DemoDataset(demo_dir)
+    width = env_state_width(dataset)
+    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                                aux_state_dim=width, lambda_aux=1.0, aux_state_input=True))
+    rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
+                                           width, progress=False)
+    batches = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+    everything = batches.rows(torch.arange(3))
+    assert "pixels" not in everything.keys()
+    torch.testing.assert_close(everything.get("image_tokens"), policy.frame_tokens(policy.frames(rows)),
+                               rtol=0, atol=0)
+    loss = policy.readout_loss(batches.sample(5))
+    loss.backward()
+    assert loss > 0 and all(p.grad is not None for p in policy.state_readout.parameters())
+    assert all(p.grad is None for p in (*policy.model.parameters(), *policy.condition.parameters()))
+    # The trunk reads the estimate after the robot state: the state token embeds both.
+    assert policy.model.state_in.in_features == policy.config.state_dim + width

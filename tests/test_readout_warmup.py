@@ -1,4 +1,4 @@
-"""The read-out warm-up: it fits the pixel keypoints and read-out, touches nothing else, then freezes them."""
+"""The read-out warm-up: it fits the read-out (tokens or pixel keypoints), touches nothing else, then freezes it."""
 
 from __future__ import annotations
 
@@ -14,13 +14,16 @@ from dust_rl.readout_warmup import heldout_loss, warm_up_readout
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def pixel_readout_policy(demo_dir, tiny_encoder, minilm) -> tuple[DemoDataset, DustPolicy]:
-    """A tiny policy with a state read-out on pixel keypoints, for the demo dataset."""
+READOUTS = {"pixel keypoints": {"keypoints": 2, "keypoint_source": "pixels"}, "tokens": {"readout": "tokens"}}
+
+
+def readout_policy(demo_dir, tiny_encoder, minilm, readout: str = "pixel keypoints") -> tuple[DemoDataset, DustPolicy]:
+    """A tiny policy with a state read-out (:data:`READOUTS`) that frames can train, for the demo dataset."""
     dataset = DemoDataset(demo_dir)
     torch.manual_seed(0)
     policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                keypoint_source="pixels", aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
+                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, **READOUTS[readout],
+                                aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
     return dataset, policy
 
 
@@ -31,9 +34,10 @@ def aux_frames(dataset: DemoDataset, policy: DustPolicy, first_seed: int = FIRST
     return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
 
 
-@pytest.mark.parametrize("with_demos", [True, False])
-def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, tiny_encoder, minilm):
-    dataset, policy = pixel_readout_policy(demo_dir, tiny_encoder, minilm)
+@pytest.mark.parametrize(("with_demos", "readout"), [(True, "pixel keypoints"), (False, "pixel keypoints"),
+                                                     (False, "tokens")])
+def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, readout, demo_dir, tiny_encoder, minilm):
+    dataset, policy = readout_policy(demo_dir, tiny_encoder, minilm, readout)
     aux = aux_frames(dataset, policy)
     frames = aux.sample(4)  # the demonstration rows are stood in for by aux frames: the loss reads the same keys
     before = policy.readout_loss(frames).item()
@@ -50,7 +54,7 @@ def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, demo_dir, ti
 
 
 def test_warm_up_keeps_the_weights_that_read_held_out_frames_best(demo_dir, tiny_encoder, minilm):
-    dataset, policy = pixel_readout_policy(demo_dir, tiny_encoder, minilm)
+    dataset, policy = readout_policy(demo_dir, tiny_encoder, minilm)
     heldout, logged = aux_frames(dataset, policy, HELDOUT_FIRST_SEED), {}
     # A learning rate far too high makes the held-out error jump around: the last weights are not the best.
     warm_up_readout(policy, None, aux_frames(dataset, policy), 8, 0.3,

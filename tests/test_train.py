@@ -129,13 +129,13 @@ def test_keypoints_learn_from_the_privileged_state(source, run_inputs, tmp_path)
     assert int(aux[0]) == 3 and math.isfinite(float(aux[1])) and float(aux[1]) > 0
 
 
-def test_training_logs_the_aux_frame_loss(run_inputs, tmp_path):
+@pytest.mark.parametrize("readout", [{"keypoints": 2, "keypoint_source": "pixels"}, {"readout": "tokens"}])
+def test_training_logs_the_aux_frame_loss(readout, run_inputs, tmp_path):
     out = tmp_path / "run"
-    train(tiny_config(run_inputs, out, steps=2, log_every=2, keypoints=2, keypoint_source="pixels", lambda_aux=1.0,
-                      aux_frames=3))
+    train(tiny_config(run_inputs, out, steps=2, log_every=2, lambda_aux=1.0, aux_frames=3, **readout))
     step, value = (out / "logs" / "train" / "scalars" / "train" / "loss_aux_frames.csv").read_text().split(",")
     assert int(step) == 2 and float(value) > 0
-    with pytest.raises(ConfigError, match="aux_frames needs --policy.lambda-aux > 0 and --policy.keypoint-source"):
+    with pytest.raises(ConfigError, match="aux_frames needs --policy.lambda-aux > 0 and a read-out frames can"):
         tiny_config(run_inputs, out, keypoints=2, lambda_aux=1.0, aux_frames=3)
     pixels = {"keypoints": 2, "keypoint_source": "pixels", "lambda_aux": 1.0}
     with pytest.raises(ConfigError, match="aux_expert_fraction needs --aux-frames"):
@@ -203,7 +203,7 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
 def test_bad_training_input_is_named(run_inputs, tmp_path):
     with pytest.raises(ValueError, match=r"execute_steps must be in \[1, horizon=4\], got 9"):
         tiny_config(run_inputs, tmp_path / "a", execute_steps=9)
-    with pytest.raises(ValueError, match="lambda_aux needs keypoints"):
+    with pytest.raises(ValueError, match="lambda_aux with readout 'keypoints' needs keypoints"):
         tiny_config(run_inputs, tmp_path / "a", lambda_aux=1.0)
     dataset, _ = run_inputs
     meta = json.loads((dataset / "meta.json").read_text())
