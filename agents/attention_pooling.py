@@ -30,25 +30,27 @@ class AttentionProbe(nn.Module):
         outputs: size of the prediction.
         early: add the condition to every token before the MLP and the pooling (True), or only to the pooled
             vector (False: the pooling cannot depend on which object is named).
+        heads: softmax poolings side by side, their vectors concatenated: one attends to one place, so a
+            prediction about several objects needs several.
     """
 
     def __init__(self, tokens: int, dim: int, condition: Callable[[], nn.Module], outputs: int,
-                 early: bool = True) -> None:
+                 early: bool = True, heads: int = 1) -> None:
         super().__init__()
         self.early = early
         self.position = nn.Parameter(0.02 * torch.randn(tokens, WIDTH))
         self.condition = condition()
         self.project = nn.Linear(dim, WIDTH)
         self.mlp = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, WIDTH))
-        self.attend = nn.Linear(WIDTH, 1)
-        self.head = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, outputs))
+        self.attend = nn.Linear(WIDTH, heads)
+        self.head = nn.Sequential(nn.Linear(heads * WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, outputs))
 
     def forward(self, tokens: Tensor, condition: Tensor) -> Tensor:
         named = self.condition(condition)[:, None]
         h = self.project(tokens) + self.position + (named if self.early else 0)
         h = h + self.mlp(h)
-        pooled = (self.attend(h).softmax(1) * h).sum(1)
-        return self.head(pooled if self.early else pooled + named[:, 0])
+        pooled = torch.einsum("bnk,bnw->bkw", self.attend(h).softmax(1), h)  # [B, heads, WIDTH]
+        return self.head((pooled if self.early else pooled + named).flatten(1))
 
 
 def standardise(train: Tensor, *others: Tensor) -> tuple[Tensor, ...]:

@@ -52,6 +52,7 @@ MAX_ENCODER_LAYERS = 64  # transformer layers of an image encoder
 MAX_TEXT_TOKENS = 512  # tokens per instruction
 MAX_CAMERAS = 16  # cameras a policy reads
 MAX_KEYPOINTS = 256  # spatial-softmax keypoints per camera
+MAX_READOUT_HEADS = 64  # attention poolings of the token read-out
 MAX_PARAMETERS = 1_000_000_000  # of the trunk, or of an image encoder: 4 GB of float32 weights
 TIME_FREQ_DIM = 256  # sinusoidal features of the timestep embedding
 
@@ -121,6 +122,8 @@ class ModelConfig:
     """What that state read-out reads: ``keypoints`` (their coordinates and the instruction, :mod:`.state_readout`)
     or ``tokens`` (every camera's frozen condition tokens pooled by an attention the instruction steers,
     :mod:`.token_readout`; no keypoints needed)."""
+    readout_heads: int = 1
+    """Attention poolings of the token read-out (each attends to one place; several objects may need several)."""
     text_fusion: bool = False
     """Condition every image token on the instruction before the trunk (:mod:`.condition`): the pooled instruction
     is added to each token, which then passes a residual MLP, so "is this the named object?" is answered per token,
@@ -154,6 +157,7 @@ class ModelConfig:
         check_size("d_model", self.d_model, MAX_WIDTH)
         check_size("horizon", self.horizon, MAX_HORIZON)
         check_size("keypoints", self.keypoints, MAX_KEYPOINTS, minimum=0)
+        check_size("readout_heads", self.readout_heads, MAX_READOUT_HEADS)
         check_size("n_heads", self.n_heads, self.d_model)
         check_size("n_mmdit", self.n_mmdit, MAX_BLOCKS, minimum=0)
         check_size("n_dit", self.n_dit, MAX_BLOCKS - self.n_mmdit, minimum=0)

@@ -128,7 +128,7 @@ class DustPolicy(VLAWrapperBase):
         self.model = DustModel(config)
         if config.aux_state_dim and config.readout == "tokens":
             self.state_readout = TokenReadout(len(cameras) * config.n_cond_image_tokens, backbone.image_dim,
-                                              backbone.text_dim, config.aux_state_dim)
+                                              backbone.text_dim, config.aux_state_dim, config.readout_heads)
         elif config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
                                               config.aux_state_dim)

@@ -40,11 +40,13 @@ class TokenReadout(nn.Module):
         image_dim: Dv.
         text_dim: Dt.
         state_dim: S.
+        heads: attention poolings side by side.
     """
 
-    def __init__(self, n_tokens: int, image_dim: int, text_dim: int, state_dim: int) -> None:
+    def __init__(self, n_tokens: int, image_dim: int, text_dim: int, state_dim: int, heads: int = 1) -> None:
         super().__init__()
-        self.pool = AttentionProbe(n_tokens, image_dim, lambda: nn.Linear(text_dim, WIDTH), outputs=state_dim)
+        self.pool = AttentionProbe(n_tokens, image_dim, lambda: nn.Linear(text_dim, WIDTH), outputs=state_dim,
+                                   heads=heads)
 
     def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor) -> Tensor:
         return self.pool(image_tokens.flatten(1, 2), pooled_text(text_tokens, text_mask))

@@ -6,9 +6,10 @@ cube for most of an episode, so an estimate that merely follows the gripper
 scores well on average; this table separates the steps where the gripper is
 still far from the target (the ones that decide where the arm goes) from the
 rest. The first columns of ``observation.environment_state`` must be the
-named object's xyz, then the other cube's (true of the Franka pick and place
-tasks); the last two columns tell a read-out that finds the cubes but not
-which one is named (its target estimate then sits near the other cube).
+named object's xyz, then the next object's ``--columns`` on (3 for the Franka
+pick and place tasks, 4 for press_button: xyz and depression per button); the
+last two columns tell a read-out that finds the objects but not which one is
+named (its target estimate then sits near the other one).
 
     .venv/bin/python scripts/readout_error.py --policy runs/train/T/policy.pt --dataset runs/data/T_val
 """
@@ -26,13 +27,14 @@ from dust_rl.keys import ENV_STATE_KEY, STATE_KEY
 
 STEP_BUCKETS = ((0, 1), (1, 10), (10, 30), (30, 60), (60, 10**6))
 EE_BLOCK = 8  # the state ends with the end effector's position, quaternion and opening (envs/env.py)
-TARGET_XY, OTHER_XY = slice(0, 2), slice(3, 5)  # the named cube's and the other cube's xy in the object state
+TARGET_XY = slice(0, 2)  # the named object's xy in the object state
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--policy", required=True, help="policy.pt trained with --policy.lambda-aux")
     parser.add_argument("--dataset", required=True, help="demonstrations from other seeds than the training data")
+    parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     policy = unwrap(load_policy(args.policy))
@@ -42,7 +44,8 @@ def main() -> None:
     windows = list(DemoWindows(dataset, horizon=policy.config.horizon, images=False).iterate(512))
     estimate = torch.cat([policy.estimate_env_state(cache.batch(w)) for w in windows]) * std + mean
     objects = torch.cat([w.get(ENV_STATE_KEY) for w in windows]).float()
-    target, other = objects[:, TARGET_XY], objects[:, OTHER_XY]
+    other_xy = slice(args.columns, args.columns + 2)
+    target, other = objects[:, TARGET_XY], objects[:, other_xy]
     gripper = torch.cat([w.get(STATE_KEY) for w in windows]).float()[:, -EE_BLOCK:-EE_BLOCK + 2]
     step = torch.arange(len(dataset)) - torch.repeat_interleave(dataset.episode_starts, dataset.lengths)
     print("| steps | rows | estimate to target (cm) | estimate to gripper (cm) | gripper to target (cm) | "
@@ -57,7 +60,7 @@ def main() -> None:
             name = f"{low}+" if high > 10**5 else str(low) if high == low + 1 else f"{low}-{high - 1}"
             print(f"| {name} | {int(m.sum())} | {cm(estimate[:, TARGET_XY], target):.1f} | "
                   f"{cm(estimate[:, TARGET_XY], gripper):.1f} | {cm(gripper, target):.1f} | "
-                  f"{cm(estimate[:, TARGET_XY], other):.1f} | {cm(estimate[:, OTHER_XY], other):.1f} |")
+                  f"{cm(estimate[:, TARGET_XY], other):.1f} | {cm(estimate[:, other_xy], other):.1f} |")
 
 
 if __name__ == "__main__":

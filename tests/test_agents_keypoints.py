@@ -75,6 +75,8 @@ def test_config_checks_keypoint_settings():
     assert DustConfig(aux_state_dim=9, lambda_aux=1.0, readout="tokens").readout_inputs_exist
     with pytest.raises(ValueError, match="unknown readout 'pixels'"):
         DustConfig(readout="pixels")
+    with pytest.raises(ValueError, match=r"readout_heads must be an int in \[1, 64\]"):
+        DustConfig(readout="tokens", readout_heads=0)
     with pytest.raises(ValueError, match=r"keypoints must be an int in \[0, 256\]"):
         DustConfig(keypoints=-1)
     with pytest.raises(ValueError, match="lambda_aux must be a finite number"):

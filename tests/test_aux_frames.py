@@ -84,7 +84,7 @@ def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encod
     width = env_state_width(dataset)
     policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                                 horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                                aux_state_dim=width, lambda_aux=1.0, aux_state_input=True))
+                                readout_heads=3, aux_state_dim=width, lambda_aux=1.0, aux_state_input=True))
     rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
                                            width, progress=False)
     batches = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
@@ -95,6 +95,7 @@ def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encod
     loss = policy.readout_loss(batches.sample(5))
     loss.backward()
     assert loss > 0 and all(p.grad is not None for p in policy.state_readout.parameters())
+    assert policy.state_readout.pool.attend.out_features == 3  # one attention pooling per head
     assert all(p.grad is None for p in (*policy.model.parameters(), *policy.condition.parameters()))
     # The trunk reads the estimate after the robot state: the state token embeds both.
     assert policy.model.state_in.in_features == policy.config.state_dim + width

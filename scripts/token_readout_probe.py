@@ -1,0 +1,74 @@
+"""How many centimetres off is the token read-out (``--policy.readout tokens``), object by object?
+
+Fits only the read-out, as ``dust-rl train --aux-frames N --readout-warmup S --no-readout-demos`` warms it
+up (the same frames: seeds from ``dust_rl.aux_frames.FIRST_SEED``, the same held-out ones), and prints each
+object's xy error on the held-out frames in cm, and the normalised squared error of every state column,
+so a read-out that finds the named object but not the others (or the reverse) shows. The policy's image
+tokens are standardised with the held-out frames' statistics here (training uses the demonstrations').
+
+    .venv/bin/python scripts/token_readout_probe.py --dataset runs/data/press_button_200 --columns 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from dust_rl.agents import make_policy, unwrap
+from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
+from dust_rl.data import DemoDataset
+from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.readout_warmup import warm_up_readout
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dataset", required=True, help="the training demonstrations (env, cameras, state stats)")
+    parser.add_argument("--frames", type=int, default=4000, help="aux frames to fit")
+    parser.add_argument("--expert-fraction", type=float, default=0.0, help="as --aux-expert-fraction")
+    parser.add_argument("--steps", type=int, default=4000)
+    parser.add_argument("--heads", type=int, default=1, help="attention poolings of the read-out")
+    parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
+    parser.add_argument("--image-encoder", default="efficientnet-lite0-s8")
+    parser.add_argument("--cond-grid", type=int, default=8)
+    args = parser.parse_args()
+    began = time.perf_counter()
+    torch.manual_seed(0)
+    dataset = DemoDataset(args.dataset)
+    width = env_state_width(dataset)
+    policy = unwrap(make_policy(image_encoder=args.image_encoder, cond_grid=(args.cond_grid, args.cond_grid),
+                                variant="action_only", readout="tokens", readout_heads=args.heads,
+                                aux_state_dim=width, lambda_aux=1.0, **dataset_policy_kwargs(dataset)))
+    stats = env_state_stats(dataset)
+
+    def frames(count: int, first_seed: int) -> AuxFrameBatches:
+        rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
+                                               policy.cameras, count, width, expert_fraction=args.expert_fraction,
+                                               first_seed=first_seed)
+        return AuxFrameBatches(rows, instructions, policy, stats)
+
+    heldout = frames(HELDOUT_FRAMES, HELDOUT_FIRST_SEED)
+    policy.normalizer.set_vision_stats(heldout.frames)
+    fit = frames(args.frames, FIRST_SEED)
+    policy.train()
+    warm_up_readout(policy, None, fit, args.steps, 1e-3, lambda scalars, step: None, heldout=heldout)
+    policy.eval()
+    rows = heldout.rows(torch.arange(len(heldout)))
+    with torch.no_grad():
+        estimate = policy.state_readout(policy.normalizer.normalize_vision(rows.get("image_tokens")),
+                                        rows.get("text_tokens"), rows.get("text_mask"))
+    truth = rows.get("env_state")
+    mean, std = stats
+    cm = 100 * ((estimate - truth) * std).unflatten(-1, (-1, args.columns))[..., :2].norm(dim=-1).mean(0)
+    spread = 100 * ((truth * std).unflatten(-1, (-1, args.columns))[..., :2]
+                    - (truth * std).unflatten(-1, (-1, args.columns))[..., :2].mean(0)).norm(dim=-1).mean(0)
+    print(f"{args.frames} frames, {args.steps} steps, {args.heads} head(s), {time.perf_counter() - began:.0f} s; "
+          f"held-out xy error per object (named first), cm: {[round(v, 1) for v in cm.tolist()]}; "
+          f"predicting the mean: {[round(v, 1) for v in spread.tolist()]}")
+    print("normalised squared error per column:", [round(v, 3) for v in (estimate - truth).square().mean(0).tolist()])
+
+
+if __name__ == "__main__":
+    main()
