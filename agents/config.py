@@ -124,6 +124,11 @@ class ModelConfig:
     :mod:`.token_readout`; no keypoints needed)."""
     readout_heads: int = 1
     """Attention poolings of the token read-out (each attends to one place; several objects may need several)."""
+    readout_grid: tuple[int, int] | None = None
+    """Token grid per camera the token read-out reads, finer than ``cond_grid``: the frozen tokens are kept at this
+    grid and pooled to ``cond_grid`` for the trunk. At Lite0 stride 8, (16, 16) reads the named button 2.8 cm off
+    where the pooled 8x8 grid is 5.1 cm off (held-out aux frames, ``scripts/token_readout_probe.py``). None:
+    ``cond_grid``."""
     text_fusion: bool = False
     """Condition every image token on the instruction before the trunk (:mod:`.condition`): the pooled instruction
     is added to each token, which then passes a residual MLP, so "is this the named object?" is answered per token,
@@ -161,9 +166,9 @@ class ModelConfig:
         check_size("n_heads", self.n_heads, self.d_model)
         check_size("n_mmdit", self.n_mmdit, MAX_BLOCKS, minimum=0)
         check_size("n_dit", self.n_dit, MAX_BLOCKS - self.n_mmdit, minimum=0)
-        for name in ("vision_grid", "cond_grid"):
+        for name in ("vision_grid", "cond_grid", "readout_grid"):
             grid = getattr(self, name)
-            if grid is None and name == "cond_grid":
+            if grid is None and name != "vision_grid":
                 continue
             if not (isinstance(grid, (tuple, list)) and len(grid) == 2):
                 raise ValueError(f"{name} must be a (rows, cols) pair, got {grid!r}")
@@ -187,6 +192,8 @@ class ModelConfig:
                              f"{tuple(self.vision_grid)}")
         if self.readout not in READOUT_INPUTS:
             raise ValueError(f"unknown readout {self.readout!r}; expected one of {READOUT_INPUTS}")
+        if self.readout_grid is not None and self.readout != "tokens":
+            raise ValueError("readout_grid is the grid the token read-out reads: it needs readout 'tokens'")
         if self.keypoint_source not in KEYPOINT_SOURCES:
             raise ValueError(f"unknown keypoint_source {self.keypoint_source!r}; expected one of {KEYPOINT_SOURCES}")
         if self.keypoint_source == "pixels" and not self.keypoints:
@@ -304,6 +311,8 @@ class DustConfig(ModelConfig, SamplerConfig):
         check_size("scorer_hidden", self.scorer_hidden, MAX_WIDTH, minimum=0)
         if any(c % v for c, v in zip(self.condition_grid, self.vision_grid)):
             raise ValueError(f"cond_grid {self.condition_grid} must be a multiple of vision_grid {self.vision_grid}")
+        if any(t % c for t, c in zip(self.token_grid, self.condition_grid)):
+            raise ValueError(f"readout_grid {self.token_grid} must be a multiple of cond_grid {self.condition_grid}")
         if self.n_vision_tokens * self.vision_dim * self.scorer_hidden > MAX_PARAMETERS:
             raise ValueError(f"the future scorer would have over {MAX_PARAMETERS:.3g} parameters; reduce scorer_hidden")
         if self.n_parameters > MAX_PARAMETERS:
@@ -347,6 +356,17 @@ class DustConfig(ModelConfig, SamplerConfig):
     def n_cond_image_tokens(self) -> int:
         """Condition tokens per camera."""
         return self.condition_grid[0] * self.condition_grid[1]
+
+    @property
+    def token_grid(self) -> tuple[int, int]:
+        """(rows, cols) of the frozen tokens kept per camera (cached, encoded when acting): the read-out's grid if
+        finer, else the condition grid."""
+        return tuple(self.readout_grid) if self.readout_grid is not None else self.condition_grid
+
+    @property
+    def n_image_tokens(self) -> int:
+        """Frozen tokens kept per camera."""
+        return self.token_grid[0] * self.token_grid[1]
 
     @property
     def sampler_name(self) -> SamplerName:

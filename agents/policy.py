@@ -17,7 +17,8 @@ observations or from cached tokens alike, hold:
 key                    shape                    meaning
 =====================  =======================  ==========================================
 ``image_tokens``       [B, C, N, Dv] float      frozen tokens of each camera (``cameras`` order) on the
-                                                condition grid (N = ``config.n_cond_image_tokens``)
+                                                token grid (N = ``config.n_image_tokens``: the condition
+                                                grid, or the read-out's finer ``readout_grid``)
 ``text_tokens``        [B, L, Dt] float         frozen instruction tokens
 ``text_mask``          [B, L] bool              True for real instruction tokens
 ``state``              [B, Ds] float            normalised state
@@ -127,7 +128,7 @@ class DustPolicy(VLAWrapperBase):
         self.config = config  # the policy's own: set_sampler replaces it; the model reads only its model fields
         self.model = DustModel(config)
         if config.aux_state_dim and config.readout == "tokens":
-            self.state_readout = TokenReadout(len(cameras) * config.n_cond_image_tokens, backbone.image_dim,
+            self.state_readout = TokenReadout(len(cameras) * config.n_image_tokens, backbone.image_dim,
                                               backbone.text_dim, config.aux_state_dim, config.readout_heads)
         elif config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
@@ -243,7 +244,7 @@ class DustPolicy(VLAWrapperBase):
 
     def frame_tokens(self, frames: Tensor) -> Tensor:
         """Frozen tokens [*B, C, N, Dv] of frames [*B, C, 3, H, W]."""
-        tokens = self.backbone.image_tokens(frames.reshape(-1, *frames.shape[-3:]), self.config.condition_grid)
+        tokens = self.backbone.image_tokens(frames.reshape(-1, *frames.shape[-3:]), self.config.token_grid)
         return tokens.view(*frames.shape[:-3], *tokens.shape[1:])
 
     def future_targets(self, image_tokens: Tensor) -> Tensor:
@@ -251,12 +252,16 @@ class DustPolicy(VLAWrapperBase):
 
         One definition for training targets and for anything that compares a predicted future with a real one.
         """
-        tokens = image_tokens[..., self.cameras.index(self.future_camera), :, :]
-        if self.config.condition_grid == tuple(self.config.vision_grid):
+        return self._pooled(image_tokens[..., self.cameras.index(self.future_camera), :, :],
+                            tuple(self.config.vision_grid))
+
+    def _pooled(self, tokens: Tensor, grid: tuple[int, int]) -> Tensor:
+        """Tokens [*B, N, Dv] on the token grid average-pooled to ``grid`` [*B, rows * cols, Dv]."""
+        if grid == self.config.token_grid:
             return tokens
-        batch, grid = tokens.shape[:-2], self.config.condition_grid
-        feature_map = tokens.reshape(-1, *grid, tokens.shape[-1]).permute(0, 3, 1, 2).float()
-        pooled = pool_tokens(feature_map, tuple(self.config.vision_grid))
+        batch = tokens.shape[:-2]
+        feature_map = tokens.reshape(-1, *self.config.token_grid, tokens.shape[-1]).permute(0, 3, 1, 2).float()
+        pooled = pool_tokens(feature_map, grid)
         return pooled.reshape(*batch, *pooled.shape[1:])
 
     def observation_features(self, td: TensorDictBase) -> TensorDict:
@@ -297,11 +302,12 @@ class DustPolicy(VLAWrapperBase):
     def _model_batch(self, features: TensorDictBase, augment: bool = False,
                      generator: torch.Generator | None = None) -> TensorDictBase:
         """The trunk's batch; ``augment`` shifts the frames of pixel keypoints at random (training only)."""
-        image = self.normalizer.normalize_vision(features.get("image_tokens"))
+        image = self.normalizer.normalize_vision(features.get("image_tokens"))  # on the token grid
+        on_grid = self._pooled(image, self.config.condition_grid)  # what the trunk and keypoints read
         text, text_mask = features.get("text_tokens"), features.get("text_mask")
-        keypoints = (self.condition.keypoint_features(image, features.get("pixels", None), augment, generator)
+        keypoints = (self.condition.keypoint_features(on_grid, features.get("pixels", None), augment, generator)
                      if self.config.keypoints else None)
-        cond, mask = self.condition(image, text, text_mask, keypoints)
+        cond, mask = self.condition(on_grid, text, text_mask, keypoints)
         batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
         if self.config.aux_state_dim:  # the loss and the diagnostics read the estimate; the trunk only if fed
             batch.set("env_state_estimate", self._readout(image, keypoints, text, text_mask))

@@ -86,7 +86,7 @@ class FeatureCache:
         key = feature_key(dataset, policy, views, batch_size)
         self.path = dataset.root / "features" / f"{key}.npy" if store else None
         # Stored row-major, [rows, views, ...], so encoding appends batch after batch of rows.
-        shape = (len(dataset), views, len(policy.cameras), policy.config.n_cond_image_tokens,
+        shape = (len(dataset), views, len(policy.cameras), policy.config.n_image_tokens,
                  policy.config.vision_dim)
         encoded = self._encoded_rows(views, progress)
         if self.path is None:
@@ -177,7 +177,7 @@ def feature_key(dataset: DemoDataset, policy: DustPolicy, views: int = 1, batch_
     augmentation = {"views": views, "augment": [MAX_SHIFT, JITTER, batch_size]} if views > 1 else {}
     digest = hashlib.sha256(json.dumps({
         "data": dataset.meta["data"], "rows": len(dataset), "cameras": policy.cameras, **augmentation,
-        "grid": list(policy.config.condition_grid), "dtype": "float16", "encoder": policy.backbone.reference()["image"],
+        "grid": list(policy.config.token_grid), "dtype": "float16", "encoder": policy.backbone.reference()["image"],
     }, sort_keys=True).encode())
     for name, tensor in sorted(policy.backbone.image.state_dict().items()):
         digest.update(name.encode())

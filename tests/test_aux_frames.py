@@ -7,7 +7,7 @@ import pytest
 import torch
 from conftest import DEMO_ENV_KWARGS
 
-from dust_rl.agents import make_policy, unwrap
+from dust_rl.agents import DustConfig, DustPolicy, make_policy, unwrap
 from dust_rl.aux_frames import FIRST_SEED, MAX_EXPERT_STEPS, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset
 from dust_rl.env_factory import make_env
@@ -99,3 +99,28 @@ def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encod
     assert all(p.grad is None for p in (*policy.model.parameters(), *policy.condition.parameters()))
     # The trunk reads the estimate after the robot state: the state token embeds both.
     assert policy.model.state_in.in_features == policy.config.state_dim + width
+
+
+def test_a_finer_readout_grid_feeds_the_readout_more_tokens_and_the_trunk_the_same(demo_dir, tiny_encoder, minilm):
+    dataset = DemoDataset(demo_dir)
+
+    def build(**grid) -> DustPolicy:
+        torch.manual_seed(0)  # the read-out is built after the trunk: both policies' trunks are the same
+        return unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                                  horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, vision_grid=(2, 2),
+                                  cond_grid=(2, 2), readout="tokens", aux_state_dim=env_state_width(dataset),
+                                  lambda_aux=1.0, **grid))
+
+    fine, coarse = build(readout_grid=(4, 4)), build()
+    frames = torch.randint(0, 256, (3, len(fine.cameras), 3, 32, 32), dtype=torch.uint8)
+    text, mask = fine.backbone.text_tokens(["press the red button"] * 3)
+    state = torch.zeros(3, fine.config.state_dim)
+    batches = [policy.feature_batch(policy.frame_tokens(frames), text, mask, state) for policy in (fine, coarse)]
+    assert [b.get("image_tokens").shape[-2] for b in batches] == [16, 4]
+    assert fine.state_readout.pool.position.shape[0] == len(fine.cameras) * 16
+    conditions = [policy._model_batch(b).get("cond_tokens") for policy, b in zip((fine, coarse), batches)]
+    torch.testing.assert_close(*conditions)
+    with pytest.raises(ValueError, match="readout_grid is the grid the token read-out reads"):
+        DustConfig(readout_grid=(8, 8))
+    with pytest.raises(ValueError, match=r"readout_grid \(6, 6\) must be a multiple of cond_grid \(4, 4\)"):
+        DustConfig(readout="tokens", cond_grid=(4, 4), readout_grid=(6, 6))
