@@ -49,7 +49,7 @@ def main() -> None:
     gripper = torch.cat([w.get(STATE_KEY) for w in windows]).float()[:, -EE_BLOCK:-EE_BLOCK + 2]
     step = torch.arange(len(dataset)) - torch.repeat_interleave(dataset.episode_starts, dataset.lengths)
     print("| steps | rows | estimate to target (cm) | estimate to gripper (cm) | gripper to target (cm) | "
-          "estimate to the other cube (cm) | other cube's estimate to it (cm) |")
+          "estimate to the next object (cm) | next object's estimate to it (cm) |")
     print("|---|---|---|---|---|---|---|")
     for low, high in STEP_BUCKETS:
         m = (step >= low) & (step < high)
