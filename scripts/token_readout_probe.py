@@ -60,10 +60,12 @@ def main() -> None:
         estimate = policy.state_readout(policy.normalizer.normalize_vision(rows.get("image_tokens")),
                                         rows.get("text_tokens"), rows.get("text_mask"))
     truth = rows.get("env_state")
-    mean, std = stats
-    cm = 100 * ((estimate - truth) * std).unflatten(-1, (-1, args.columns))[..., :2].norm(dim=-1).mean(0)
-    spread = 100 * ((truth * std).unflatten(-1, (-1, args.columns))[..., :2]
-                    - (truth * std).unflatten(-1, (-1, args.columns))[..., :2].mean(0)).norm(dim=-1).mean(0)
+    _, std = stats
+    def xy(normalised: torch.Tensor) -> torch.Tensor:  # per object, in metres (offsets cancel in differences)
+        return (normalised * std).unflatten(-1, (-1, args.columns))[..., :2]
+
+    cm = 100 * (xy(estimate) - xy(truth)).norm(dim=-1).mean(0)
+    spread = 100 * (xy(truth) - xy(truth).mean(0)).norm(dim=-1).mean(0)
     print(f"{args.frames} frames, {args.steps} steps, {args.heads} head(s), {time.perf_counter() - began:.0f} s; "
           f"held-out xy error per object (named first), cm: {[round(v, 1) for v in cm.tolist()]}; "
           f"predicting the mean: {[round(v, 1) for v in spread.tolist()]}")
