@@ -19,6 +19,14 @@ layout: objects reached, held, carried and placed, in layouts no
 demonstration shows, so they teach the carried phase without the 200
 training layouts to learn by heart.
 
+Neither kind shows the gripper right beside the object, where a grasp is
+won or lost: in closed loop the pick_place policy closed its fingers 1-2 cm
+beside the cube it had reached (README). With ``--aux-approach-fraction q``
+that share follows the expert until just before its gripper command first
+changes (the grasp; never, for a task without one) and then takes 0..9
+random arm motions that keep that command: the gripper near its target at
+random offsets, nothing held.
+
 Seeds start at :data:`FIRST_SEED`, away from the demonstration (0..),
 validation (5000..) and held-out (10000..) seeds, so the frames never show a
 layout the policy is scored on.
@@ -33,7 +41,7 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
 from dust_rl.env_factory import make_env
-from dust_rl.envs.env import DustEnv
+from dust_rl.envs.env import ACTION_WIDTH, CLOSURE, DustEnv
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, flat_name
 
 FIRST_SEED = 1_000_000
@@ -41,12 +49,14 @@ HELDOUT_FIRST_SEED = 2_000_000  # frames that only measure the read-out (never f
 HELDOUT_FRAMES = 256
 MAX_RANDOM_STEPS = 40
 MAX_EXPERT_STEPS = 80
+MAX_NUDGE_STEPS = 10  # random motions after an approach
 
 
 def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: list[str], count: int,
                       env_state_width: int, seed: int = 0, expert_fraction: float = 0.0,
-                      first_seed: int = FIRST_SEED, progress: bool = True) -> tuple[TensorDict, list[str]]:
-    """``count`` frames of random resets and random arm motions (or expert motions), tasks taken in turn.
+                      approach_fraction: float = 0.0, first_seed: int = FIRST_SEED,
+                      progress: bool = True) -> tuple[TensorDict, list[str]]:
+    """``count`` frames of random resets and random arm motions (or expert motions, or approaches), tasks in turn.
 
     Args:
         env_id, env_kwargs: the env the training data came from.
@@ -56,6 +66,7 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
         env_state_width: the dataset's (padded) width of the object state; shorter states are zero-padded.
         seed: offsets the frames' seeds (first_seed + seed * count + i), so runs can differ.
         expert_fraction: chance that a frame comes from the scripted expert's motion rather than random actions.
+        approach_fraction: chance that it comes from an approach (the expert's motion up to its grasp, nudged).
         first_seed: :data:`FIRST_SEED` for frames to fit, :data:`HELDOUT_FIRST_SEED` for frames that measure.
         progress: show a progress bar.
 
@@ -73,12 +84,14 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
             rng = np.random.default_rng(frame_seed)
             env.reset(seed=frame_seed)
             sim = env.unwrapped  # steps without rendering; only the frame at the end is drawn
-            if expert_fraction and rng.random() < expert_fraction:  # no draw at 0: earlier runs' frames stay
+            draw = rng.random() if expert_fraction or approach_fraction else 1.0  # none at 0: old frames stay
+            if draw < expert_fraction:
                 _expert_steps(sim, int(rng.integers(0, MAX_EXPERT_STEPS)))
+            elif draw < expert_fraction + approach_fraction:
+                closure = _approach_steps(sim, int(rng.integers(0, MAX_EXPERT_STEPS)))
+                _random_steps(sim, rng, int(rng.integers(0, MAX_NUDGE_STEPS)), closure)
             else:
-                for _ in range(rng.integers(0, MAX_RANDOM_STEPS)):
-                    if sim.advance(rng.uniform(-1.0, 1.0, env.action_space.shape).astype(np.float32))[1]:
-                        break  # the episode ended (a time limit, an unstable simulation)
+                _random_steps(sim, rng, int(rng.integers(0, MAX_RANDOM_STEPS)))
             obs = sim.observe()
             for cam in cameras:
                 frames[cam].append(torch.from_numpy(obs[f"{flat_name(IMAGE_KEY)}.{cam}"]).permute(2, 0, 1))
@@ -91,6 +104,33 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
     rows = TensorDict({**{(*IMAGE_KEY, cam): torch.stack(frames[cam]) for cam in cameras}, ENV_STATE_KEY: states},
                       batch_size=[count])
     return rows, instructions
+
+
+def _random_steps(sim: DustEnv, rng: np.random.Generator, steps: int, closure: np.ndarray | None = None) -> None:
+    """``steps`` uniformly random actions (their closure held at ``closure`` if given), or fewer if the episode
+    ends (a time limit, an unstable simulation)."""
+    for _ in range(steps):
+        action = rng.uniform(-1.0, 1.0, sim.action_space.shape).astype(np.float32)
+        if closure is not None:
+            action[CLOSURE::ACTION_WIDTH] = closure
+        if sim.advance(action)[1]:
+            break
+
+
+def _approach_steps(sim: DustEnv, steps: int) -> np.ndarray:
+    """Up to ``steps`` scripted-expert steps after a reset, stopping before its closure command first changes
+    (or the episode ends); returns that command, one per end effector."""
+    expert = sim.make_expert()
+    action = expert.act()
+    closure = action[CLOSURE::ACTION_WIDTH].copy()
+    for _ in range(steps):
+        if not np.array_equal(action[CLOSURE::ACTION_WIDTH], closure):
+            break
+        success, reason = sim.advance(action)
+        if success or reason:
+            break
+        action = expert.act()
+    return closure
 
 
 def _expert_steps(sim: DustEnv, steps: int) -> None:

@@ -1,13 +1,15 @@
 """A run folder's rules, shared by ``dust-rl train`` and ``dust-rl finetune``.
 
 A new run needs an unused folder; ``--resume`` needs a run there started with the same settings (only
-the fields a run may change between sittings, such as threads or progress bars, may differ). The run's
+the fields a run may change between sittings, such as threads or progress bars, may differ; a field the
+stored run predates counts as its default, so a run started by an older version resumes). The run's
 ``config.json`` records the full config, the command and package versions, and checkpoints are torchrl
 ``Checkpoint`` directories kept by a ``CheckpointRotation``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Iterable
 
@@ -38,12 +40,28 @@ def check_run_folder(config, resumable: Iterable[str]) -> None:
         except (ValueError, KeyError, TypeError) as err:
             raise ConfigError(f"{saved}: unreadable run config ({err!r}); start a new run with another --out") from err
         resumable = set(resumable)
-        changed = [k for k, v in config_json(config).items() if k not in resumable and stored.get(k) != v]
+        defaults = _defaults(config)
+        changed = [k for k, v in config_json(config).items()
+                   if k not in resumable and stored.get(k, defaults.get(k)) != v]
         if changed:
             raise ConfigError(f"{config.out} was started with other settings ({', '.join(changed)}); "
                               "resume with the same arguments or use a new --out")
     elif (config.out / "checkpoints").exists() or saved.exists():
         raise FileExistsError(f"{config.out} already holds a run; pass --resume to continue it or choose another --out")
+
+
+def _defaults(config) -> dict:
+    """The JSON values of ``config``'s fields that have defaults, at those defaults."""
+    values = {}
+    for field in dataclasses.fields(config):
+        if field.default is not dataclasses.MISSING:
+            value = field.default
+        elif field.default_factory is not dataclasses.MISSING:
+            value = field.default_factory()
+        else:
+            continue
+        values[field.name] = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
+    return json.loads(json.dumps(values, default=str))
 
 
 def write_run_config(config, command: str | None) -> None:

@@ -96,6 +96,9 @@ class TrainSettings:
     aux_expert_fraction: float = 0.0
     """Share of the aux frames taken from the scripted expert's motion (a random number of steps into an expert
     episode on a fresh layout) instead of random actions, so the read-out also sees objects held and carried."""
+    aux_approach_fraction: float = 0.0
+    """Share of the aux frames taken where the expert is about to grasp, then nudged by 0..9 random arm motions
+    (:mod:`dust_rl.aux_frames`): the gripper beside its target at random offsets, nothing held."""
     readout_warmup: int = 0
     """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
     the policy trains; they are then frozen (:mod:`dust_rl.readout_warmup`). Needs ``aux_frames``; 0: off."""
@@ -160,10 +163,14 @@ class TrainSettings:
         if self.aux_frames and not (self.policy.lambda_aux and readout_on_frames):
             raise ConfigError("aux_frames needs --policy.lambda-aux > 0 and a read-out frames can train: "
                               "--policy.readout tokens, or --policy.keypoint-source pixels")
-        if not 0 <= self.aux_expert_fraction <= 1:
-            raise ConfigError(f"aux_expert_fraction must be in [0, 1], got {self.aux_expert_fraction}")
-        if self.aux_expert_fraction and not self.aux_frames:
-            raise ConfigError("aux_expert_fraction needs --aux-frames > 0: it is a share of those frames")
+        for name in ("aux_expert_fraction", "aux_approach_fraction"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+            if getattr(self, name) and not self.aux_frames:
+                raise ConfigError(f"{name} needs --aux-frames > 0: it is a share of those frames")
+        if self.aux_expert_fraction + self.aux_approach_fraction > 1:
+            raise ConfigError("aux_expert_fraction + aux_approach_fraction must be at most 1 (shares of the same "
+                              f"frames), got {self.aux_expert_fraction} + {self.aux_approach_fraction}")
         if not 0 < self.start_fraction < 1:
             raise ConfigError(f"start_fraction must be in (0, 1), got {self.start_fraction}")
         if not 0 < self.video_fraction < 1:
@@ -435,6 +442,7 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
     rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
                                            policy.cameras, count or config.aux_frames, env_state_width(dataset),
                                            seed=config.seed, expert_fraction=config.aux_expert_fraction,
+                                           approach_fraction=config.aux_approach_fraction,
                                            first_seed=first_seed, progress=config.progress)
     return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
 

@@ -47,6 +47,8 @@ STATE_MODE_KEYS = {FLAT_STATE_KEY: "agent_pos", FLAT_ENV_STATE_KEY: "environment
 
 MAX_TRANSLATION = 0.02  # metres per control step at |action| = 1 (delta mode)
 MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
+ACTION_WIDTH = 7  # numbers per end effector: translation (3), rotation (3), closure (1)
+CLOSURE = 6  # index of the closure within an end effector's numbers
 # Position targets may dip this far below the robot's workspace box (to press on the table).
 _TARGET_BELOW_WORKSPACE = np.array([0.0, 0.0, 0.05])
 _INSTABILITY_WARNINGS = np.array([mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
@@ -151,7 +153,7 @@ class DustEnv(gym.Env):
         self._render_quality = render_quality
 
         n_ee = len(self.robot.end_effectors)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (7 * n_ee,), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_WIDTH * n_ee,), np.float32)
         self.observation_space = self._make_observation_space()
         self._instruction = ""
         self._elapsed = 0
@@ -271,7 +273,7 @@ class DustEnv(gym.Env):
         """Solve IK for the commanded poses and write actuator controls; returns a failure reason or ''."""
         targets = []
         for i, site in enumerate(self._ee_sites):
-            a = action[7 * i: 7 * i + 7]
+            a = action[ACTION_WIDTH * i: ACTION_WIDTH * (i + 1)]
             pose = np.empty(7)  # mink's wxyz_xyz layout
             if self.control_mode == "delta":
                 current = np.empty(4)
@@ -293,7 +295,7 @@ class DustEnv(gym.Env):
             return "ik_failure"
         self.data.ctrl[self._arm_ctrl] = q_cmd[self._ik_arm_qadr]
         for i, (ee, ctrl) in enumerate(zip(self.robot.end_effectors, self._ee_ctrl)):
-            self.data.ctrl[ctrl] = ee.closure_to_ctrl((action[7 * i + 6] + 1.0) / 2.0)
+            self.data.ctrl[ctrl] = ee.closure_to_ctrl((action[ACTION_WIDTH * i + CLOSURE] + 1.0) / 2.0)
         return ""
 
     def _simulate(self) -> str:

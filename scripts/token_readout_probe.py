@@ -28,6 +28,7 @@ def main() -> None:
     parser.add_argument("--dataset", required=True, help="the training demonstrations (env, cameras, state stats)")
     parser.add_argument("--frames", type=int, default=4000, help="aux frames to fit")
     parser.add_argument("--expert-fraction", type=float, default=0.0, help="as --aux-expert-fraction")
+    parser.add_argument("--approach-fraction", type=float, default=0.0, help="as --aux-approach-fraction")
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--heads", type=int, default=1, help="attention poolings of the read-out")
     parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
@@ -46,7 +47,7 @@ def main() -> None:
     def frames(count: int, first_seed: int) -> AuxFrameBatches:
         rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
                                                policy.cameras, count, width, expert_fraction=args.expert_fraction,
-                                               first_seed=first_seed)
+                                               approach_fraction=args.approach_fraction, first_seed=first_seed)
         return AuxFrameBatches(rows, instructions, policy, stats)
 
     heldout = frames(HELDOUT_FRAMES, HELDOUT_FIRST_SEED)

@@ -8,7 +8,8 @@ import torch
 from conftest import DEMO_ENV_KWARGS
 
 from dust_rl.agents import DustConfig, DustPolicy, make_policy, unwrap
-from dust_rl.aux_frames import FIRST_SEED, MAX_EXPERT_STEPS, AuxFrameBatches, render_aux_frames
+from dust_rl.aux_frames import (FIRST_SEED, MAX_EXPERT_STEPS, AuxFrameBatches, _approach_steps,
+                                render_aux_frames)
 from dust_rl.data import DemoDataset
 from dust_rl.env_factory import make_env
 from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
@@ -53,6 +54,32 @@ def test_expert_frames_are_taken_along_the_scripted_experts_episode():
                 break
         assert torch.equal(rows.get(ENV_STATE_KEY)[i], torch.from_numpy(obs["observation.environment_state"]))
     env.close()
+    assert not torch.equal(rows.get((*IMAGE_KEY, "front")), random_rows.get((*IMAGE_KEY, "front")))
+
+
+def test_an_approach_stops_where_the_expert_is_about_to_grasp():
+    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
+    obs, _ = env.reset(seed=FIRST_SEED)
+    sim = env.unwrapped
+    closure = _approach_steps(sim, 10 * MAX_EXPERT_STEPS)  # more steps than the approach needs
+    after = sim.observe()["observation.environment_state"]
+    gripper = sim.end_effector_poses()[0][0]
+    env.close()
+    assert closure.tolist() == [-1.0]  # open all the way down
+    cube = obs["observation.environment_state"][:3]
+    np.testing.assert_allclose(after[:3], cube, atol=1e-3)  # nothing touched yet (resting, to a millimetre)
+    assert np.linalg.norm(gripper[:2] - cube[:2]) < 0.02 and gripper[2] - cube[2] < 0.05  # down at the cube
+
+
+def test_approach_frames_show_the_gripper_near_unheld_objects():
+    rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 6, 9, approach_fraction=1.0,
+                                progress=False)
+    random_rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 6, 9, progress=False)
+    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
+    rest = [env.reset(seed=FIRST_SEED + i)[0]["observation.environment_state"][2] for i in range(6)]
+    env.close()
+    heights = rows.get(ENV_STATE_KEY)[:, 2].numpy()
+    np.testing.assert_allclose(heights, rest, atol=0.01)  # the named cube never lifted
     assert not torch.equal(rows.get((*IMAGE_KEY, "front")), random_rows.get((*IMAGE_KEY, "front")))
 
 

@@ -142,6 +142,10 @@ def test_training_logs_the_aux_frame_loss(readout, run_inputs, tmp_path):
         tiny_config(run_inputs, out, aux_expert_fraction=0.5, **pixels)
     with pytest.raises(ConfigError, match=r"aux_expert_fraction must be in \[0, 1\], got 1.5"):
         tiny_config(run_inputs, out, aux_frames=3, aux_expert_fraction=1.5, **pixels)
+    with pytest.raises(ConfigError, match="aux_approach_fraction needs --aux-frames"):
+        tiny_config(run_inputs, out, aux_approach_fraction=0.5, **pixels)
+    with pytest.raises(ConfigError, match=r"aux_expert_fraction \+ aux_approach_fraction must be at most 1"):
+        tiny_config(run_inputs, out, aux_frames=3, aux_expert_fraction=0.5, aux_approach_fraction=0.6, **pixels)
 
 
 def test_readout_warmup_freezes_the_readout_and_resumes(run_inputs, tmp_path):
@@ -193,6 +197,14 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
     train(tiny_config(run_inputs, out, steps=4))
     with pytest.raises(ConfigError, match="other settings.*lr"):
         train(tiny_config(run_inputs, out, steps=4, lr=1e-3, resume=True))
+    # A run started before a field existed stored none: it resumes at the field's default, not at another value.
+    saved = json.loads((out / "config.json").read_text())
+    del saved["config"]["aux_approach_fraction"]
+    (out / "config.json").write_text(json.dumps(saved))
+    train(tiny_config(run_inputs, out, steps=4, resume=True))
+    with pytest.raises(ConfigError, match="other settings.*aux_approach_fraction"):
+        train(tiny_config(run_inputs, out, steps=4, aux_frames=2, aux_approach_fraction=0.5, resume=True,
+                          readout="tokens", lambda_aux=1.0))
     latest = sorted((out / "checkpoints").iterdir())[-1]
     for state in latest.rglob("*.memmap"):
         state.write_bytes(b"garbage")
