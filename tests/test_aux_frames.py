@@ -8,8 +8,7 @@ import torch
 from conftest import DEMO_ENV_KWARGS
 
 from dust_rl.agents import DustConfig, DustPolicy, make_policy, unwrap
-from dust_rl.aux_frames import (FIRST_SEED, MAX_EXPERT_STEPS, AuxFrameBatches, _approach_steps,
-                                render_aux_frames)
+from dust_rl.aux_frames import FIRST_SEED, MAX_EXPERT_STEPS, AuxFrameBatches, _approach_steps, render_aux_frames
 from dust_rl.data import DemoDataset
 from dust_rl.env_factory import make_env
 from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
