@@ -30,6 +30,7 @@ def main() -> None:
     parser.add_argument("--expert-fraction", type=float, default=0.0, help="as --aux-expert-fraction")
     parser.add_argument("--approach-fraction", type=float, default=0.0, help="as --aux-approach-fraction")
     parser.add_argument("--steps", type=int, default=4000)
+    parser.add_argument("--decay", action="store_true", help="as --readout-lr-decay")
     parser.add_argument("--heads", type=int, default=1, help="attention poolings of the read-out")
     parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
     parser.add_argument("--image-encoder", default="efficientnet-lite0-s8")
@@ -54,7 +55,7 @@ def main() -> None:
     policy.normalizer.set_vision_stats(heldout.frames)
     fit = frames(args.frames, FIRST_SEED)
     policy.train()
-    warm_up_readout(policy, None, fit, args.steps, 1e-3, lambda scalars, step: None, heldout=heldout)
+    warm_up_readout(policy, None, fit, args.steps, 1e-3, lambda scalars, step: None, decay=args.decay, heldout=heldout)
     policy.eval()
     rows = heldout.rows(torch.arange(len(heldout)))
     with torch.no_grad():

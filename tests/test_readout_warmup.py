@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -46,8 +48,8 @@ def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, readout, dem
     warm_up_readout(policy, (lambda: frames) if with_demos else None, aux, 100, 3e-3,
                     lambda scalars, step: logged.update({step: scalars}), batch_size=8, progress=False)
     assert policy.readout_loss(frames).item() < 0.5 * before
-    expected = {"warmup/loss_aux_frames", "warmup/loss_aux"} if with_demos else {"warmup/loss_aux_frames"}
-    assert sorted(logged) == [100] and set(logged[100]) == expected
+    expected = {"warmup/loss_aux_frames", "warmup/lr"} | ({"warmup/loss_aux"} if with_demos else set())
+    assert sorted(logged) == [100] and set(logged[100]) == expected and logged[100]["warmup/lr"] == 3e-3
     assert not any(p.requires_grad or p.grad is not None for p in policy.readout_modules().parameters())
     assert all(p.requires_grad for p in policy.model.parameters())
     assert all(torch.equal(v, agent[k]) for k, v in policy.model.state_dict().items())
@@ -63,3 +65,13 @@ def test_warm_up_keeps_the_weights_that_read_held_out_frames_best(demo_dir, tiny
     errors = [logged[step]["warmup/loss_aux_frames_heldout"] for step in sorted(logged)]
     assert len(errors) == 8 and min(errors) < errors[-1]
     assert heldout_loss(policy, heldout) == pytest.approx(min(errors), rel=1e-6)
+
+
+def test_a_decaying_warm_up_lowers_its_rate_along_a_cosine_to_zero(demo_dir, tiny_encoder, minilm):
+    dataset, policy = readout_policy(demo_dir, tiny_encoder, minilm, "tokens")
+    logged = {}
+    warm_up_readout(policy, None, aux_frames(dataset, policy), 8, 1e-3,
+                    lambda scalars, step: logged.update({step: scalars["warmup/lr"]}), batch_size=4, decay=True,
+                    log_every=2, progress=False)
+    expected = [1e-3 * (1 + math.cos(math.pi * step / 8)) / 2 for step in (2, 4, 6, 8)]
+    assert [logged[step] for step in (2, 4, 6, 8)] == pytest.approx(expected, rel=1e-9)
