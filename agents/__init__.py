@@ -6,7 +6,7 @@ from .batch import random_batch
 from .checkpoint_io import CheckpointError
 from .config import VARIANTS, DustConfig, ModelConfig, PolicyConfig, SamplerConfig
 from .dust_model import ChunkContext, DustModel
-from .execution import ChunkExecutor
+from .execution import ChunkExecutor, seeded_executor
 from .factory import env_spec, load_policy, make_policy, save_policy, unwrap
 from .flow_matching import action_validity, decoupled_loss, interpolate, masked_mse, sample_tau, velocity_target
 from .hf_vision import TransformersImageEncoder
@@ -51,6 +51,7 @@ __all__ = [
     "save_image_encoder",
     "save_policy",
     "schedule_for",
+    "seeded_executor",
     "sync_schedule",
     "unwrap",
     "velocity_target",

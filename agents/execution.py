@@ -22,7 +22,7 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from torchrl.modules import MultiStepActorWrapper
 
-from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, FUTURE_CHUNK_KEY, PREDICTED_FUTURE_KEY
+from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, FUTURE_CHUNK_KEY, PREDICTED_FUTURE_KEY, SEED_KEY
 
 from .policy import DustPolicy
 
@@ -77,3 +77,9 @@ class ChunkExecutor(MultiStepActorWrapper):
         if tensordict.batch_dims:
             return super().forward(tensordict)
         return tensordict.update(super().forward(tensordict.unsqueeze(0)).squeeze(0))
+
+
+def seeded_executor(policy: DustPolicy) -> ChunkExecutor:
+    """``policy`` as the envs' collectors run it: chunks executed receding-horizon, the sampling noise restarted
+    from each episode's seed (``episode_seed``), so an episode depends on its seed only."""
+    return ChunkExecutor(policy, policy.execute_steps, SEED_KEY)

@@ -96,7 +96,8 @@ def run_expert_table(config: ExpertTableCommand, command_line: str) -> None:
 
 @dataclass
 class CollectCommand:
-    """Collect scripted-expert demonstrations into a dataset folder (re-run the same command to resume)."""
+    """Collect scripted-expert demonstrations (or a trained policy's rollouts) into a dataset folder (re-run the
+    same command to resume)."""
 
     out: pathlib.Path
     """Dataset folder (an existing one is resumed)."""
@@ -123,6 +124,10 @@ class CollectCommand:
     """DART: Gaussian noise on the executed action; the label stays the expert's."""
     keep_failed: bool = False
     """Also store failed episodes."""
+    policy: pathlib.Path | None = None
+    """A trained ``policy.pt`` to roll out instead of the scripted expert, as ``dust-rl eval`` runs it (its env
+    settings must match ``--image-size``...): rows keep its actions as ``action`` and the expert's as
+    ``expert_action``; ``--episodes`` counts its successes."""
     privileged_state: bool = False
     """Append the objects' state to observation.state: an oracle (policies trained on it need not see the
     objects; compare with an image-only dataset to measure what perception costs)."""
@@ -142,7 +147,7 @@ def run_collect(config: CollectCommand, command_line: str) -> None:
     workers = Workers(config.workers, config.backend, ray_address=config.ray_address)
     collect_demos(config.out, config.env, env_tasks(config.env, config.task), config.episodes,
                   env_kwargs=env_kwargs, workers=workers, start_seed=config.seed, noise_std=config.noise_std,
-                  keep_failed=config.keep_failed, progress=config.progress)
+                  keep_failed=config.keep_failed, policy=config.policy, progress=config.progress)
     print(dataset_summary(DemoDataset(config.out)))
 
 

@@ -39,7 +39,7 @@ from torchrl.collectors import BaseCollector
 from torchrl.envs import InitTracker, TransformedEnv
 from tqdm import tqdm
 
-from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy, unwrap
+from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy, seeded_executor, unwrap
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.agents.precision import Precision
 from dust_rl.config_json import config_json
@@ -180,11 +180,6 @@ def make_eval_policy(setup: EvalSetup) -> ChunkExecutor:
     policy.set_sampler(setup.sampler)
     policy.set_runtime(setup.precision, setup.compile)
     return seeded_executor(policy)
-
-
-def seeded_executor(policy: DustPolicy) -> ChunkExecutor:
-    """The evaluated policy: chunks executed receding-horizon, sampling noise restarted from each episode's seed."""
-    return ChunkExecutor(policy, policy.execute_steps, SEED_KEY)
 
 
 @contextlib.contextmanager

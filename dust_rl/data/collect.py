@@ -1,4 +1,5 @@
-"""Collect scripted-expert demonstrations with torchrl collectors into a dataset folder.
+"""Collect scripted-expert demonstrations (or a trained policy's rollouts) with torchrl collectors into a
+dataset folder.
 
 One torchrl collector per task (:mod:`dust_rl.episode_collector`: ``workers``
 env processes, or Ray actors) runs the expert policy and yields whole
@@ -6,6 +7,12 @@ trajectories; each is written as soon as it finishes. Re-running the same call
 resumes: seeds with a record are not run again, and the dataset is the first
 ``episodes`` successful seeds of each task whatever the interruptions, the
 number of workers or where they run.
+
+With ``policy`` a trained policy file runs instead of the expert, exactly as
+``dust-rl eval`` runs it: a dataset of its successful rollouts on fresh layouts
+(self-imitation), or of all of them with the expert's label beside each action
+(``keep_failed``; DAgger). The file's digest is part of the dataset's config, so
+a resumed collection cannot mix two policies.
 
 Every argument is checked before anything is written; one collection at a time
 writes into a folder (:func:`~dust_rl.data.lock.dataset_lock`); and a smaller
@@ -16,6 +23,8 @@ to honour it).
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
 import json
 import math
 import pathlib
@@ -24,7 +33,9 @@ from collections.abc import Sequence
 from torchrl.collectors import BaseCollector
 from tqdm import tqdm
 
+from dust_rl.agents import load_policy
 from dust_rl.env_factory import check_tasks, make_env
+from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.episode_collector import episode_collector
 from dust_rl.errors import ConfigError
 from dust_rl.workers import Workers, ray_runtime
@@ -35,18 +46,20 @@ from .finalize import finalize_dataset
 from .layout import clear_staging
 from .lock import dataset_lock
 from .metadata import open_meta, recorded_env_spec
-from .policy import make_expert_policy
+from .policy import load_rollout_policy, make_expert_policy
 from .selection import select_episodes
 
-# Give up on a task when this many seeds per requested episode have not produced enough successes.
-MAX_SEEDS_PER_EPISODE = 3
+# Give up on a task when this many seeds per requested episode have not produced enough successes: the
+# expert fails rarely; a trained policy worth rolling out succeeds in 5% of its episodes or more.
+MAX_SEEDS_PER_EPISODE = {"expert": 3, "policy": 20}
 
 
 def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks: Sequence[str] = ("pick_place",),
                   episodes: int = 100, *, env_kwargs: dict | None = None, workers: int | Workers = 1,
                   start_seed: int = 0, noise_std: float = 0.0, keep_failed: bool = False,
-                  progress: bool = True) -> dict:
-    """Collect (or resume collecting) ``episodes`` successful expert demos per task into ``root``.
+                  policy: str | pathlib.Path | None = None, progress: bool = True) -> dict:
+    """Collect (or resume collecting) ``episodes`` successful expert demos (or policy rollouts) per task into
+    ``root``.
 
     Args:
         root: dataset folder (created if missing; an existing one must hold the same config).
@@ -57,12 +70,15 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         start_seed: first seed of every task; episode ``k`` of a task uses seed ``start_seed + k``.
         noise_std: DART perturbation of the executed action (the stored label stays the expert's).
         keep_failed: also store failed episodes (flagged ``success=False``).
+        policy: a trained policy file (``policy.pt``) to roll out instead of the expert; it must fit the env.
 
     Returns:
         the dataset metadata (``meta.json``).
 
     Raises:
-        ConfigError: a bad count, seed or noise, an unknown task, or env kwargs the env refuses.
+        ConfigError: a bad count, seed or noise, an unknown task, env kwargs the env refuses, or noise with a
+            policy (DART perturbs the expert).
+        CheckpointError: a missing or corrupt policy file, or one that does not fit the env.
         DatasetError: ``root`` holds a collection with other settings.
         DatasetLockedError: another process is collecting into ``root``.
     """
@@ -73,6 +89,8 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
     if not (isinstance(start_seed, int) and start_seed >= 0) or not (math.isfinite(noise_std) and noise_std >= 0):
         raise ConfigError(f"start_seed must be an int >= 0 and noise_std a finite number >= 0, "
                           f"got {start_seed!r} and {noise_std!r}")
+    if policy is not None and noise_std:
+        raise ConfigError("noise_std perturbs the scripted expert's actions; a policy's rollouts take none")
     try:
         env_kwargs = json.loads(json.dumps(env_kwargs or {}))  # as it will read back from meta.json
     except (TypeError, ValueError) as err:
@@ -80,11 +98,16 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
     check_tasks(env_id, env_kwargs, tasks)
     probe = make_env(env_id, {**env_kwargs, "task": tasks[0]})
     spec = recorded_env_spec(probe)
-    probe.close()
     if not spec["cameras"]:
+        probe.close()
         raise ConfigError("demonstrations need camera images and instructions: use obs_mode='rgb'")
+    if policy is not None:
+        policy = pathlib.Path(policy)
+        load_policy(policy, env=make_torchrl_env(probe))  # raises before anything is written
+    probe.close()
     config = {"env_id": env_id, "env_kwargs": env_kwargs, "start_seed": start_seed,
-              "noise_std": float(noise_std), "keep_failed": keep_failed}
+              "noise_std": float(noise_std), "keep_failed": keep_failed,
+              "policy": None if policy is None else {"file": policy.name, "sha256": _file_digest(policy)}}
     root = pathlib.Path(root)
     root.mkdir(parents=True, exist_ok=True)
     with dataset_lock(root), ray_runtime(workers):
@@ -96,27 +119,35 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
                 print(f"{root}: {task} already holds {target} episodes, more than the {episodes} asked; "
                       "keeping them all, nothing new to collect")
             _collect_task(root, env_id, {**env_kwargs, "task": task}, task, target, workers, start_seed,
-                          noise_std, keep_failed, progress)
+                          noise_std, keep_failed, policy, progress)
         meta = finalize_dataset(root, progress)
         clear_staging(root)
     return meta
 
 
 def demo_collector(env_id: str, env_kwargs: dict, workers: Workers, start_seed: int = 0,
-                   known_seeds: frozenset[int] = frozenset(),
-                   noise_std: float = 0.0) -> contextlib.AbstractContextManager[BaseCollector]:
-    """A torchrl collector yielding one whole expert episode ``[T]`` at a time, seeds from ``start_seed`` on,
-    ``known_seeds`` skipped (a context)."""
+                   known_seeds: frozenset[int] = frozenset(), noise_std: float = 0.0,
+                   policy: pathlib.Path | None = None) -> contextlib.AbstractContextManager[BaseCollector]:
+    """A torchrl collector yielding one whole episode ``[T]`` at a time, of the expert or of the trained
+    ``policy`` (each remote worker loads its own copy), seeds from ``start_seed`` on, ``known_seeds`` skipped
+    (a context)."""
     env_fns = collection_env_fns(env_id, env_kwargs, start_seed, known_seeds, workers.count)
-    return episode_collector(env_fns, workers, policy=make_expert_policy(noise_std))
+    if policy is None:
+        return episode_collector(env_fns, workers, policy=make_expert_policy(noise_std))
+    in_process = workers.count == 1 and workers.backend == "local"
+    return episode_collector(env_fns, workers, policy=load_rollout_policy(policy) if in_process else None,
+                             policy_factory=None if in_process else functools.partial(load_rollout_policy, policy))
 
 
 def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, episodes: int, workers: Workers,
-                  start_seed: int, noise_std: float, keep_failed: bool, progress: bool) -> None:
+                  start_seed: int, noise_std: float, keep_failed: bool, policy: pathlib.Path | None,
+                  progress: bool) -> None:
     records = scan_episodes(root).get(task, {})
     if select_episodes(records, start_seed, episodes, keep_failed) is not None:
         return
-    with (demo_collector(env_id, env_kwargs, workers, start_seed, frozenset(records), noise_std) as collector,
+    actor = "expert" if policy is None else "policy"
+    with (demo_collector(env_id, env_kwargs, workers, start_seed, frozenset(records), noise_std,
+                         policy) as collector,
           tqdm(total=episodes, initial=_successes(records), desc=f"collecting {task}", disable=not progress) as bar):
         for trajectory in collector:
             rows, record = trajectory_to_episode(trajectory, task)
@@ -125,10 +156,15 @@ def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, 
             bar.update(min(_successes(records), episodes) - bar.n)
             if select_episodes(records, start_seed, episodes, keep_failed) is not None:
                 return
-            if len(records) >= MAX_SEEDS_PER_EPISODE * episodes + 10:
-                raise RuntimeError(f"the {task} expert succeeded in only {_successes(records)} of {len(records)} "
+            if len(records) >= MAX_SEEDS_PER_EPISODE[actor] * episodes + 10:
+                raise RuntimeError(f"the {task} {actor} succeeded in only {_successes(records)} of {len(records)} "
                                    f"episodes; {episodes} successes are out of reach")
 
 
 def _successes(records: dict[int, EpisodeRecord]) -> int:
     return sum(record.success for record in records.values())
+
+
+def _file_digest(path: pathlib.Path) -> str:
+    """SHA-256 of a file's bytes."""
+    return hashlib.sha256(path.read_bytes()).hexdigest()

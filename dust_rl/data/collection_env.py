@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 
-from torchrl.envs import StepCounter, TransformedEnv
+from torchrl.envs import InitTracker, StepCounter, TransformedEnv
 
 from dust_rl.env_factory import make_env
 from dust_rl.envs.expert_wrapper import ExpertActionWrapper
@@ -19,13 +19,15 @@ from .seeding import EpisodeSeedWrapper, SeedSchedule
 
 
 def make_collection_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> TransformedEnv:
-    """A torchrl env of ``env_id`` with ``expert_action``, ``episode_seed``, ``is_success`` and ``step_count``.
+    """A torchrl env of ``env_id`` with ``expert_action``, ``episode_seed``, ``is_success``, ``step_count`` and
+    ``is_init`` (a trained policy's chunk executor restarts at every reset; not stored).
 
     Observations use the canonical VLA keys (``("observation", "image", cam)`` uint8 ``[C, H, W]``,
     ``("observation", "state")``, ``language_instruction``), like ``make_torchrl_env``.
     """
     env = make_torchrl_env(EpisodeSeedWrapper(ExpertActionWrapper(make_env(env_id, env_kwargs)), schedule))
     env.append_transform(StepCounter())
+    env.append_transform(InitTracker())
     return env
 
 

@@ -20,7 +20,7 @@ from .errors import DatasetError
 from .layout import FORMAT_VERSION, META_FILE, inside, read_json, write_json_atomic
 
 # Config entries that must be equal to append to an existing dataset.
-FIXED_CONFIG = ("env_id", "env_kwargs", "start_seed", "noise_std", "keep_failed")
+FIXED_CONFIG = ("env_id", "env_kwargs", "start_seed", "noise_std", "keep_failed", "policy")
 _VERSIONED_PACKAGES = ("dust-rl", "mujoco", "torch", "torchrl", "tensordict", "gymnasium")
 _IMAGE_PREFIX = "observation.image."
 

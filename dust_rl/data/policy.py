@@ -1,4 +1,4 @@
-"""The scripted-expert policy: executes ``expert_action``, optionally perturbed (DART).
+"""The collector's policy: the scripted expert (optionally perturbed, DART), or a trained policy.
 
 The env already computed the expert's action for the current state (see
 ``ExpertActionWrapper``); the policy only reads it. With ``noise_std > 0`` the
@@ -6,14 +6,21 @@ executed ``action`` is ``clip(expert_action + noise_std * eps)`` while the datas
 keeps ``expert_action`` as the label: the expert's correction from the perturbed
 states it visits (Laskey et al., DART, 2017). The noise is drawn from a generator
 seeded by (episode seed, step), so a noisy episode is reproducible from its seed.
+
+A trained policy (:func:`load_rollout_policy`) runs as ``dust-rl eval`` runs it, so
+its stored episodes are the ones evaluation would see from the same seeds; the env
+still writes the expert's ``expert_action`` beside its ``action`` (DAgger's label).
 """
 
 from __future__ import annotations
+
+import pathlib
 
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from dust_rl.agents import ChunkExecutor, load_policy, seeded_executor, unwrap
 from dust_rl.keys import EXPERT_ACTION_KEY, SEED_KEY, STEP_KEY
 
 
@@ -40,3 +47,9 @@ def make_expert_policy(noise_std: float = 0.0) -> TensorDictModule:
     """The collector policy: reads ``expert_action``, ``episode_seed``, ``step_count``; writes ``action``."""
     return TensorDictModule(ExpertPolicy(noise_std), in_keys=[EXPERT_ACTION_KEY, SEED_KEY, STEP_KEY],
                             out_keys=["action"])
+
+
+def load_rollout_policy(path: pathlib.Path) -> ChunkExecutor:
+    """The collector policy of a trained policy file: reads the VLA observation keys, ``is_init`` and
+    ``episode_seed``; writes ``action``. Raises ``CheckpointError`` for a missing or corrupt file."""
+    return seeded_executor(unwrap(load_policy(path)))

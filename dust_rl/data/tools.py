@@ -25,7 +25,9 @@ def dataset_summary(dataset: DemoDataset) -> str:
     lines = [
         f"# {dataset.root}",
         f"- env: {meta['env_id']} {meta['env_kwargs']}"
-        + (f" (imported from {meta['source']})" if meta.get("source") else ""),
+        + (f" (imported from {meta['source']})" if meta.get("source") else "")
+        + (f"; rollouts of {meta['policy']['file']} (sha256 {meta['policy']['sha256'][:12]})"
+           if meta.get("policy") else ""),
         f"- episodes: {dataset.num_episodes}, transitions: {len(dataset)}, instructions: {len(dataset.instructions)}",
         f"- cameras: {', '.join(spec['cameras'])} at {spec['image_shape']}; state {spec['state_dim']}, "
         f"action {spec['action_dim']}; {spec['control_hz']:g} Hz",
