@@ -17,37 +17,17 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
-from dust_rl.agents import DustPolicy
-from dust_rl.data import DatasetError, DemoDataset, DemoWindows
-from dust_rl.features import FeatureCache
+from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.keys import ACTION_IS_PAD_KEY
 
 
-class ActionFreeBatches:
-    """Feature batches of a dataset's windows with the actions dropped (``has_action`` False).
-
-    Args:
-        dataset: the action-free episodes (same robot state size and cameras as the policy).
-        policy: the policy in training (its backbone encodes the frames once, cached in the dataset folder).
-        batch_size: windows per batch.
-        progress: show the encoding progress bar.
-
-    Raises:
-        DatasetError: another robot's state or action size, or cameras the policy reads are missing.
-    """
-
-    def __init__(self, dataset: DemoDataset, policy: DustPolicy, batch_size: int, progress: bool = True) -> None:
-        spec, config = dataset.meta["spec"], policy.config
-        if (spec["state_dim"], spec["action_dim"]) != (config.state_dim, config.action_dim):
-            raise DatasetError(f"{dataset.root}: its robot state and action have {spec['state_dim']} and "
-                               f"{spec['action_dim']} numbers, the policy's {config.state_dim} and "
-                               f"{config.action_dim}; action-free episodes must come from the same robot")
-        self.features = FeatureCache(dataset, policy, progress=progress, store=True)
-        self.windows = DemoWindows(dataset, horizon=policy.config.horizon, batch_size=batch_size, images=False)
+class ActionFreeBatches(DatasetBatches):
+    """Feature batches of a dataset's windows with the actions dropped (``has_action`` False); arguments and
+    errors as :class:`~dust_rl.dataset_batches.DatasetBatches`."""
 
     def sample(self) -> TensorDict:
         """A feature batch whose actions are zeros, marked absent (``has_action`` False, every step padded)."""
-        batch = self.features.batch(self.windows.sample())
+        batch = super().sample()
         chunk = batch.get("action_chunk")
         batch.set("action_chunk", torch.zeros_like(chunk))
         batch.set(ACTION_IS_PAD_KEY, torch.ones(chunk.shape[:-1], dtype=torch.bool, device=chunk.device))

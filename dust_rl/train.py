@@ -34,6 +34,7 @@ import time
 from dataclasses import dataclass, field, fields
 from typing import Literal, get_args
 
+import gymnasium as gym
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
@@ -42,15 +43,17 @@ from torchrl.record.loggers import Logger, get_logger
 from tqdm.auto import tqdm
 
 from dust_rl.action_free import ActionFreeBatches, with_action_free
-from dust_rl.agents import DustPolicy, make_policy, save_policy, unwrap
+from dust_rl.agents import DustPolicy, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.config import PolicyConfig
 from dust_rl.agents.flow_matching import Shard
 from dust_rl.agents.precision import Precision, autocast
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset, DemoWindows
+from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.device import resolve_device
 from dust_rl.distributed import Ranks, data_parallel, join_process_group, leave_process_group, rank_device, spawn
 from dust_rl.env_factory import make_env
+from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
 from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats, env_state_width
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
@@ -62,7 +65,7 @@ LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "compile", "eval_every", "eval_episodes", "eval_workers",
                     "loggers")
 # Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
-NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset")
+NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset", "extra_dataset")
 
 
 @dataclass(kw_only=True)
@@ -114,6 +117,18 @@ class TrainSettings:
     :mod:`dust_rl.action_free`): the world-model stream learns from them, the action loss does not."""
     video_fraction: float = 0.25
     """Share of each batch taken from ``video_dataset``."""
+    extra_dataset: pathlib.Path | None = None
+    """A second dataset of the same robot and cameras whose windows join every batch with their actions
+    (:mod:`dust_rl.dataset_batches`), e.g. a policy's successful rollouts on fresh layouts (``dust-rl collect
+    --policy``)."""
+    extra_fraction: float = 0.5
+    """Share of each batch taken from ``extra_dataset``."""
+    extra_action_key: Literal["action", "expert_action"] = "action"
+    """The actions ``extra_dataset`` teaches: the executed ones (self-imitation of a policy's successes) or the
+    scripted expert's label at each state (DAgger)."""
+    init_policy: pathlib.Path | None = None
+    """Start from this trained policy (weights, normalisation, read-out) instead of a new one: fine-tuning.
+    Its own settings are kept (no ``--policy.*`` flags) and its frame read-out stays frozen (no warm-up)."""
     augment_views: int = 1
     """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
     (:mod:`dust_rl.augment`); each training window conditions on one of them. Encoding costs that many times
@@ -176,10 +191,16 @@ class TrainSettings:
                               f"frames), got {self.aux_expert_fraction} + {self.aux_approach_fraction}")
         if not 0 < self.start_fraction < 1:
             raise ConfigError(f"start_fraction must be in (0, 1), got {self.start_fraction}")
-        if not 0 < self.video_fraction < 1:
-            raise ConfigError(f"video_fraction must be in (0, 1), got {self.video_fraction}")
-        if self.video_dataset is not None and self.batch_size < 2:
-            raise ConfigError("video_dataset needs --batch-size >= 2: each batch holds demonstrations and video")
+        for name in ("video_fraction", "extra_fraction"):
+            if not 0 < getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be in (0, 1), got {getattr(self, name)}")
+        mixed = [name for name in ("video_dataset", "extra_dataset") if getattr(self, name) is not None]
+        if self.batch_size < 1 + len(mixed):
+            raise ConfigError(f"{' and '.join(mixed)} need --batch-size >= {1 + len(mixed)}: each batch holds "
+                              "demonstrations and a share of each")
+        if self.init_policy is not None and self.policy != PolicyConfig():
+            raise ConfigError("--policy.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
+                              "settings (and its read-out, so no aux frames or read-out warm-up either)")
         if self.video_dataset is not None and self.policy.lambda_aux:
             raise ConfigError("video_dataset with --policy.lambda-aux: the action-free episodes' object state is "
                               "another task's; train the read-out without them")
@@ -272,23 +293,30 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
     probe = make_env(env_id, {**env_kwargs, "task": dataset.tasks[0]})
     dataset.check_env(probe)
-    probe.close()
     torch.manual_seed(config.seed)
-    policy = _build_policy(config, dataset).to(rank_device(resolve_device(config.device), ranks))
+    try:
+        policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.device), ranks))
+    finally:
+        probe.close()
     if not config.resume and ranks.is_main:
         write_run_config(config, command)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
-                   "dataset": str(config.dataset), "variant": config.policy.variant, "steps": config.steps,
-                   "video_dataset": str(config.video_dataset) if config.video_dataset else None}
+                   "dataset": str(config.dataset), "variant": policy.config.variant, "steps": config.steps,
+                   **{name: str(getattr(config, name)) if getattr(config, name) else None
+                      for name in ("video_dataset", "extra_dataset", "init_policy")}}
     features = _cached_features(config, dataset, policy, ranks)
-    policy.normalizer.set_vision_stats(features.image_tokens)
-    n_video = min(max(1, round(config.video_fraction * config.batch_size)), config.batch_size - 1) \
-        if config.video_dataset else 0
-    windows = DemoWindows(dataset, horizon=config.policy.horizon, batch_size=config.batch_size - n_video,
-                          images=False, start_rows=config.start_rows,
-                          start_fraction=config.start_fraction if config.start_rows else 0.0)
-    video = (ActionFreeBatches(DemoDataset(config.video_dataset), policy, n_video, config.progress)
+    if config.init_policy is None:  # a fine-tuned policy keeps the normalisation its weights were trained with
+        policy.normalizer.set_vision_stats(features.image_tokens)
+    start_rows = {"start_rows": config.start_rows,
+                  "start_fraction": config.start_fraction if config.start_rows else 0.0}
+    n_video, n_extra = (_share(config.batch_size, fraction) if path else 0 for path, fraction in
+                        ((config.video_dataset, config.video_fraction), (config.extra_dataset, config.extra_fraction)))
+    windows = DemoWindows(dataset, horizon=policy.config.horizon, batch_size=config.batch_size - n_video - n_extra,
+                          images=False, **start_rows)
+    video = (ActionFreeBatches(DemoDataset(config.video_dataset), policy, n_video, progress=config.progress)
              if config.video_dataset else None)
+    extra = (DatasetBatches(DemoDataset(config.extra_dataset), policy, n_extra, config.extra_action_key,
+                            progress=config.progress, **start_rows) if config.extra_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
     loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers] if ranks.is_main else []
     progress = config.progress and ranks.is_main
@@ -297,9 +325,12 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         policy.model.compile()
 
     # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it, so
-    # its aux frames are not rendered again); otherwise the aux frames join every step's loss.
+    # its aux frames are not rendered again), as is a fine-tuned policy's; otherwise the aux frames join every
+    # step's loss.
     aux = None
-    if config.readout_warmup:
+    if config.init_policy is not None and policy.config.aux_state_dim and policy.reads_frames_for_readout:
+        policy.readout_modules().requires_grad_(False)
+    elif config.readout_warmup:
         if not (config.resume and rotation.latest() is not None):
             demos = (lambda: features.batch(windows.sample())) if config.readout_demos else None
             heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.aux_frames),
@@ -327,12 +358,14 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     tick, samples, losses = time.perf_counter(), 0, None
     began = tick
     for step in bar:
-        batch = features.batch(windows.sample())[ranks.shard.rows(config.batch_size - n_video)]
+        batch = features.batch(windows.sample())[ranks.shard.rows(config.batch_size - n_video - n_extra)]
+        if extra is not None:
+            batch = torch.cat([batch, extra.sample()])
         with autocast(policy.weights_device, config.precision):
             losses = loss_of(batch if video is None else with_action_free(batch, video.sample()))
         if aux is not None:
             losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.batch_size)))
-            losses.set("loss", losses.get("loss") + config.policy.lambda_aux * losses.get("loss_aux_frames"))
+            losses.set("loss", losses.get("loss") + policy.config.lambda_aux * losses.get("loss_aux_frames"))
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.grad_clip)
@@ -428,7 +461,16 @@ def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkp
                              "non-finite values")
 
 
-def _build_policy(config: TrainConfig, dataset: DemoDataset) -> DustPolicy:
+def _share(batch_size: int, fraction: float) -> int:
+    """Rows of a batch given to a mixed-in dataset: ``fraction`` of it, at least one, and one left for the
+    demonstrations."""
+    return min(max(1, round(fraction * batch_size)), batch_size - 1)
+
+
+def _build_policy(config: TrainConfig, dataset: DemoDataset, env: gym.Env) -> DustPolicy:
+    """A new policy for ``dataset``, or ``init_policy`` checked against the dataset's env."""
+    if config.init_policy is not None:
+        return unwrap(load_policy(config.init_policy, env=make_torchrl_env(env)))
     try:
         settings = config.policy
         return unwrap(make_policy(**settings.model_settings(), image_encoder=settings.image_encoder,

@@ -15,6 +15,7 @@ from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
+from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.errors import ConfigError
 from dust_rl.features import FeatureCache
 from dust_rl.keys import ACTION_IS_PAD_KEY
@@ -243,3 +244,30 @@ def test_action_free_episodes_train_the_world_model_but_not_the_actions(run_inpu
     assert torch.equal(losses["loss_action"], poisoned_losses["loss_action"]) and torch.isfinite(losses["loss"])
     with pytest.raises(ConfigError, match="video_fraction must be in"):
         tiny_config(run_inputs, tmp_path / "x", video_dataset=video_dir, video_fraction=1.0)
+
+
+def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inputs, demo_dir, tmp_path):
+    readout = {"readout": "tokens", "lambda_aux": 1.0, "aux_frames": 2, "readout_warmup": 2}
+    base = train(tiny_config(run_inputs, tmp_path / "base", steps=2, **readout)).policy
+    extra_dir = shutil.copytree(demo_dir, tmp_path / "rollouts")
+    dataset, encoder = run_inputs
+    config = TrainConfig(dataset=dataset, out=tmp_path / "tuned", init_policy=base, extra_dataset=extra_dir,
+                         batch_size=8, steps=3, threads=1, progress=False)
+    tuned = unwrap(load_policy(train(config).policy))
+    assert tuned.info["init_policy"] == str(base) and tuned.info["extra_dataset"] == str(extra_dir)
+    assert any((extra_dir / "features").iterdir())  # its frames were encoded and cached
+    before, after = trained_weights(base), trained_weights(tmp_path / "tuned" / "policy.pt")
+    assert [k for k in before if k.startswith("normalizer.") and not torch.equal(before[k], after[k])] == []
+    assert all(torch.equal(before[k], after[k]) for k in before if k.startswith("state_readout."))  # kept frozen
+    assert any(not torch.equal(before[k], after[k]) for k in before if k.startswith("model."))
+    # Extra rows train with their actions, unlike action-free video: a NaN action there reaches the loss.
+    extra = DatasetBatches(DemoDataset(extra_dir), tuned, 4, action_key="action", progress=False).sample()
+    extra.get("action_chunk")[0] = float("nan")
+    assert torch.isnan(tuned.compute_loss(extra, torch.Generator().manual_seed(0))["loss_action"])
+    with pytest.raises(ConfigError, match="--policy.\\* flags do not apply with init_policy"):
+        tiny_config(run_inputs, tmp_path / "x", init_policy=base)
+    with pytest.raises(ConfigError, match="extra_fraction must be in"):
+        TrainConfig(dataset=dataset, extra_dataset=extra_dir, extra_fraction=0.0)
+    elsewhere = dataclasses.replace(config, out=tmp_path / "other", init_policy=tmp_path / "missing.pt")
+    with pytest.raises(CheckpointError, match="missing.pt"):
+        train(elsewhere)
