@@ -36,6 +36,17 @@ UNBOUNDED_FRAMES = 2**62
 
 
 @contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run with ``n`` torch threads (a policy acting in this process), then restore the caller's count."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+@contextlib.contextmanager
 def episode_collector(env_fns: Sequence[Callable[[], EnvBase]], workers: Workers, *,
                       policy: Callable | None = None, policy_factory: Callable[[], Callable] | None = None,
                       policy_device: str = "cpu") -> Iterator[BaseCollector]:

@@ -28,7 +28,7 @@ import hashlib
 import math
 import pathlib
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Annotated, NamedTuple
 
@@ -47,7 +47,7 @@ from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule
 from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.episode_collector import episode_collector
+from dust_rl.episode_collector import episode_collector, torch_threads
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.keys import SEED_KEY, STATE_KEY, SUCCESS_KEY
 from dust_rl.report import plot_loss_curves, write_report
@@ -180,17 +180,6 @@ def make_eval_policy(setup: EvalSetup) -> ChunkExecutor:
     policy.set_sampler(setup.sampler)
     policy.set_runtime(setup.precision, setup.compile)
     return seeded_executor(policy)
-
-
-@contextlib.contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """Run with ``n`` torch threads, then restore the caller's count."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:

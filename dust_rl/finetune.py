@@ -45,8 +45,9 @@ from dust_rl.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.config_json import config_json
 from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
+from dust_rl.episode_collector import torch_threads
 from dust_rl.errors import ConfigError, check_at_least, check_finite
-from dust_rl.evaluate import Episode, episode_digest, summary_row, torch_threads
+from dust_rl.evaluate import Episode, episode_digest, summary_row
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
 from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv

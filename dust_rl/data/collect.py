@@ -36,7 +36,7 @@ from tqdm import tqdm
 from dust_rl.agents import load_policy
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.episode_collector import episode_collector
+from dust_rl.episode_collector import episode_collector, torch_threads
 from dust_rl.errors import ConfigError
 from dust_rl.workers import Workers, ray_runtime
 
@@ -66,7 +66,8 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         env_id: gymnasium id; ``env_kwargs`` (image size, cameras...) go to the env constructor with ``task``.
         tasks: task names; their episodes share one dataset, each with its own instructions.
         episodes: successful episodes per task.
-        workers: env processes per collector (1 runs in this process), or where and how many workers run.
+        workers: env processes per collector (1 runs in this process), or where and how many workers run (and a
+            policy's torch threads in each).
         start_seed: first seed of every task; episode ``k`` of a task uses seed ``start_seed + k``.
         noise_std: DART perturbation of the executed action (the stored label stays the expert's).
         keep_failed: also store failed episodes (flagged ``success=False``).
@@ -110,7 +111,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
               "policy": None if policy is None else {"file": policy.name, "sha256": _file_digest(policy)}}
     root = pathlib.Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    with dataset_lock(root), ray_runtime(workers):
+    with dataset_lock(root), ray_runtime(workers), torch_threads(workers.threads):
         clear_staging(root)
         meta = open_meta(root, config, tasks, episodes, spec)
         for task in tasks:
