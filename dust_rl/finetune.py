@@ -5,7 +5,8 @@ the fine-tuning env (noise steering or residual, :mod:`dust_rl.steering`,
 :mod:`dust_rl.residual`), the SB3 agent and its training, then a closed-loop
 comparison with the base policy on the same held-out seeds.
 
-The imitation policy's weights never change, so the base policy stays one
+The imitation policy's weights never change (except with ``self_imitation``,
+which writes new policy files beside it), so the base policy stays one
 flag away. The RL agent's weights are saved as a plain state dict
 (``rl_agent.pt``, read with ``weights_only=True``) rather than SB3's zip,
 whose loader unpickles objects. The base row of the comparison is the base
@@ -18,17 +19,19 @@ optimisers, replay buffer, counters, RNG; :mod:`dust_rl.rl_checkpoint`) goes
 to a torchrl ``Checkpoint``; ``--resume`` continues from the newest one.
 
 ``--method wm_select`` trains no RL agent: it fits a scorer of DUST's predicted futures on the policy's own
-rollouts and writes a policy that picks among K joint samples (:mod:`dust_rl.wm_select`). torchrl's SAC
-front-end is :mod:`dust_rl.torchrl_sac`.
+rollouts and writes a policy that picks among K joint samples (:mod:`dust_rl.wm_select`).
+``--method self_imitation`` trains no RL agent either: it fine-tunes the policy's own weights on its
+successful rollouts (:mod:`dust_rl.self_imitation`). torchrl's SAC front-end is :mod:`dust_rl.torchrl_sac`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -53,8 +56,10 @@ from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
+from dust_rl.self_imitation import self_imitation
 from dust_rl.start_at_base import WarmStartSAC, start_at_base
 from dust_rl.steering import NoiseSteeringEnv
+from dust_rl.train import TrainSettings
 from dust_rl.wm_select import VALIDATION_EVERY, wm_select
 
 RL_AGENT_KIND = "dust-rl rl agent"
@@ -64,18 +69,20 @@ ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
 
 @dataclass
 class FinetuneConfig:
-    """RL fine-tuning of a trained DUST policy, which stays frozen."""
+    """RL fine-tuning of a trained DUST policy (frozen, except with self_imitation, which writes a new one)."""
 
     policy: pathlib.Path
     """Policy file written by ``dust-rl train``."""
     out: pathlib.Path = pathlib.Path("runs/finetune")
     """Run folder: ``config.json``, ``checkpoints/``, ``rl_agent.pt``, ``report.json``, ``report.md`` and ``logs/``
     (SB3's scalars: CSV, TensorBoard)."""
-    method: Literal["steer", "residual", "wm_select"] = "steer"
+    method: Literal["steer", "residual", "wm_select", "self_imitation"] = "steer"
     """``steer``: the RL action is the policy's initial action noise, one step per chunk (DSRL);
     ``residual``: a bounded correction added to every executed action; ``wm_select``: K joint samples per chunk,
     the one whose predicted future a scorer fitted on the policy's own rollouts rates best executed
-    (:mod:`dust_rl.wm_select`; writes ``policy.pt``, no SB3 agent)."""
+    (:mod:`dust_rl.wm_select`; writes ``policy.pt``, no SB3 agent); ``self_imitation``: the policy fine-tuned on
+    its demonstrations and its own successful rollouts, round after round (:mod:`dust_rl.self_imitation`; each
+    round writes a ``policy.pt``, no SB3 agent)."""
     algorithm: Literal["sac", "ppo"] = "sac"
     """stable-baselines3 algorithm (``MultiInputPolicy``)."""
     steps: int = 20_000
@@ -113,7 +120,18 @@ class FinetuneConfig:
     rollouts: int = 100
     """wm_select: base-policy episodes whose outcomes train the scorer."""
     rollout_seed: int = 20_000
-    """wm_select: first seed of those episodes (away from training, validation and held-out seeds)."""
+    """wm_select, self_imitation: first seed of the rollouts (away from training, validation and held-out seeds;
+    self_imitation's round r starts 10,000 seeds further on per round)."""
+    rounds: int = 1
+    """self_imitation: rounds of rollouts and fine-tuning."""
+    rollout_successes: int = 150
+    """self_imitation: successful rollouts each round collects (its failures are not stored)."""
+    demos: pathlib.Path | None = None
+    """self_imitation: the demonstrations fine-tuning keeps training on; default: the policy's training dataset
+    (``info["dataset"]``)."""
+    train: TrainSettings = field(default_factory=lambda: TrainSettings(steps=3000, lr=1e-4))
+    """self_imitation: how each round fine-tunes (``--train.steps``, ``--train.lr``, ``--train.extra-fraction``,
+    ``--train.start-rows`` ...); the starting policy, the rollouts, threads and device are the round's."""
     scorer_hidden: int = 128
     """wm_select: hidden width of the scorer."""
     scorer_steps: int = 2000
@@ -141,7 +159,7 @@ class FinetuneConfig:
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "eval_episodes", "threads", "max_steps", "checkpoint_every",
-                       "rollouts", "scorer_hidden", "scorer_steps")
+                       "rollouts", "scorer_hidden", "scorer_steps", "rounds", "rollout_successes")
         check_at_least(self, 0, "learning_starts", "seed", "eval_seed", "rollout_seed", "eval_every", "curve_seed")
         check_at_least(self, 1, "curve_episodes")
         if not self.candidates or min(self.candidates) < 1:
@@ -162,18 +180,22 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     with torch_threads(config.threads):
         check_run_folder(config, RESUMABLE_FIELDS)
         policy = unwrap(load_policy(config.policy))
-        make, task = finetune_env_factory(config, policy)
+        env_id, env_kwargs, task = policy_env(config, policy)
+        demos = config.demos or pathlib.Path(policy.info.get("dataset") or "")
+        if config.method == "self_imitation" and not (demos / "meta.json").is_file():
+            raise ConfigError(f"self_imitation trains on the policy's demonstrations too; {demos} is not a dataset: "
+                              "pass --demos")
         if not config.resume:
             write_run_config(config, command)
-        if config.method == "wm_select":
-            result = wm_select(config, task, policy)
+        if config.method in ("wm_select", "self_imitation"):
+            result = (wm_select(config, task, policy) if config.method == "wm_select"
+                      else self_imitation(dataclasses.replace(config, demos=demos), task, env_id, env_kwargs))
             episodes = {name: [Episode(*e) for e in row["per_episode"]] for name, row in result["rows"].items()}
-            extra = {"scorer": result["scorer"], "rollout_env_steps": result["rollout_env_steps"],
-                     "policy_file": result["policy_file"]}
+            extra = {k: v for k, v in result.items() if k not in ("rows", "train_seconds")}
             trained_s = result["train_seconds"]
         else:
             policy.to(resolve_device(config.device))
-            episodes, trained_s = train_rl(config, make)
+            episodes, trained_s = train_rl(config, finetune_env_factory(config, policy)[0])
             extra = {"rl_agent": str(config.out / "rl_agent.pt")}
     report = {
         "policy": str(config.policy), "method": config.method, "algorithm": config.algorithm, "task": task,
@@ -261,13 +283,13 @@ def finetune_command(config: FinetuneConfig, command: str | None = None) -> dict
     for row in report["rows"]:
         print(f"{row['task']}: {row['successes']}/{row['episodes']} successful ({100 * row['success_rate']:.0f}%, "
               f"95% CI {100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}%)")
-    print(f"{'policy' if config.method == 'wm_select' else 'RL agent'}: "
+    print(f"{'policy' if 'policy_file' in report else 'RL agent'}: "
           f"{report.get('policy_file', report.get('rl_agent'))}\nreport: {config.out / 'report.md'}")
     return report
 
 
-def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Callable[[], FrozenPolicyEnv], str]:
-    """A factory of fresh fine-tuning envs for ``config``'s task (checked once, here), and the task."""
+def policy_env(config: FinetuneConfig, policy: DustPolicy) -> tuple[str, dict, str]:
+    """The env id, env kwargs (the policy's, with ``max_steps``) and task to fine-tune on, checked."""
     env_id = policy.info.get("env_id")
     if env_id is None:
         raise ConfigError(f"{config.policy}: the policy does not name the env it was trained in (info['env_id'])")
@@ -278,6 +300,12 @@ def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Ca
     if config.max_steps:
         env_kwargs["max_episode_steps"] = config.max_steps
     check_tasks(env_id, env_kwargs, [task])
+    return env_id, env_kwargs, task
+
+
+def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Callable[[], FrozenPolicyEnv], str]:
+    """A factory of fresh fine-tuning envs for ``config``'s task (checked once, here), and the task."""
+    env_id, env_kwargs, task = policy_env(config, policy)
 
     def make() -> FrozenPolicyEnv:
         env = make_env(env_id, {**env_kwargs, "task": task, "reward_type": config.reward})
@@ -323,12 +351,19 @@ def _markdown(report: dict) -> str:
         auc = "n/a" if scorer["validation_auc"] is None else f"{scorer['validation_auc']:.2f}"
         how = (f"a future scorer fitted on {report['config']['rollouts']} base-policy rollouts "
                f"({report['rollout_env_steps']} env steps, {report['train_seconds']:.0f} s; validation ROC AUC {auc})")
+    elif report["method"] == "self_imitation":
+        config = report["config"]
+        how = (f"{config['rounds']} round(s) of {config['rollout_successes']} successful rollouts "
+               f"({', '.join(str(r['rollouts']) for r in report['rounds'])} episodes; {report['rollout_env_steps']} "
+               f"env steps), each followed by {config['train']['steps']} fine-tuning steps "
+               f"({report['train_seconds']:.0f} s in all)")
     else:
         how = (f"{report['algorithm']}, {report['steps']} RL steps ({report['train_seconds']:.0f} s), "
                f"{report['config']['reward']} reward")
     lines = [f"# RL fine-tuning: {report['policy']}", "",
              f"- task `{report['task']}`, method `{report['method']}`: {how}",
-             f"- seeds {report['seeds'][0]}..{report['seeds'][1]}; the imitation policy stays frozen", "",
+             f"- seeds {report['seeds'][0]}..{report['seeds'][1]}; the imitation policy "
+             f"{'is fine-tuned' if report['method'] == 'self_imitation' else 'stays frozen'}", "",
              "| policy | episodes | success | 95% CI |", "|---|---|---|---|"]
     lines += [f"| {row['task']} | {row['episodes']} | {100 * row['success_rate']:.0f}% | "
               f"{100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}% |" for row in report["rows"]]

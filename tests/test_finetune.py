@@ -13,6 +13,8 @@ from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import load_checkpoint
+from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE
+from dust_rl.data.episodes import scan_episodes
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import EvalConfig, evaluate
 from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
@@ -148,3 +150,19 @@ def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path):
     ref, got = states["ref"].replay_buffer, states["killed"].replay_buffer
     assert np.array_equal(ref.actions[:first], got.actions[:first])
     assert np.array_equal(ref.rewards[:first], got.rewards[:first])
+
+
+def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_dir, tmp_path):
+    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method="self_imitation", rollout_successes=1,
+                            max_steps=EPISODE_STEPS, curve_episodes=1, progress=False)
+    with pytest.raises(ConfigError, match="pass --demos"):  # the policy file names no training dataset
+        finetune(config)
+    # An untrained policy never succeeds: the first round's collection gives up, its rollouts kept on disk.
+    with pytest.raises(RuntimeError, match="press_button policy succeeded in only 0 of"):
+        finetune(dataclasses.replace(config, out=tmp_path / "ft2", demos=demo_dir))
+    records = scan_episodes(tmp_path / "ft2" / "round-1" / "rollouts")["press_button"]
+    tried = MAX_SEEDS_PER_EPISODE["policy"] * config.rollout_successes + 10
+    assert sorted(records) == list(range(config.rollout_seed, config.rollout_seed + tried))
+    assert all(r.length == EPISODE_STEPS and not r.success for r in records.values())
+    base_point = json.loads((tmp_path / "ft2" / "curve" / "round-0" / "report.json").read_text())
+    assert base_point["seeds"] == [config.curve_seed, config.curve_seed] and base_point["policy"] == str(policy_path)

@@ -1,0 +1,94 @@
+"""Success-filtered self-imitation: ``dust-rl finetune --method self_imitation``.
+
+Why: an imitation policy trained on 200 demonstrations has seen 200 layouts, and most of its failures are
+layouts it has not learnt to read (README, "The token read-out"); noise steering and a residual could not
+move it (BENCHMARKS.md, "RL fine-tuning"): its samples hardly differ, and a sparse reward gives a critic
+little to fit. Its own successes on fresh layouts are demonstrations it can reproduce, labelled by the
+reward alone. Each round rolls the current policy out on fresh seeds until it has ``rollout_successes``
+successes (``dust-rl collect --policy``: the episodes ``dust-rl eval`` would run on those seeds), then
+fine-tunes it on its demonstrations plus those successes with their executed actions (``dust-rl train
+--init-policy --extra-dataset``): a policy-improvement step on the binary reward (filtered behaviour cloning,
+as in RoboCat's self-improvement loop), which changes the weights, not how the policy is sampled.
+
+The run folder holds one cached job per stage, so rerunning the command resumes where it stopped:
+``round-<r>/rollouts/`` (a dataset), ``round-<r>/train/`` (a training run whose ``policy.pt`` is the next
+round's policy), ``curve/round-<r>/`` (its validation episodes, for ``learning_curve.png``) and
+``eval/{base,tuned}/`` (the held-out comparison).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import time
+from typing import TYPE_CHECKING
+
+from dust_rl.data import collect_demos
+from dust_rl.data.episodes import scan_episodes
+from dust_rl.evaluate import EvalConfig, evaluate
+from dust_rl.report import plot_learning_curve
+from dust_rl.train import TrainConfig, train
+
+if TYPE_CHECKING:
+    from dust_rl.finetune import FinetuneConfig
+
+# Round r rolls out from seed rollout_seed + r * ROUND_SEEDS: rounds never share a layout.
+ROUND_SEEDS = 10_000
+
+
+def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: dict) -> dict:
+    """Run (or resume) every round, then evaluate the base and the last round's policy on the held-out seeds;
+    returns the report's parts."""
+    began = time.perf_counter()
+    policy, curve, rounds = config.policy, [_curve_point(config, config.policy, "round-0", 0)], []
+    for r in range(config.rounds):
+        rollouts = config.out / f"round-{r + 1}" / "rollouts"
+        collect_demos(rollouts, env_id, [task], config.rollout_successes, env_kwargs=env_kwargs,
+                      start_seed=config.rollout_seed + r * ROUND_SEEDS, policy=policy, progress=config.progress)
+        records = scan_episodes(rollouts)[task].values()
+        policy = _fine_tune(config, policy, rollouts, config.out / f"round-{r + 1}" / "train")
+        rounds.append({"policy": str(policy), "rollouts": len(records), "successes": sum(r.success for r in records),
+                       "env_steps": sum(r.length for r in records)})
+        env_steps = sum(row["env_steps"] for row in rounds)
+        curve.append(_curve_point(config, policy, f"round-{r + 1}", env_steps))
+        last_seed = config.curve_seed + config.curve_episodes - 1
+        plot_learning_curve(curve, config.out / "learning_curve.png",
+                            f"self-imitation, seeds {config.curve_seed}..{last_seed}")
+    trained_s = time.perf_counter() - began
+    rows = {"base policy": _evaluate(config, config.policy, config.out / "eval" / "base"),
+            f"self_imitation ({config.rounds} rounds)": _evaluate(config, policy, config.out / "eval" / "tuned")}
+    return {"rows": rows, "train_seconds": trained_s, "rollout_env_steps": sum(r["env_steps"] for r in rounds),
+            "rounds": rounds, "curve": curve, "policy_file": str(policy)}
+
+
+def _fine_tune(config: FinetuneConfig, policy: pathlib.Path, rollouts: pathlib.Path, out: pathlib.Path) -> pathlib.Path:
+    """``policy`` trained further on its demonstrations and ``rollouts`` (a finished run is not trained again)."""
+    if not (out / "policy.pt").is_file():
+        settings = dataclasses.replace(config.train, init_policy=policy, extra_dataset=rollouts,
+                                       extra_action_key="action", threads=config.threads, device=config.device,
+                                       progress=config.progress)
+        resume = (out / "config.json").is_file()
+        train(TrainConfig.from_settings(settings, dataset=config.demos, out=out, resume=resume))
+    return out / "policy.pt"
+
+
+def _curve_point(config: FinetuneConfig, policy: pathlib.Path, name: str, env_steps: int) -> dict:
+    """Success of ``policy`` on the validation seeds, at ``env_steps`` env steps of rollouts."""
+    report = _report(config, policy, config.out / "curve" / name, config.curve_episodes, config.curve_seed, 0)
+    return {"round": name, "env_steps": env_steps, **report["overall"]}
+
+
+def _evaluate(config: FinetuneConfig, policy: pathlib.Path, out: pathlib.Path) -> dict:
+    """``policy``'s row on the held-out seeds, as ``dust-rl eval`` reports it."""
+    return _report(config, policy, out, config.eval_episodes, config.eval_seed, 1)["tasks"][0]
+
+
+def _report(config: FinetuneConfig, policy: pathlib.Path, out: pathlib.Path, episodes: int, seed: int,
+            videos: int) -> dict:
+    """The evaluation report of ``policy`` in ``out``: read back if that evaluation already ran."""
+    if (out / "report.json").is_file():
+        return json.loads((out / "report.json").read_text())
+    return evaluate(EvalConfig(policy=policy, out=out, episodes=episodes, seed=seed, workers=1, videos=videos,
+                               threads=config.threads, device=config.device, max_steps=config.max_steps,
+                               progress=config.progress))
