@@ -7,8 +7,9 @@ little to fit. Its own successes on fresh layouts are demonstrations it can repr
 reward alone. Each round rolls the current policy out on fresh seeds until it has ``rollout_successes``
 successes (``dust-rl collect --policy``: the episodes ``dust-rl eval`` would run on those seeds), then
 fine-tunes it on its demonstrations plus those successes with their executed actions (``dust-rl train
---init-policy --extra-dataset``): a policy-improvement step on the binary reward (filtered behaviour cloning,
-as in RoboCat's self-improvement loop), which changes the weights, not how the policy is sampled.
+--init-policy --extra-dataset``; ``--train.extra-action-key expert_action`` teaches the expert's instead): a
+policy-improvement step on the binary reward (filtered behaviour cloning, as in RoboCat's self-improvement
+loop), which changes the weights, not how the policy is sampled.
 
 The run folder holds one cached job per stage, so rerunning the command resumes where it stopped:
 ``round-<r>/rollouts/`` (a dataset), ``round-<r>/train/`` (a training run whose ``policy.pt`` is the next
@@ -66,8 +67,7 @@ def _fine_tune(config: FinetuneConfig, policy: pathlib.Path, rollouts: pathlib.P
     """``policy`` trained further on its demonstrations and ``rollouts`` (a finished run is not trained again)."""
     if not (out / "policy.pt").is_file():
         settings = dataclasses.replace(config.train, init_policy=policy, extra_dataset=rollouts,
-                                       extra_action_key="action", threads=config.threads, device=config.device,
-                                       progress=config.progress)
+                                       threads=config.threads, device=config.device, progress=config.progress)
         resume = (out / "config.json").is_file()
         train(TrainConfig.from_settings(settings, dataset=config.demos, out=out, resume=resume))
     return out / "policy.pt"
