@@ -198,6 +198,9 @@ class TrainSettings:
         if self.batch_size < 1 + len(mixed):
             raise ConfigError(f"{' and '.join(mixed)} need --batch-size >= {1 + len(mixed)}: each batch holds "
                               "demonstrations and a share of each")
+        if len(mixed) == 2 and self.video_fraction + self.extra_fraction >= 1:
+            raise ConfigError(f"video_fraction + extra_fraction must be below 1 (the rest are demonstrations), got "
+                              f"{self.video_fraction} + {self.extra_fraction}")
         if self.init_policy is not None and self.policy != PolicyConfig():
             raise ConfigError("--policy.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
                               "settings (and its read-out, so no aux frames or read-out warm-up either)")

@@ -268,6 +268,8 @@ def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inpu
         tiny_config(run_inputs, tmp_path / "x", init_policy=base)
     with pytest.raises(ConfigError, match="extra_fraction must be in"):
         TrainConfig(dataset=dataset, extra_dataset=extra_dir, extra_fraction=0.0)
+    with pytest.raises(ConfigError, match=r"video_fraction \+ extra_fraction must be below 1"):
+        TrainConfig(dataset=dataset, extra_dataset=extra_dir, video_dataset=extra_dir, video_fraction=0.5)
     elsewhere = dataclasses.replace(config, out=tmp_path / "other", init_policy=tmp_path / "missing.pt")
     with pytest.raises(CheckpointError, match="missing.pt"):
         train(elsewhere)
