@@ -52,6 +52,7 @@ from dust_rl.episode_collector import torch_threads
 from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.evaluate import Episode, episode_digest, summary_row
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
+from dust_rl.keys import EXPERT_ACTION_KEY
 from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
@@ -125,13 +126,15 @@ class FinetuneConfig:
     rounds: int = 1
     """self_imitation: rounds of rollouts and fine-tuning."""
     rollout_successes: int = 150
-    """self_imitation: successful rollouts each round collects (its failures are not stored)."""
+    """self_imitation: successful rollouts each round collects (its failures are stored only for DAgger,
+    ``--train.extra-action-key expert_action``)."""
     demos: pathlib.Path | None = None
     """self_imitation: the demonstrations fine-tuning keeps training on; default: the policy's training dataset
     (``info["dataset"]``)."""
     train: TrainSettings = field(default_factory=lambda: TrainSettings(steps=3000, lr=1e-4))
     """self_imitation: how each round fine-tunes (``--train.steps``, ``--train.lr``, ``--train.extra-fraction``,
-    ``--train.start-rows`` ...); the starting policy, the rollouts, threads and device are the round's."""
+    ``--train.start-rows`` ...; ``--train.extra-action-key expert_action``: DAgger); the starting policy, the
+    rollouts, threads and device are the round's."""
     scorer_hidden: int = 128
     """wm_select: hidden width of the scorer."""
     scorer_steps: int = 2000
@@ -353,7 +356,9 @@ def _markdown(report: dict) -> str:
                f"({report['rollout_env_steps']} env steps, {report['train_seconds']:.0f} s; validation ROC AUC {auc})")
     elif report["method"] == "self_imitation":
         config = report["config"]
+        dagger = config["train"]["extra_action_key"] == EXPERT_ACTION_KEY
         how = (f"{config['rounds']} round(s) of {config['rollout_successes']} successful rollouts "
+               f"{'and the failures between them, taught the expert' if dagger else 'taught their actions'} "
                f"({', '.join(str(r['rollouts']) for r in report['rounds'])} episodes; {report['rollout_env_steps']} "
                f"env steps), each followed by {config['train']['steps']} fine-tuning steps "
                f"({report['train_seconds']:.0f} s in all)")

@@ -7,9 +7,13 @@ little to fit. Its own successes on fresh layouts are demonstrations it can repr
 reward alone. Each round rolls the current policy out on fresh seeds until it has ``rollout_successes``
 successes (``dust-rl collect --policy``: the episodes ``dust-rl eval`` would run on those seeds), then
 fine-tunes it on its demonstrations plus those successes with their executed actions (``dust-rl train
---init-policy --extra-dataset``; ``--train.extra-action-key expert_action`` teaches the expert's instead): a
-policy-improvement step on the binary reward (filtered behaviour cloning, as in RoboCat's self-improvement
-loop), which changes the weights, not how the policy is sampled.
+--init-policy --extra-dataset``): a policy-improvement step on the binary reward (filtered behaviour cloning,
+as in RoboCat's self-improvement loop), which changes the weights, not how the policy is sampled.
+
+``--train.extra-action-key expert_action`` turns it into DAgger (Ross et al., 2011), the reference with a
+teacher: every rollout is kept, failures included (there the expert's correction matters most), and the
+scripted expert's label at each visited state is taught instead of the executed action. It needs the
+privileged expert, so it measures how much of the gap a reward alone closes.
 
 The run folder holds one cached job per stage, so rerunning the command resumes where it stopped:
 ``round-<r>/rollouts/`` (a dataset), ``round-<r>/train/`` (a training run whose ``policy.pt`` is the next
@@ -28,6 +32,7 @@ from typing import TYPE_CHECKING
 from dust_rl.data import collect_demos
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.evaluate import EvalConfig, evaluate
+from dust_rl.keys import EXPERT_ACTION_KEY
 from dust_rl.report import plot_learning_curve
 from dust_rl.train import TrainConfig, train
 
@@ -42,11 +47,13 @@ def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: d
     """Run (or resume) every round, then evaluate the base and the last round's policy on the held-out seeds;
     returns the report's parts."""
     began = time.perf_counter()
+    dagger = config.train.extra_action_key == EXPERT_ACTION_KEY
     policy, curve, rounds = config.policy, [_curve_point(config, config.policy, "round-0", 0)], []
     for r in range(config.rounds):
         rollouts = config.out / f"round-{r + 1}" / "rollouts"
         collect_demos(rollouts, env_id, [task], config.rollout_successes, env_kwargs=env_kwargs,
-                      start_seed=config.rollout_seed + r * ROUND_SEEDS, policy=policy, progress=config.progress)
+                      start_seed=config.rollout_seed + r * ROUND_SEEDS, keep_failed=dagger, policy=policy,
+                      progress=config.progress)
         records = scan_episodes(rollouts)[task].values()
         policy = _fine_tune(config, policy, rollouts, config.out / f"round-{r + 1}" / "train")
         rounds.append({"policy": str(policy), "rollouts": len(records), "successes": sum(r.success for r in records),

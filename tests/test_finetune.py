@@ -163,6 +163,13 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
     records = scan_episodes(tmp_path / "ft2" / "round-1" / "rollouts")["press_button"]
     tried = MAX_SEEDS_PER_EPISODE["policy"] * config.rollout_successes + 10
     assert sorted(records) == list(range(config.rollout_seed, config.rollout_seed + tried))
-    assert all(r.length == EPISODE_STEPS and not r.success for r in records.values())
+    assert all(r.length == EPISODE_STEPS and not r.success and not r.kept for r in records.values())
+    # DAgger (the expert's labels taught): the failed rollouts are kept too, with their rows.
+    dagger = dataclasses.replace(config, out=tmp_path / "ft3", demos=demo_dir,
+                                 train=dataclasses.replace(config.train, extra_action_key="expert_action"))
+    with pytest.raises(RuntimeError, match="succeeded in only 0 of"):
+        finetune(dagger)
+    kept = scan_episodes(tmp_path / "ft3" / "round-1" / "rollouts")["press_button"].values()
+    assert len(kept) == tried and all(r.kept for r in kept)
     base_point = json.loads((tmp_path / "ft2" / "curve" / "round-0" / "report.json").read_text())
     assert base_point["seeds"] == [config.curve_seed, config.curve_seed] and base_point["policy"] == str(policy_path)
