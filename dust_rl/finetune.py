@@ -64,7 +64,8 @@ from dust_rl.train import TrainSettings
 from dust_rl.wm_select import VALIDATION_EVERY, wm_select
 
 RL_AGENT_KIND = "dust-rl rl agent"
-RESUMABLE_FIELDS = ("resume", "progress", "threads")
+# rounds: a finished self_imitation run resumed with more rounds goes on from its last round.
+RESUMABLE_FIELDS = ("resume", "progress", "threads", "rounds")
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
 
 
@@ -124,7 +125,7 @@ class FinetuneConfig:
     """wm_select, self_imitation: first seed of the rollouts (away from training, validation and held-out seeds;
     self_imitation's round r starts 10,000 seeds further on per round)."""
     rounds: int = 1
-    """self_imitation: rounds of rollouts and fine-tuning."""
+    """self_imitation: rounds of rollouts and fine-tuning (``--resume`` with more rounds extends a run)."""
     rollout_successes: int = 150
     """self_imitation: successful rollouts each round collects (its failures are stored only for DAgger,
     ``--train.extra-action-key expert_action``)."""

@@ -18,7 +18,7 @@ privileged expert, so it measures how much of the gap a reward alone closes.
 The run folder holds one cached job per stage, so rerunning the command resumes where it stopped:
 ``round-<r>/rollouts/`` (a dataset), ``round-<r>/train/`` (a training run whose ``policy.pt`` is the next
 round's policy), ``curve/round-<r>/`` (its validation episodes, for ``learning_curve.png``) and
-``eval/{base,tuned}/`` (the held-out comparison).
+``eval/base/`` and ``eval/round-<r>/`` (the held-out comparison), so resuming with more rounds extends a run.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: d
                             f"self-imitation, seeds {config.curve_seed}..{last_seed}")
     trained_s = time.perf_counter() - began
     rows = {"base policy": _evaluate(config, config.policy, config.out / "eval" / "base"),
-            f"self_imitation ({config.rounds} rounds)": _evaluate(config, policy, config.out / "eval" / "tuned")}
+            f"self_imitation ({config.rounds} rounds)": _evaluate(config, policy, config.out / "eval" / f"round-{config.rounds}")}
     return {"rows": rows, "train_seconds": trained_s, "rollout_env_steps": sum(r["env_steps"] for r in rounds),
             "rounds": rounds, "curve": curve, "policy_file": str(policy)}
 

@@ -164,6 +164,11 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
     tried = MAX_SEEDS_PER_EPISODE["policy"] * config.rollout_successes + 10
     assert sorted(records) == list(range(config.rollout_seed, config.rollout_seed + tried))
     assert all(r.length == EPISODE_STEPS and not r.success and not r.kept for r in records.values())
+    # More rounds resume the run (the same collection goes on); other changed settings do not.
+    with pytest.raises(RuntimeError, match=f"succeeded in only 0 of {tried + 1} "):
+        finetune(dataclasses.replace(config, out=tmp_path / "ft2", demos=demo_dir, rounds=2, resume=True))
+    with pytest.raises(ConfigError, match="started with other settings \\(rollout_successes\\)"):
+        finetune(dataclasses.replace(config, out=tmp_path / "ft2", demos=demo_dir, rollout_successes=2, resume=True))
     # DAgger (the expert's labels taught): the failed rollouts are kept too, with their rows.
     dagger = dataclasses.replace(config, out=tmp_path / "ft3", demos=demo_dir,
                                  train=dataclasses.replace(config.train, extra_action_key="expert_action"))
