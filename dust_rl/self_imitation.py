@@ -64,8 +64,9 @@ def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: d
         plot_learning_curve(curve, config.out / "learning_curve.png",
                             f"self-imitation, seeds {config.curve_seed}..{last_seed}")
     trained_s = time.perf_counter() - began
+    tuned = f"{'DAgger' if dagger else 'self_imitation'} ({config.rounds} rounds)"
     rows = {"base policy": _evaluate(config, config.policy, config.out / "eval" / "base"),
-            f"self_imitation ({config.rounds} rounds)": _evaluate(config, policy, config.out / "eval" / f"round-{config.rounds}")}
+            tuned: _evaluate(config, policy, config.out / "eval" / f"round-{config.rounds}")}
     return {"rows": rows, "train_seconds": trained_s, "rollout_env_steps": sum(r["env_steps"] for r in rounds),
             "rounds": rounds, "curve": curve, "policy_file": str(policy)}
 
