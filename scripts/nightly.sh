@@ -7,6 +7,6 @@ bash scripts/setup.sh
 .venv/bin/python -m pytest -q -m slow "$@"
 .venv/bin/python -m dust_rl.benchmarks.env_speed
 .venv/bin/python -m dust_rl.benchmarks.env_speed --env DustHumanoid-v0 --tasks pick_place lift_box
-# The RL fine-tuning table's from-scratch reference row (BENCHMARKS.md, "RL fine-tuning"): ~20 min on one core.
+# The RL fine-tuning table's from-scratch reference row (BENCHMARKS.md, "SB3 from scratch"): ~22 min on one core.
 .venv/bin/python -m dust_rl.benchmarks.sb3_scratch --task press_button --algorithm sac --steps 100000 \
   --eval-every 20000 --no-progress --out runs/bench/sb3_scratch/press_button_sac
