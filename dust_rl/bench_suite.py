@@ -34,6 +34,7 @@ from dust_rl.agents.config import Variant
 from dust_rl.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.config_json import config_json
 from dust_rl.data import collect_demos
+from dust_rl.data.seeding import HELDOUT_SEED
 from dust_rl.env_factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate import EvalConfig, evaluate, wilson_interval
@@ -66,7 +67,7 @@ class SuiteConfig:
     """N_o of DUST's test-time scaling (async, N_A = 4) and of the synchronous control (N_A = N_o)."""
     episodes: int = 20
     """Evaluation episodes per task and cell."""
-    eval_seed: int = 10_000
+    eval_seed: int = HELDOUT_SEED
     """First held-out seed (training data: seeds from 0)."""
     image_size: int = 128
     """Camera resolution of the collected data."""

@@ -43,7 +43,7 @@ from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.agents.precision import Precision
 from dust_rl.config_json import config_json
-from dust_rl.data.seeding import EpisodeSeedWrapper, SeedSchedule
+from dust_rl.data.seeding import HELDOUT_SEED, EpisodeSeedWrapper, SeedSchedule
 from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
@@ -76,7 +76,7 @@ class EvalConfig:
     "dust-rl[ray]"``); same episodes either way."""
     ray_address: str | None = None
     """Ray cluster to join with ``--backend ray`` (e.g. ``auto``); default: start a local one for the command."""
-    seed: int = 10_000
+    seed: int = HELDOUT_SEED
     """Episode k of a task resets from seed + k (training data uses seeds from 0 on)."""
     sampling: (Annotated[SamplerConfig, tyro.conf.subcommand("resample")]
                | Annotated[None, tyro.conf.subcommand("as-saved")]) = None

@@ -46,6 +46,7 @@ from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.agents.checkpoint_io import save_checkpoint
 from dust_rl.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.config_json import config_json
+from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.episode_collector import torch_threads
@@ -113,7 +114,7 @@ class FinetuneConfig:
     """Seed of the RL agent, and reset seed of the first training episode (later ones follow the env's RNG)."""
     eval_episodes: int = 20
     """Closed-loop episodes of the base and the fine-tuned policy, on seeds eval_seed, eval_seed + 1, ..."""
-    eval_seed: int = 10_000
+    eval_seed: int = HELDOUT_SEED
     """First evaluation seed (training data: 0 on; validation: 5000 on; held-out: 10000 on)."""
     max_steps: int | None = None
     """Time limit per episode in env steps; default: the task's."""
@@ -145,7 +146,7 @@ class FinetuneConfig:
     (``learning_curve.json``/``.png``: success against env steps, from the base policy at 0); 0: none."""
     curve_episodes: int = 10
     """Episodes of each periodic evaluation."""
-    curve_seed: int = 5000
+    curve_seed: int = VALIDATION_SEED
     """First seed of the periodic evaluations (validation seeds: the held-out ones stay for the report)."""
     checkpoint_every: int = 5000
     """RL steps between checkpoints of the whole learning state (one is always written at the end; PPO rounds

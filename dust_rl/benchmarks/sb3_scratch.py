@@ -25,6 +25,7 @@ from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from dust_rl.atomic_files import write_json_atomic
+from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.env import FLAT_STATE_KEY, STATE_MODE_KEYS
 from dust_rl.episode_collector import torch_threads
@@ -33,7 +34,6 @@ from dust_rl.evaluate import Episode, episode_digest, summary_row
 from dust_rl.report import plot_learning_curve
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
-VALIDATION_SEED, HELDOUT_SEED = 5000, 10_000
 
 
 def state_env_factory(env_id: str, task: str, reward: str) -> Callable[[], gym.Env]:

@@ -21,6 +21,10 @@ from dust_rl.envs.env import MAX_INSTRUCTION_LENGTH
 from dust_rl.keys import INSTRUCTION_BYTES_KEY, INSTRUCTION_KEY, SEED_KEY, SUCCESS_KEY
 
 INSTRUCTION_BYTES = 4 * MAX_INSTRUCTION_LENGTH  # UTF-8 takes at most 4 bytes a character
+# The seed ranges every command shares: demonstrations from 0, validation episodes (to choose settings on) from
+# VALIDATION_SEED, held-out episodes (to report) from HELDOUT_SEED.
+VALIDATION_SEED = 5000
+HELDOUT_SEED = 10_000
 
 
 @dataclasses.dataclass(frozen=True)
