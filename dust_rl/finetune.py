@@ -53,12 +53,11 @@ from dust_rl.episode_collector import torch_threads
 from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.evaluate import Episode, episode_digest, summary_row
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
-from dust_rl.keys import EXPERT_ACTION_KEY
 from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
-from dust_rl.self_imitation import self_imitation
+from dust_rl.self_imitation import is_dagger, self_imitation
 from dust_rl.start_at_base import WarmStartSAC, start_at_base
 from dust_rl.steering import NoiseSteeringEnv
 from dust_rl.train import TrainSettings
@@ -358,9 +357,9 @@ def _markdown(report: dict) -> str:
                f"({report['rollout_env_steps']} env steps, {report['train_seconds']:.0f} s; validation ROC AUC {auc})")
     elif report["method"] == "self_imitation":
         config = report["config"]
-        dagger = config["train"]["extra_action_key"] == EXPERT_ACTION_KEY
-        how = (f"{config['rounds']} round(s) of {config['rollout_successes']} successful rollouts "
-               f"{'and the failures between them, taught the expert' if dagger else 'taught their actions'} "
+        taught = ("and the failures between them, taught the expert" if is_dagger(config["train"]["extra_action_key"])
+                  else "taught their actions")
+        how = (f"{config['rounds']} round(s) of {config['rollout_successes']} successful rollouts {taught} "
                f"({', '.join(str(r['rollouts']) for r in report['rounds'])} episodes; {report['rollout_env_steps']} "
                f"env steps), each followed by {config['train']['steps']} fine-tuning steps "
                f"({report['train_seconds']:.0f} s in all)")

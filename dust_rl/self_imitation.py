@@ -43,11 +43,17 @@ if TYPE_CHECKING:
 ROUND_SEEDS = 10_000
 
 
+def is_dagger(extra_action_key: str) -> bool:
+    """Whether rounds teach the expert's labels on every rollout (DAgger) rather than the successes' own actions."""
+    return extra_action_key == EXPERT_ACTION_KEY
+
+
 def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: dict) -> dict:
     """Run (or resume) every round, then evaluate the base and the last round's policy on the held-out seeds;
     returns the report's parts."""
     began = time.perf_counter()
-    dagger = config.train.extra_action_key == EXPERT_ACTION_KEY
+    dagger = is_dagger(config.train.extra_action_key)
+    name = "DAgger" if dagger else "self_imitation"
     policy, curve, rounds = config.policy, [_curve_point(config, config.policy, "round-0", 0)], []
     for r in range(config.rounds):
         rollouts = config.out / f"round-{r + 1}" / "rollouts"
@@ -62,11 +68,11 @@ def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: d
         curve.append(_curve_point(config, policy, f"round-{r + 1}", env_steps))
         last_seed = config.curve_seed + config.curve_episodes - 1
         plot_learning_curve(curve, config.out / "learning_curve.png",
-                            f"self-imitation, seeds {config.curve_seed}..{last_seed}")
+                            f"{name}, seeds {config.curve_seed}..{last_seed}")
     trained_s = time.perf_counter() - began
-    tuned = f"{'DAgger' if dagger else 'self_imitation'} ({config.rounds} rounds)"
-    rows = {"base policy": _evaluate(config, config.policy, config.out / "eval" / "base"),
-            tuned: _evaluate(config, policy, config.out / "eval" / f"round-{config.rounds}")}
+    base = _evaluate(config, config.policy, config.out / "eval" / "base")
+    tuned = _evaluate(config, policy, config.out / "eval" / f"round-{config.rounds}")
+    rows = {"base policy": base, f"{name} ({config.rounds} rounds)": tuned}
     return {"rows": rows, "train_seconds": trained_s, "rollout_env_steps": sum(r["env_steps"] for r in rounds),
             "rounds": rounds, "curve": curve, "policy_file": str(policy)}
 
