@@ -124,6 +124,9 @@ class ModelConfig:
     :mod:`.token_readout`; no keypoints needed)."""
     readout_heads: int = 1
     """Attention poolings of the token read-out (each attends to one place; several objects may need several)."""
+    readout_coords: bool = False
+    """The token read-out also pools each camera's fixed cell centres by its attention (a spatial soft-argmax,
+    :mod:`.token_readout`): a position pointed at, interpolated between cells."""
     readout_grid: tuple[int, int] | None = None
     """Token grid per camera the token read-out reads, finer than ``cond_grid``: the frozen tokens are kept at this
     grid and pooled to ``cond_grid`` for the trunk. At Lite0 stride 8, (16, 16) reads the named button 2.8 cm off
@@ -192,8 +195,9 @@ class ModelConfig:
                              f"{tuple(self.vision_grid)}")
         if self.readout not in READOUT_INPUTS:
             raise ValueError(f"unknown readout {self.readout!r}; expected one of {READOUT_INPUTS}")
-        if self.readout_grid is not None and self.readout != "tokens":
-            raise ValueError("readout_grid is the grid the token read-out reads: it needs readout 'tokens'")
+        for name in ("readout_grid", "readout_coords"):
+            if getattr(self, name) not in (None, False) and self.readout != "tokens":
+                raise ValueError(f"{name} belongs to the token read-out: it needs readout 'tokens'")
         if self.keypoint_source not in KEYPOINT_SOURCES:
             raise ValueError(f"unknown keypoint_source {self.keypoint_source!r}; expected one of {KEYPOINT_SOURCES}")
         if self.keypoint_source == "pixels" and not self.keypoints:

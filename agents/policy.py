@@ -128,8 +128,8 @@ class DustPolicy(VLAWrapperBase):
         self.config = config  # the policy's own: set_sampler replaces it; the model reads only its model fields
         self.model = DustModel(config)
         if config.aux_state_dim and config.readout == "tokens":
-            self.state_readout = TokenReadout(len(cameras) * config.n_image_tokens, backbone.image_dim,
-                                              backbone.text_dim, config.aux_state_dim, config.readout_heads)
+            self.state_readout = TokenReadout(len(cameras), config.token_grid, backbone.image_dim, backbone.text_dim,
+                                              config.aux_state_dim, config.readout_heads, config.readout_coords)
         elif config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
                                               config.aux_state_dim)

@@ -13,7 +13,10 @@ demonstrations' few layouts.
 It is :class:`~.attention_pooling.AttentionProbe` over every camera's
 condition tokens (one position embedding per camera and cell), with the
 pooled instruction added to each token before the attention, so which object
-is named decides where it looks.
+is named decides where it looks. With ``coords`` each head also pools every
+camera's fixed cell centres by its attention (a spatial soft-argmax per
+camera), so the head points at the object and interpolates between cells
+rather than decoding a position from learnt per-cell embeddings.
 
 ==============  ==================  =====================================
 tensor          shape               meaning
@@ -26,6 +29,7 @@ estimate        [B, S]              normalised environment state
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor, nn
 
 from .attention_pooling import WIDTH, AttentionProbe
@@ -36,17 +40,27 @@ class TokenReadout(nn.Module):
     """Image tokens and instruction to a normalised environment state [B, S].
 
     Args:
-        n_tokens: C * N, condition tokens over all cameras.
+        cameras: C.
+        grid: (rows, cols) of each camera's tokens, N = rows * cols, row-major.
         image_dim: Dv.
         text_dim: Dt.
         state_dim: S.
         heads: attention poolings side by side.
+        coords: also pool each camera's cell centres (module doc).
     """
 
-    def __init__(self, n_tokens: int, image_dim: int, text_dim: int, state_dim: int, heads: int = 1) -> None:
+    def __init__(self, cameras: int, grid: tuple[int, int], image_dim: int, text_dim: int, state_dim: int,
+                 heads: int = 1, coords: bool = False) -> None:
         super().__init__()
-        self.pool = AttentionProbe(n_tokens, image_dim, lambda: nn.Linear(text_dim, WIDTH), outputs=state_dim,
-                                   heads=heads)
+        self.pool = AttentionProbe(cameras * grid[0] * grid[1], image_dim, lambda: nn.Linear(text_dim, WIDTH),
+                                   outputs=state_dim, heads=heads,
+                                   coords=cell_centres(grid).repeat(cameras, 1) if coords else None, groups=cameras)
 
     def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor) -> Tensor:
         return self.pool(image_tokens.flatten(1, 2), pooled_text(text_tokens, text_mask))
+
+
+def cell_centres(grid: tuple[int, int]) -> Tensor:
+    """(row, col) centres [rows * cols, 2] of a grid's cells in row-major order, scaled to (-1, 1)."""
+    rows, cols = ((torch.arange(n) + 0.5) / n * 2 - 1 for n in grid)
+    return torch.stack(torch.meshgrid(rows, cols, indexing="ij"), dim=-1).reshape(-1, 2)

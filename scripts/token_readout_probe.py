@@ -32,6 +32,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--decay", action="store_true", help="as --readout-lr-decay")
     parser.add_argument("--heads", type=int, default=1, help="attention poolings of the read-out")
+    parser.add_argument("--coords", action="store_true", help="as --policy.readout-coords")
     parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
     parser.add_argument("--image-encoder", default="efficientnet-lite0-s8")
     parser.add_argument("--cond-grid", type=int, default=8)
@@ -44,6 +45,7 @@ def main() -> None:
     width = env_state_width(dataset)
     policy = unwrap(make_policy(image_encoder=args.image_encoder, cond_grid=(args.cond_grid, args.cond_grid),
                                 variant="action_only", readout="tokens", readout_heads=args.heads,
+                                readout_coords=args.coords,
                                 aux_state_dim=width, lambda_aux=1.0, **dataset_policy_kwargs(dataset)))
     stats = env_state_stats(dataset)
 

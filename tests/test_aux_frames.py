@@ -8,6 +8,7 @@ import torch
 from conftest import DEMO_ENV_KWARGS
 
 from dust_rl.agents import DustConfig, DustPolicy, make_policy, unwrap
+from dust_rl.agents.attention_pooling import WIDTH
 from dust_rl.aux_frames import FIRST_SEED, MAX_EXPERT_STEPS, AuxFrameBatches, _approach_steps, render_aux_frames
 from dust_rl.data import DemoDataset
 from dust_rl.env_factory import make_env
@@ -110,7 +111,8 @@ def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encod
     width = env_state_width(dataset)
     policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                                 horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                                readout_heads=3, aux_state_dim=width, lambda_aux=1.0, aux_state_input=True))
+                                readout_heads=3, readout_coords=True, aux_state_dim=width, lambda_aux=1.0,
+                                aux_state_input=True))
     rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
                                            width, progress=False)
     batches = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
@@ -122,6 +124,8 @@ def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encod
     loss.backward()
     assert loss > 0 and all(p.grad is not None for p in policy.state_readout.parameters())
     assert policy.state_readout.pool.attend.out_features == 3  # one attention pooling per head
+    # Each head also points: a (row, col) per camera and head beside its pooled vector.
+    assert policy.state_readout.pool.head[0].in_features == 3 * WIDTH + len(policy.cameras) * 3 * 2
     assert all(p.grad is None for p in (*policy.model.parameters(), *policy.condition.parameters()))
     # The trunk reads the estimate after the robot state: the state token embeds both.
     assert policy.model.state_in.in_features == policy.config.state_dim + width
@@ -146,7 +150,7 @@ def test_a_finer_readout_grid_feeds_the_readout_more_tokens_and_the_trunk_the_sa
     assert fine.state_readout.pool.position.shape[0] == len(fine.cameras) * 16
     conditions = [policy._model_batch(b).get("cond_tokens") for policy, b in zip((fine, coarse), batches)]
     torch.testing.assert_close(*conditions)
-    with pytest.raises(ValueError, match="readout_grid is the grid the token read-out reads"):
+    with pytest.raises(ValueError, match="readout_grid belongs to the token read-out"):
         DustConfig(readout_grid=(8, 8))
     with pytest.raises(ValueError, match=r"readout_grid \(6, 6\) must be a multiple of cond_grid \(4, 4\)"):
         DustConfig(readout="tokens", cond_grid=(4, 4), readout_grid=(6, 6))
