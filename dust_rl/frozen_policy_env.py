@@ -14,6 +14,10 @@ observation               shape              meaning
 ``robot_state``           [Ds]               the robot state (``observation.state``)
 ``features``              [C * Dv + Dt]      per camera the mean of its normalised frozen tokens,
                                              then the mean of the instruction's tokens
+``object_estimate``       [S]                only for a policy with a state read-out
+                                             (``--policy.lambda-aux``): its estimate of the
+                                             normalised object state, where the mean-pooled
+                                             features no longer say where a small object is
 ========================  =================  ===================================================
 """
 
@@ -30,6 +34,8 @@ from dust_rl.agents.execution import episode_generator
 from dust_rl.keys import INSTRUCTION_KEY, STATE_KEY, flat_name
 
 STATE_NAME = flat_name(STATE_KEY)
+OBSERVATION_ENTRIES = ("robot_state", "object_estimate", "features")
+"""The observation's entries (``object_estimate`` where present)."""
 
 
 def observation_td(obs: dict) -> TensorDict:
@@ -55,10 +61,11 @@ class FrozenPolicyEnv(gym.Env):
         if not 1 <= self.execute_steps <= policy.config.horizon:
             raise ValueError(f"execute_steps must be in [1, {policy.config.horizon}], got {self.execute_steps}")
         n_features = len(policy.cameras) * policy.config.vision_dim + policy.backbone.text_dim
-        self.observation_space = spaces.Dict({
-            "robot_state": env.observation_space[STATE_NAME],
-            "features": spaces.Box(-np.inf, np.inf, (n_features,), np.float32),
-        })
+        entries = {"robot_state": env.observation_space[STATE_NAME],
+                   "features": spaces.Box(-np.inf, np.inf, (n_features,), np.float32)}
+        if policy.config.aux_state_dim:
+            entries["object_estimate"] = spaces.Box(-np.inf, np.inf, (policy.config.aux_state_dim,), np.float32)
+        self.observation_space = spaces.Dict(entries)
         self.features: TensorDict | None = None  # of the newest observation, for the next plan
         self.generator = episode_generator(0)
         self.executed: list[np.ndarray] = []  # the env actions of the current episode
@@ -102,7 +109,10 @@ class FrozenPolicyEnv(gym.Env):
         image = self.policy.normalizer.normalize_vision(self.features.get("image_tokens")).mean(2).flatten(1)
         text = pooled_text(self.features.get("text_tokens"), self.features.get("text_mask"))
         features = torch.cat([image, text], dim=-1)[0].cpu().numpy().astype(np.float32)
-        return {"robot_state": np.asarray(obs[STATE_NAME], dtype=np.float32), "features": features}
+        seen = {"robot_state": np.asarray(obs[STATE_NAME], dtype=np.float32), "features": features}
+        if "object_estimate" in self.observation_space.spaces:
+            seen["object_estimate"] = self.policy.estimate_env_state(self.features)[0].cpu().numpy().astype(np.float32)
+        return seen
 
     def step_base(self) -> tuple[dict, float, bool, bool, dict]:
         """One step in which the base policy acts as it would alone (the RL agent's "off" action)."""

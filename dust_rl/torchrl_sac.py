@@ -27,17 +27,19 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate
 from tqdm.auto import tqdm
 
+from dust_rl.frozen_policy_env import OBSERVATION_ENTRIES
 from dust_rl.start_at_base import check_initial_std
 
-OBSERVATION_ENTRIES = ("robot_state", "features")  # of the fine-tuning envs' observation dict
 FIXED_STD_ALPHA = 1e-6
 """Entropy coefficient, kept fixed, when the std is fixed (``initial_std``): SB3's ``ent_coef=0`` as near as torchrl's
 ``SACLoss`` allows (it stores log alpha); why none: :mod:`dust_rl.start_at_base`."""
 
 
 def torchrl_env(env: gym.Env) -> TransformedEnv:
-    """A fine-tuning env as a torchrl env with one ``observation`` vector (state, then features)."""
-    return TransformedEnv(GymWrapper(env), CatTensors(list(OBSERVATION_ENTRIES), "observation", del_keys=False))
+    """A fine-tuning env as a torchrl env with one ``observation`` vector: its entries
+    (:data:`~dust_rl.frozen_policy_env.OBSERVATION_ENTRIES`) in the alphabetical order ``CatTensors`` sorts them to."""
+    entries = [name for name in OBSERVATION_ENTRIES if name in env.observation_space.spaces]
+    return TransformedEnv(GymWrapper(env), CatTensors(entries, "observation", del_keys=False))
 
 
 class FixedScale(nn.Module):

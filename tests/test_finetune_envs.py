@@ -167,3 +167,22 @@ def test_torchrl_sac_starts_at_the_base_policy_with_initial_std(steering):
     assert torch.equal(out["scale"], torch.full((28,), 0.1))  # ... and not the std
     with pytest.raises(ValueError, match="initial exploration std must be a finite number > 0"):
         train_sac(make_steering_env, steps=1, initial_std=float("nan"), progress=False)
+
+
+def test_a_policy_with_a_read_out_shows_its_object_estimate(tiny_encoder, minilm):
+    env = make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE})
+    width = env.observation_space["observation.environment_state"].shape[0]
+    torch.manual_seed(0)
+    policy = unwrap(make_policy("action_only", image_encoder=tiny_encoder, text_encoder=minilm,
+                                cameras=["front", "wrist"], action_dim=7,
+                                state_dim=env.observation_space["observation.state"].shape[0], horizon=4,
+                                execute_steps=2, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                                aux_state_dim=width, lambda_aux=1.0, aux_state_input=True))
+    steering = NoiseSteeringEnv(env, policy)
+    check_env(steering)
+    obs, _ = steering.reset(seed=1)
+    expected = policy.estimate_env_state(steering.features)[0]
+    torch.testing.assert_close(torch.from_numpy(obs["object_estimate"]), expected, rtol=0, atol=0)
+    td = torchrl_env(steering).reset()  # one flat vector, the estimate included, its entries in alphabetical order
+    assert torch.equal(td["observation"], torch.cat([td["features"], td["object_estimate"], td["robot_state"]]))
+    steering.close()
