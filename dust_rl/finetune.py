@@ -98,6 +98,9 @@ class FinetuneConfig:
     """Steering: the noise magnitude an RL action of +-1 maps to."""
     residual_scale: float = 0.1
     """Residual: what an RL action of +-1 adds, as a fraction of the action box's half-width."""
+    world_model_obs: bool = False
+    """Residual: the RL agent (actor and critic) also sees the future DUST sampled jointly with the chunk being
+    executed (:mod:`dust_rl.residual`); needs a policy that predicts one."""
     learning_starts: int = 1000
     """SAC: steps before the first update (uniformly random actions, unless ``initial_std`` is set)."""
     initial_std: float | None = None
@@ -172,6 +175,8 @@ class FinetuneConfig:
             raise ConfigError(f"wm_select needs rollouts >= {VALIDATION_EVERY}: every {VALIDATION_EVERY}th episode "
                               "validates the scorer")
         check_finite(self, "noise_bound", "residual_scale", positive=True)
+        if self.world_model_obs and self.method != "residual":
+            raise ConfigError(f"world_model_obs applies to --method residual, not {self.method}")
         if self.initial_std is not None:
             check_finite(self, "initial_std", positive=True)
         if not self.net_arch or min(self.net_arch) < 1:
@@ -316,7 +321,8 @@ def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Ca
         if config.method == "steer":
             return NoiseSteeringEnv(env, policy, noise_bound=config.noise_bound)
         half_width = (env.action_space.high - env.action_space.low) / 2
-        return ResidualEnv(env, policy, residual_scale=config.residual_scale * half_width)
+        return ResidualEnv(env, policy, residual_scale=config.residual_scale * half_width,
+                           world_model=config.world_model_obs)
 
     return make, task
 

@@ -34,8 +34,8 @@ from dust_rl.agents.execution import episode_generator
 from dust_rl.keys import INSTRUCTION_KEY, STATE_KEY, flat_name
 
 STATE_NAME = flat_name(STATE_KEY)
-OBSERVATION_ENTRIES = ("robot_state", "object_estimate", "features")
-"""The observation's entries (``object_estimate`` where present)."""
+OBSERVATION_ENTRIES = ("robot_state", "object_estimate", "features", "predicted_future")
+"""The observation's entries (``object_estimate`` and ``predicted_future`` where present)."""
 
 
 def observation_td(obs: dict) -> TensorDict:
@@ -69,6 +69,7 @@ class FrozenPolicyEnv(gym.Env):
         self.features: TensorDict | None = None  # of the newest observation, for the next plan
         self.generator = episode_generator(0)
         self.executed: list[np.ndarray] = []  # the env actions of the current episode
+        self.predicted_future: np.ndarray | None = None  # of the newest plan
         self.env_steps = 0  # env steps of every episode so far (RL steps differ when one step runs a chunk)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
@@ -119,10 +120,18 @@ class FrozenPolicyEnv(gym.Env):
         raise NotImplementedError
 
     def plan(self, action_noise: torch.Tensor | None = None) -> torch.Tensor:
-        """The policy's chunk [H, Da] (on the CPU) for the newest observation, from the episode's noise generator."""
+        """The policy's chunk [H, Da] (on the CPU) for the newest observation, from the episode's noise generator.
+
+        The future DUST sampled with it, normalised and flattened [N_o * Dv], is kept in :attr:`predicted_future`
+        (None when the policy predicts none).
+        """
         if action_noise is not None:
             action_noise = action_noise.to(self.policy.weights_device)
-        return self.policy.plan_features(self.features, self.generator, action_noise).get("action_chunk")[0].cpu()
+        out = self.policy.plan_features(self.features, self.generator, action_noise)
+        future = out.get("future_tokens", None)
+        self.predicted_future = (None if future is None else
+                                 self.policy.normalizer.normalize_vision(future)[0].flatten().cpu().numpy())
+        return out.get("action_chunk")[0].cpu()
 
     def close(self) -> None:
         self.env.close()

@@ -8,7 +8,11 @@ its action in [-1, 1]^Da to the action about to be executed, clipped to the
 env's action box. A zero residual executes exactly the base policy's episode
 (a trained policy's chunks already lie in the box: training sets its bounds).
 The agent sees the base action it corrects beside the observation of
-:mod:`dust_rl.frozen_policy_env`.
+:mod:`dust_rl.frozen_policy_env`; with ``world_model`` it (actor and critic
+alike) also sees ``predicted_future``, the embedding of the frame at t+H that
+DUST sampled jointly with the chunk being executed (normalised, [N_o * Dv]):
+the world model's own guess at where that chunk leads, free, since the plan
+computes it anyway.
 """
 
 from __future__ import annotations
@@ -30,18 +34,29 @@ class ResidualEnv(FrozenPolicyEnv):
         residual_scale: per action dimension, what an RL action of +-1 adds (a number or [Da]); default 10% of
             the action box's half-width.
         execute_steps: actions executed per chunk before the policy re-plans; default: the policy's own.
+        world_model: also observe the predicted future of the chunk being executed (module doc).
+
+    Raises:
+        ValueError: ``world_model`` with a policy that predicts no future (the action-only variant or sampler).
     """
 
     def __init__(self, env: gym.Env, policy: DustPolicy, residual_scale: float | np.ndarray | None = None,
-                 execute_steps: int | None = None) -> None:
+                 execute_steps: int | None = None, world_model: bool = False) -> None:
         super().__init__(env, policy, execute_steps)
+        if world_model and policy.config.sampler_name == "action_only":
+            raise ValueError(f"world_model needs a policy that predicts the future; this one (variant "
+                             f"{policy.config.variant!r}, sampler {policy.config.sampler_name!r}) does not")
         low, high = env.action_space.low, env.action_space.high
         scale = 0.1 * (high - low) / 2 if residual_scale is None else residual_scale
         self.residual_scale = np.broadcast_to(np.asarray(scale, dtype=np.float32), low.shape).copy()
         if not (np.isfinite(self.residual_scale).all() and (self.residual_scale >= 0).all()):
             raise ValueError(f"residual_scale must be finite and >= 0, got {residual_scale}")
         self.action_space = spaces.Box(-1.0, 1.0, low.shape, np.float32)
-        self.observation_space = spaces.Dict({**self.observation_space.spaces, "base_action": env.action_space})
+        entries = {**self.observation_space.spaces, "base_action": env.action_space}
+        if world_model:
+            size = policy.config.n_vision_tokens * policy.config.vision_dim
+            entries["predicted_future"] = spaces.Box(-np.inf, np.inf, (size,), np.float32)
+        self.observation_space = spaces.Dict(entries)
         self.chunk, self.index = None, 0
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
@@ -69,7 +84,10 @@ class ResidualEnv(FrozenPolicyEnv):
         view = super().observe(obs)
         if self.chunk is None or self.index >= self.execute_steps:
             self.chunk, self.index = self.plan().numpy(), 0
-        return {**view, "base_action": self.base_action}
+        view["base_action"] = self.base_action
+        if "predicted_future" in self.observation_space.spaces:
+            view["predicted_future"] = self.predicted_future.astype(np.float32)
+        return view
 
     @property
     def base_action(self) -> np.ndarray:

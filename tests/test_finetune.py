@@ -114,6 +114,8 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         FinetuneConfig(policy=policy_path, initial_std=0.0)
     with pytest.raises(ConfigError, match="net_arch"):
         FinetuneConfig(policy=policy_path, net_arch=())
+    with pytest.raises(ConfigError, match="world_model_obs applies to --method residual, not steer"):
+        FinetuneConfig(policy=policy_path, world_model_obs=True)
     with pytest.raises(ConfigError, match="unknown device 'tpu'"):
         FinetuneConfig(policy=policy_path, device="tpu")
     with pytest.raises(ConfigError, match="no_such_task"):

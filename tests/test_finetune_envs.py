@@ -186,3 +186,29 @@ def test_a_policy_with_a_read_out_shows_its_object_estimate(tiny_encoder, minilm
     td = torchrl_env(steering).reset()  # one flat vector, the estimate included, its entries in alphabetical order
     assert torch.equal(td["observation"], torch.cat([td["features"], td["object_estimate"], td["robot_state"]]))
     steering.close()
+
+
+def test_the_residual_agent_can_see_the_future_dust_sampled_with_the_chunk(steering, tiny_encoder, minilm):
+    _, policy = steering
+    env = ResidualEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE}), policy,
+                      world_model=True)
+    check_env(env)
+    obs, _ = env.reset(seed=5)
+    plan = policy.plan_features(env.features, episode_generator(5))  # the same first draw as the env's plan
+    expected = policy.normalizer.normalize_vision(plan["future_tokens"])[0].flatten()
+    torch.testing.assert_close(torch.from_numpy(obs["predicted_future"]), expected, rtol=0, atol=0)
+    assert np.array_equal(obs["base_action"], plan["action_chunk"][0, 0].numpy())
+    futures = [obs["predicted_future"]]
+    for _ in range(3):  # execute_steps 2: the future changes with the re-plan, not between
+        obs, *_ = env.step(np.zeros(7, np.float32))
+        futures.append(obs["predicted_future"])
+    assert np.array_equal(futures[0], futures[1]) and not np.array_equal(futures[1], futures[2])
+    assert np.array_equal(futures[2], futures[3])
+    env.close()
+    action_only = unwrap(make_policy("action_only", image_encoder=tiny_encoder, text_encoder=minilm,
+                                     cameras=["front", "wrist"],
+                                     action_dim=7, state_dim=policy.config.state_dim, horizon=4, d_model=32,
+                                     n_heads=2, n_mmdit=2, n_dit=0))
+    with pytest.raises(ValueError, match="world_model needs a policy that predicts the future"):
+        ResidualEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE}), action_only,
+                    world_model=True)
