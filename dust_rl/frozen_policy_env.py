@@ -18,6 +18,8 @@ observation               shape              meaning
                                              (``--policy.lambda-aux``): its estimate of the
                                              normalised object state, where the mean-pooled
                                              features no longer say where a small object is
+``predicted_future``      [N_o * Dv]         residual with ``world_model`` only
+                                             (:mod:`dust_rl.residual`)
 ========================  =================  ===================================================
 """
 
