@@ -29,6 +29,13 @@ random offsets, nothing held. Measured on pick_place, half of 8,000 frames of
 this kind made the read-out worse, not better (9.5 cm from the named cube at
 the first step of unseen demonstrations instead of 2.3 cm; README).
 
+Those frames bring the shortcut back (the target is where the gripper is).
+``--aux-approach-displacement r`` breaks it again: after the approach every
+free object is moved by its own uniformly random offset within r metres on
+the table plane (then rendered, not simulated), so the gripper hovers near the
+objects, the close-up is the same, and where the target lies relative to the
+gripper has to be read from the image.
+
 Seeds start at :data:`FIRST_SEED`, away from the demonstration (0..),
 validation (5000..) and held-out (10000..) seeds, so the frames never show a
 layout the policy is scored on.
@@ -56,8 +63,8 @@ MAX_NUDGE_STEPS = 10  # random motions after an approach
 
 def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: list[str], count: int,
                       env_state_width: int, seed: int = 0, expert_fraction: float = 0.0,
-                      approach_fraction: float = 0.0, first_seed: int = FIRST_SEED,
-                      progress: bool = True) -> tuple[TensorDict, list[str]]:
+                      approach_fraction: float = 0.0, approach_displacement: float = 0.0,
+                      first_seed: int = FIRST_SEED, progress: bool = True) -> tuple[TensorDict, list[str]]:
     """``count`` frames of random resets and random arm motions (or expert motions, or approaches), tasks in turn.
 
     Args:
@@ -69,6 +76,8 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
         seed: offsets the frames' seeds (first_seed + seed * count + i), so runs can differ.
         expert_fraction: chance that a frame comes from the scripted expert's motion rather than random actions.
         approach_fraction: chance that it comes from an approach (the expert's motion up to its grasp, nudged).
+        approach_displacement: after an approach, move every free object by up to this many metres on the table
+            plane (module doc); 0: leave them.
         first_seed: :data:`FIRST_SEED` for frames to fit, :data:`HELDOUT_FIRST_SEED` for frames that measure.
         progress: show a progress bar.
 
@@ -92,6 +101,8 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
             elif draw < expert_fraction + approach_fraction:
                 closure = _approach_steps(sim, int(rng.integers(0, MAX_EXPERT_STEPS)))
                 _random_steps(sim, rng, int(rng.integers(0, MAX_NUDGE_STEPS)), closure)
+                if approach_displacement:
+                    sim.displace_free_bodies(rng, approach_displacement)
             else:
                 _random_steps(sim, rng, int(rng.integers(0, MAX_RANDOM_STEPS)))
             obs = sim.observe()

@@ -102,6 +102,10 @@ class TrainSettings:
     aux_approach_fraction: float = 0.0
     """Share of the aux frames taken where the expert is about to grasp, then nudged by 0..9 random arm motions
     (:mod:`dust_rl.aux_frames`): the gripper beside its target at random offsets, nothing held."""
+    aux_approach_displacement: float = 0.0
+    """Metres: after each approach frame's motion, every free object is moved by its own random offset within
+    this radius on the table plane (:mod:`dust_rl.aux_frames`), so the read-out cannot take the gripper's place
+    for the target's; 0: off. Needs ``aux_approach_fraction``."""
     readout_warmup: int = 0
     """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
     the policy trains; they are then frozen (:mod:`dust_rl.readout_warmup`). Needs ``aux_frames``; 0: off."""
@@ -186,6 +190,10 @@ class TrainSettings:
                 raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
             if getattr(self, name) and not self.aux_frames:
                 raise ConfigError(f"{name} needs --aux-frames > 0: it is a share of those frames")
+        check_finite(self, "aux_approach_displacement")
+        if self.aux_approach_displacement and not self.aux_approach_fraction:
+            raise ConfigError("aux_approach_displacement moves the objects of approach frames: it needs "
+                              "--aux-approach-fraction > 0")
         if self.aux_expert_fraction + self.aux_approach_fraction > 1:
             raise ConfigError("aux_expert_fraction + aux_approach_fraction must be at most 1 (shares of the same "
                               f"frames), got {self.aux_expert_fraction} + {self.aux_approach_fraction}")
@@ -492,6 +500,7 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                                            policy.cameras, count or config.aux_frames, env_state_width(dataset),
                                            seed=config.seed, expert_fraction=config.aux_expert_fraction,
                                            approach_fraction=config.aux_approach_fraction,
+                                           approach_displacement=config.aux_approach_displacement,
                                            first_seed=first_seed, progress=config.progress)
     return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
 

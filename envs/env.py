@@ -248,6 +248,15 @@ class DustEnv(gym.Env):
             reason = "time_limit"
         return bool(success), reason
 
+    def displace_free_bodies(self, rng: np.random.Generator, radius: float) -> None:
+        """Move every free body (the task's loose objects) by its own uniformly random offset within ``radius`` on
+        the table plane, heights and orientations kept, and recompute the kinematics (no physics step): a frame
+        whose objects sit elsewhere relative to the arm (``dust_rl.aux_frames``)."""
+        for joint in np.flatnonzero(self.model.jnt_type == mujoco.mjtJoint.mjJNT_FREE):
+            angle, distance = rng.uniform(0, 2 * np.pi), radius * np.sqrt(rng.uniform())
+            address = self.model.jnt_qposadr[joint]
+            self.data.qpos[address:address + 2] += distance * np.array([np.cos(angle), np.sin(angle)])
+        mujoco.mj_forward(self.model, self.data)
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array":

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DEMO_ENV_KWARGS
+from tensordict import TensorDict
 
 from dust_rl.agents import DustConfig, DustPolicy, make_policy, unwrap
 from dust_rl.agents.attention_pooling import WIDTH
@@ -81,6 +82,24 @@ def test_approach_frames_show_the_gripper_near_unheld_objects():
     heights = rows.get(ENV_STATE_KEY)[:, 2].numpy()
     np.testing.assert_allclose(heights, rest, atol=0.01)  # the named cube never lifted
     assert not torch.equal(rows.get((*IMAGE_KEY, "front")), random_rows.get((*IMAGE_KEY, "front")))
+
+
+def test_displaced_approach_frames_move_every_object_within_the_radius_and_not_the_arm():
+    radius = 0.05
+
+    def frames(displacement: float) -> TensorDict:
+        rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 4, 9, approach_fraction=1.0,
+                                    approach_displacement=displacement, progress=False)
+        return rows
+
+    still, moved = frames(0.0), frames(radius)
+    offsets = (moved.get(ENV_STATE_KEY) - still.get(ENV_STATE_KEY)).view(4, 3, 3)  # target, distractor, plate xyz
+    planar = offsets[..., :2].norm(dim=-1)
+    assert (planar <= radius + 1e-6).all() and (planar[:, :2] > 0).all()  # the cubes moved, each within the radius
+    # On the table plane only: heights change by no more than the last physics substep's motion, which the state read
+    # before the displacement's kinematics update did not include yet (well under a millimetre).
+    assert offsets[..., 2].abs().max() < 1e-3
+    assert not torch.equal(moved.get((*IMAGE_KEY, "front")), still.get((*IMAGE_KEY, "front")))
 
 
 def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm):

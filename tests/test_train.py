@@ -145,6 +145,11 @@ def test_training_logs_the_aux_frame_loss(readout, run_inputs, tmp_path):
         tiny_config(run_inputs, out, aux_frames=3, aux_expert_fraction=1.5, **pixels)
     with pytest.raises(ConfigError, match="aux_approach_fraction needs --aux-frames"):
         tiny_config(run_inputs, out, aux_approach_fraction=0.5, **pixels)
+    with pytest.raises(ConfigError, match="aux_approach_displacement moves the objects of approach frames"):
+        tiny_config(run_inputs, out, aux_frames=3, aux_approach_displacement=0.05, **pixels)
+    with pytest.raises(ConfigError, match="aux_approach_displacement must be a finite number >= 0"):
+        tiny_config(run_inputs, out, aux_frames=3, aux_approach_fraction=0.5, aux_approach_displacement=-0.1,
+                    **pixels)
     with pytest.raises(ConfigError, match=r"aux_expert_fraction \+ aux_approach_fraction must be at most 1"):
         tiny_config(run_inputs, out, aux_frames=3, aux_expert_fraction=0.5, aux_approach_fraction=0.6, **pixels)
 
