@@ -1,15 +1,6 @@
 """How far is a policy's object-state read-out from the truth, by time in the episode?
 
-A policy trained with ``--policy.lambda-aux`` estimates the privileged object state
-from its keypoints. On expert demonstrations the gripper sits on the target
-cube for most of an episode, so an estimate that merely follows the gripper
-scores well on average; this table separates the steps where the gripper is
-still far from the target (the ones that decide where the arm goes) from the
-rest. The first columns of ``observation.environment_state`` must be the
-named object's xyz, then the next object's ``--columns`` on (3 for the Franka
-pick and place tasks, 4 for press_button: xyz and depression per button); the
-last two columns tell a read-out that finds the objects but not which one is
-named (its target estimate then sits near the other one).
+Prints :func:`dust_rl.readout_error.readout_error_table` (why: that module's doc) for a trained policy.
 
     .venv/bin/python scripts/readout_error.py --policy runs/train/T/policy.pt --dataset runs/data/T_val
 """
@@ -21,13 +12,9 @@ import argparse
 import torch
 
 from dust_rl.agents import load_policy, unwrap
-from dust_rl.data import DemoDataset, DemoWindows
-from dust_rl.features import FeatureCache, env_state_stats
-from dust_rl.keys import ENV_STATE_KEY, STATE_KEY
-
-STEP_BUCKETS = ((0, 1), (1, 10), (10, 30), (30, 60), (60, 10**6))
-EE_BLOCK = 8  # the state ends with the end effector's position, quaternion and opening (envs/env.py)
-TARGET_XY = slice(0, 2)  # the named object's xy in the object state
+from dust_rl.data import DemoDataset
+from dust_rl.features import env_state_stats
+from dust_rl.readout_error import readout_error_table
 
 
 def main() -> None:
@@ -38,29 +25,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     policy = unwrap(load_policy(args.policy))
-    dataset = DemoDataset(args.dataset)
-    mean, std = env_state_stats(DemoDataset(policy.info["dataset"]))  # the training data's normalisation
-    cache = FeatureCache(dataset, policy, progress=False)
-    windows = list(DemoWindows(dataset, horizon=policy.config.horizon, images=False).iterate(512))
-    estimate = torch.cat([policy.estimate_env_state(cache.batch(w)) for w in windows]) * std + mean
-    objects = torch.cat([w.get(ENV_STATE_KEY) for w in windows]).float()
-    other_xy = slice(args.columns, args.columns + 2)
-    target, other = objects[:, TARGET_XY], objects[:, other_xy]
-    gripper = torch.cat([w.get(STATE_KEY) for w in windows]).float()[:, -EE_BLOCK:-EE_BLOCK + 2]
-    step = torch.arange(len(dataset)) - torch.repeat_interleave(dataset.episode_starts, dataset.lengths)
-    print("| steps | rows | estimate to target (cm) | estimate to gripper (cm) | gripper to target (cm) | "
-          "estimate to the next object (cm) | next object's estimate to it (cm) |")
-    print("|---|---|---|---|---|---|---|")
-    for low, high in STEP_BUCKETS:
-        m = (step >= low) & (step < high)
-        if m.any():
-            def cm(a: torch.Tensor, b: torch.Tensor, m: torch.Tensor = m) -> float:
-                return 100 * (a[m] - b[m]).norm(dim=1).mean().item()
-
-            name = f"{low}+" if high > 10**5 else str(low) if high == low + 1 else f"{low}-{high - 1}"
-            print(f"| {name} | {int(m.sum())} | {cm(estimate[:, TARGET_XY], target):.1f} | "
-                  f"{cm(estimate[:, TARGET_XY], gripper):.1f} | {cm(gripper, target):.1f} | "
-                  f"{cm(estimate[:, TARGET_XY], other):.1f} | {cm(estimate[:, other_xy], other):.1f} |")
+    stats = env_state_stats(DemoDataset(policy.info["dataset"]))  # the training data's normalisation
+    print(readout_error_table(policy, DemoDataset(args.dataset), stats, args.columns))
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from dust_rl.agents import make_policy, unwrap
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset
 from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.readout_error import readout_error_table
 from dust_rl.readout_warmup import warm_up_readout
 
 
@@ -38,6 +39,8 @@ def main() -> None:
     parser.add_argument("--image-encoder", default="efficientnet-lite0-s8")
     parser.add_argument("--cond-grid", type=int, default=8)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 beside a training)")
+    parser.add_argument("--val-dataset", help="demonstrations on other seeds: also print the read-out's error on "
+                                              "their rows by step of the episode (scripts/readout_error.py's table)")
     args = parser.parse_args()
     began = time.perf_counter()
     torch.set_num_threads(args.threads)
@@ -78,6 +81,8 @@ def main() -> None:
           f"held-out xy error per object (named first), cm: {[round(v, 1) for v in cm.tolist()]}; "
           f"predicting the mean: {[round(v, 1) for v in spread.tolist()]}")
     print("normalised squared error per column:", [round(v, 3) for v in (estimate - truth).square().mean(0).tolist()])
+    if args.val_dataset:
+        print(readout_error_table(policy, DemoDataset(args.val_dataset), stats, args.columns))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,35 @@
+"""The read-out error table: per step bucket, the distances it names, on a real dataset."""
+
+from __future__ import annotations
+
+import torch
+
+from dust_rl.agents import make_policy, unwrap
+from dust_rl.data import DemoDataset
+from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.keys import ENV_STATE_KEY
+from dust_rl.readout_error import STEP_BUCKETS, TARGET_XY, readout_error_table
+
+
+def test_a_read_out_that_always_says_the_mean_is_as_far_off_as_the_mean_is(demo_dir, tiny_encoder, minilm):
+    dataset = DemoDataset(demo_dir)
+    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                                aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
+    last = policy.state_readout.pool.head[-1]
+    with torch.no_grad():  # estimate 0 in normalised units: the training mean, whatever the image
+        last.weight.zero_()
+        last.bias.zero_()
+    mean, std = env_state_stats(dataset)
+    table = readout_error_table(policy, dataset, (mean, std)).splitlines()
+    target = dataset.data.get(ENV_STATE_KEY)[:, TARGET_XY].float()
+    step = torch.arange(len(dataset)) - torch.repeat_interleave(dataset.episode_starts, dataset.lengths)
+    rows = table[2:]
+    filled = [(low, high) for low, high in STEP_BUCKETS if ((step >= low) & (step < high)).any()]
+    assert len(rows) == len(filled)
+    for row, (low, high) in zip(rows, filled):
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        m = (step >= low) & (step < high)
+        assert int(cells[1]) == int(m.sum())
+        expected = 100 * (target[m] - mean[TARGET_XY]).norm(dim=1).mean().item()
+        assert abs(float(cells[2]) - expected) <= 0.05 + 1e-6  # printed to 0.1 cm
