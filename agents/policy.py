@@ -305,8 +305,7 @@ class DustPolicy(VLAWrapperBase):
         image = self.normalizer.normalize_vision(features.get("image_tokens"))  # on the token grid
         on_grid = self._pooled(image, self.config.condition_grid)  # what the trunk and keypoints read
         text, text_mask = features.get("text_tokens"), features.get("text_mask")
-        keypoints = (self.condition.keypoint_features(on_grid, features.get("pixels", None), augment, generator)
-                     if self.config.keypoints else None)
+        keypoints = self._keypoints(on_grid, features, augment, generator)
         cond, mask = self.condition(on_grid, text, text_mask, keypoints)
         batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
         if self.config.aux_state_dim:  # the loss and the diagnostics read the estimate; the trunk only if fed
@@ -326,7 +325,16 @@ class DustPolicy(VLAWrapperBase):
         """
         if not self.config.aux_state_dim:
             raise ValueError("this policy has no state read-out (trained without --policy.lambda-aux)")
-        return self._model_batch(features).get("env_state_estimate")
+        image = self.normalizer.normalize_vision(features.get("image_tokens"))  # the read-out alone, no trunk input
+        keypoints = self._keypoints(self._pooled(image, self.config.condition_grid), features)
+        return self._readout(image, keypoints, features.get("text_tokens"), features.get("text_mask"))
+
+    def _keypoints(self, on_grid: Tensor, features: TensorDictBase, augment: bool = False,
+                   generator: torch.Generator | None = None) -> Tensor | None:
+        """The keypoint features of a feature batch (None without keypoints)."""
+        if not self.config.keypoints:
+            return None
+        return self.condition.keypoint_features(on_grid, features.get("pixels", None), augment, generator)
 
     def _readout(self, image: Tensor, keypoints: Tensor | None, text: Tensor, text_mask: Tensor) -> Tensor:
         """The read-out's estimate [B, S] from the standardised image tokens or the keypoints, whichever it reads."""
