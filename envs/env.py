@@ -69,7 +69,8 @@ class DustEnv(gym.Env):
         image_size: image height and width in pixels (a positive int or ``(height, width)``).
         cameras: cameras to render; defaults to the robot's (Franka: ``front``, ``wrist``;
             humanoid: ``head``, with ``left_wrist``, ``right_wrist`` and ``front`` on request).
-        reward_type: ``"sparse"`` (1 on success) or ``"dense"`` (staged shaping, 1 on success).
+        reward_type: ``"sparse"`` (1 on success) or ``"dense"`` (potential-based staged shaping: the change
+            in :meth:`progress` each step, which counts 1 on success; see :meth:`step`).
         render_mode: ``"rgb_array"`` or None.
         render_quality: ``"fast"`` (no shadows/MSAA, low-poly robot) or ``"visual"``.
         max_episode_steps: overrides the task's default time limit (a positive int).
@@ -157,6 +158,7 @@ class DustEnv(gym.Env):
         self.observation_space = self._make_observation_space()
         self._instruction = ""
         self._elapsed = 0
+        self._progress = 0.0  # of the newest state (the dense reward's potential)
 
     # -- construction ---------------------------------------------------------------------------
 
@@ -223,16 +225,26 @@ class DustEnv(gym.Env):
         # Let props settle on the table before the first observation.
         mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
         self._elapsed = 0
+        self._progress = self.progress()
         return self.observe(), self._info(success=False, reason="")
 
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        """One control step. The dense reward is potential-based (Ng et al. 1999): progress(s') - progress(s),
+        with progress 1 on success, so an episode's rewards sum to what it gained and standing still earns 0.
+        Paying the progress itself each step, as this env did before, made success (1, then the episode ends)
+        worth less to an RL agent than hovering just short of it (up to ~100 times its progress at a discount
+        of 0.99)."""
         success, reason = self.advance(action)
         if self.reward_type == "dense":
-            eef = self.data.site_xpos[self._ee_sites[0]]
-            reward = 1.0 if success else self.task.progress(self.model, self.data, eef)
+            progress = 1.0 if success else self.progress()
+            reward, self._progress = progress - self._progress, progress
         else:
             reward = float(success)
         return self.observe(), float(reward), success, bool(reason), self._info(success, reason)
+
+    def progress(self) -> float:
+        """The task's staged progress toward success, in [0, 1): the potential of the dense reward."""
+        return float(self.task.progress(self.model, self.data, self.data.site_xpos[self._ee_sites[0]]))
 
     def advance(self, action: np.ndarray) -> tuple[bool, str]:
         """One control step without an observation (no rendering): :meth:`step` minus the observation, for

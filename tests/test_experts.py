@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 from conftest import SUITE_TASKS
 
@@ -20,9 +23,10 @@ def test_expert_solves_task(robot, task):
 
 
 @pytest.mark.parametrize(("robot", "task"), SUITE_TASKS)
-def test_dense_reward_rises_along_expert_episode(robot, task):
+def test_dense_reward_is_the_change_in_progress_along_expert_episode(robot, task):
     env = DustEnv(task=task, robot=robot, obs_mode="state", reward_type="dense")
     env.reset(seed=3)
+    start = env.progress()
     expert = env.make_expert()
     rewards = []
     for _ in range(env.max_episode_steps):
@@ -30,9 +34,21 @@ def test_dense_reward_rises_along_expert_episode(robot, task):
         rewards.append(reward)
         if terminated or truncated:
             break
-    assert all(0.0 <= r <= 1.0 for r in rewards)
-    assert rewards[-1] == 1.0 and max(rewards[:-1]) < 1.0
-    assert rewards[len(rewards) // 2] > rewards[0]
+    assert terminated and 0.0 <= start < 1.0
+    # Potential-based: the rewards telescope to 1 (success) minus the start's progress; float64 sums of
+    # float64 differences, so the tolerance is a few ulps per step.
+    assert abs(math.fsum(rewards) - (1.0 - start)) <= 8 * len(rewards) * np.finfo(np.float64).eps
+    assert math.fsum(rewards[:len(rewards) // 2]) > 0.0  # halfway, the expert has made progress
+
+
+def test_dense_reward_pays_nothing_for_standing_still():
+    env = DustEnv(task="press_button", obs_mode="state", reward_type="dense")
+    env.reset(seed=0)
+    env.step(np.zeros(env.action_space.shape, np.float32))  # let the arm settle at rest
+    before = env.progress()
+    rewards = [env.step(np.zeros(env.action_space.shape, np.float32))[1] for _ in range(5)]
+    assert abs(math.fsum(rewards) - (env.progress() - before)) <= 8 * 5 * np.finfo(np.float64).eps
+    assert abs(math.fsum(rewards)) < 1e-3  # no per-step income (the arm at rest moves by micrometres)
 
 
 @pytest.mark.slow
