@@ -92,8 +92,8 @@ class FinetuneConfig:
     task: str | None = None
     """Task to fine-tune on; default: the policy's first training task."""
     reward: Literal["sparse", "dense"] = "sparse"
-    """The env's reward while training: 1 on success only, or the task's staged progress shaping
-    (evaluation counts successes either way)."""
+    """The env's reward while training: 1 on success only, or the change in the task's staged progress each step
+    (potential-based shaping, ``DustEnv.step``; evaluation counts successes either way)."""
     noise_bound: float = 2.0
     """Steering: the noise magnitude an RL action of +-1 maps to."""
     residual_scale: float = 0.1

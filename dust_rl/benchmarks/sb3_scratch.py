@@ -3,9 +3,9 @@
 Why: fine-tuning an imitation policy is worth its machinery only against what plain RL reaches in the same
 env steps without one. The reference is generous to RL: the state mode (``obs_mode="state"``) hands the agent
 the robot state and the objects' true state (``environment_state``, the named object first), no images, and
-the task's staged dense reward by default. Success is counted as ``dust-rl finetune`` counts it: the agent's
-deterministic action, the env's ``is_success``, on held-out seeds from 10,000 (validation seeds from 5,000
-for the learning curve). Not resumable: a run is minutes to an hour; rerun it whole.
+the task's staged dense reward (potential-based) by default. Success is counted as ``dust-rl finetune`` counts
+it: the agent's deterministic action, the env's ``is_success``, on held-out seeds from 10,000 (validation seeds
+from 5,000 for the learning curve). Not resumable: a run is minutes to an hour; rerun it whole.
 
     python -m dust_rl.benchmarks.sb3_scratch --task press_button --algorithm sac --steps 100000 \
         --eval-every 20000 --out runs/bench/sb3_scratch/press_button_sac
