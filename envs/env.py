@@ -225,7 +225,8 @@ class DustEnv(gym.Env):
         # Let props settle on the table before the first observation.
         mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
         self._elapsed = 0
-        self._progress = self.progress()
+        if self.reward_type == "dense":
+            self._progress = self.progress()
         return self.observe(), self._info(success=False, reason="")
 
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
