@@ -34,6 +34,10 @@ def test_quickstart_then_eval_command(tiny_encoder, tmp_path, capsys):
         assert (out / "eval" / name).stat().st_size > 0, name
     summary = json.loads((out / "quickstart.json").read_text())
     assert set(summary["stages_seconds"]) == {"collect", "train", "eval", "total"}
+    # The default recipe (not given above) trained: the token read-out, fitted first on rendered frames.
+    policy = summary["quickstart"]["train"]["policy"]
+    assert policy["readout"] == "tokens" and policy["text_fusion"] and policy["aux_state_input"]
+    assert (out / "train" / "logs" / "train" / "scalars" / "warmup" / "loss_aux_frames.csv").stat().st_size > 0
 
     # Re-running resumes: the data and the finished training are reused, only evaluation runs again.
     logged = (out / "train" / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text()
