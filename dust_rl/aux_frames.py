@@ -54,8 +54,9 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
 from dust_rl.env_factory import make_env
+from dust_rl.env_state_norm import EnvStateNorm
 from dust_rl.envs.env import ACTION_WIDTH, CLOSURE, DustEnv
-from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, flat_name
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, TASK_INDEX_KEY, flat_name
 
 FIRST_SEED = 1_000_000
 HELDOUT_FIRST_SEED = 2_000_000  # frames that only measure the read-out (never fitted)
@@ -86,8 +87,8 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
         progress: show a progress bar.
 
     Returns:
-        (rows with ``(observation, image, cam)`` uint8 [count, 3, H, W] and the object state [count, S],
-        the instruction of each frame).
+        (rows with ``(observation, image, cam)`` uint8 [count, 3, H, W], the object state [count, S] and
+        ``task_index`` [count] (into ``tasks``), the instruction of each frame).
     """
     envs = {task: make_env(env_id, {**env_kwargs, "task": task}) for task in tasks}
     frames = {cam: [] for cam in cameras}
@@ -95,7 +96,7 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
     try:
         for i in tqdm(range(count), desc="aux frames", disable=not progress):
             frame_seed = first_seed + seed * count + i
-            env = envs[tasks[i % len(tasks)]]
+            env = envs[tasks[i % len(tasks)]]  # the task_index below
             rng = np.random.default_rng(frame_seed)
             env.reset(seed=frame_seed)
             sim = env.unwrapped  # steps without rendering; only the frame at the end is drawn
@@ -118,8 +119,8 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
     finally:
         for env in envs.values():
             env.close()
-    rows = TensorDict({**{(*IMAGE_KEY, cam): torch.stack(frames[cam]) for cam in cameras}, ENV_STATE_KEY: states},
-                      batch_size=[count])
+    rows = TensorDict({**{(*IMAGE_KEY, cam): torch.stack(frames[cam]) for cam in cameras}, ENV_STATE_KEY: states,
+                       TASK_INDEX_KEY: torch.arange(count) % len(tasks)}, batch_size=[count])
     return rows, instructions
 
 
@@ -165,12 +166,12 @@ class AuxFrameBatches:
     Args:
         rows, instructions: :func:`render_aux_frames` output.
         policy: supplies the cameras, the text encoder and (for a token read-out) the frozen image encoder.
-        env_state_stats: mean and std that normalise the object state (the training data's).
+        env_state_norm: normalises the object state (the training data's statistics, task by task; ``rows``'
+            ``task_index`` points into its ``tasks``).
     """
 
     def __init__(self, rows: TensorDict, instructions: list[str], policy: DustPolicy,
-                 env_state_stats: tuple[torch.Tensor, torch.Tensor]) -> None:
-        mean, std = env_state_stats
+                 env_state_norm: EnvStateNorm) -> None:
         self.device = policy.weights_device
         # What the read-out reads, made once: the frozen tokens (encoded here) or the raw frames (shifted per draw).
         self.frame_key = "image_tokens" if policy.config.readout == "tokens" else "pixels"
@@ -179,7 +180,8 @@ class AuxFrameBatches:
         distinct = {text: i for i, text in enumerate(dict.fromkeys(instructions))}  # tokens once per instruction
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(list(distinct))
         self.instruction_index = torch.tensor([distinct[text] for text in instructions])
-        self.env_state = (rows.get(ENV_STATE_KEY) - mean) / std
+        self.task_index = rows.get(TASK_INDEX_KEY)
+        self.env_state = env_state_norm.normalize(rows.get(ENV_STATE_KEY), self.task_index)
 
     def __len__(self) -> int:
         return self.frames.shape[0]

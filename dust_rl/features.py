@@ -29,9 +29,9 @@ from tensordict import TensorDict, TensorDictBase
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
-from dust_rl.agents.normalizer import MIN_STD
 from dust_rl.augment import JITTER, MAX_SHIFT, augment_frames, view_generator
 from dust_rl.data import DatasetError, DemoDataset
+from dust_rl.env_state_norm import EnvStateNorm
 from dust_rl.keys import (
     ACTION_CHUNK_KEY,
     ACTION_IS_PAD_KEY,
@@ -97,7 +97,7 @@ class FeatureCache:
             rows = read_rows(self.path, shape)
         self.views = rows.transpose(0, 1)
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(dataset.instructions)
-        self.env_state_stats = env_state_stats(dataset) if policy.config.aux_state_dim else None
+        self.env_state_norm = EnvStateNorm.of_dataset(dataset) if policy.config.aux_state_dim else None
 
     @property
     def image_tokens(self) -> torch.Tensor:
@@ -136,9 +136,9 @@ class FeatureCache:
         view = torch.randint(0, views, rows.shape) if views > 1 else torch.zeros_like(rows)
         labels = {ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY),
                   "future_is_clamped": windows.get((FUTURE_KEY, "is_clamped"))}
-        if self.env_state_stats is not None:
-            mean, std = self.env_state_stats
-            labels["env_state"] = (windows.get(ENV_STATE_KEY).float() - mean) / std
+        if self.env_state_norm is not None:
+            labels["env_state"] = self.env_state_norm.normalize(windows.get(ENV_STATE_KEY).float(),
+                                                                self.dataset.row_task_index[rows])
         frames = None
         if self.policy.reads_pixels:  # read from the dataset's memmap per batch (the OS caches the pages)
             frames = self.policy.frames(self.dataset.data.select(*self._image_keys())[rows])
@@ -154,19 +154,6 @@ class FeatureCache:
 def env_state_width(dataset: DemoDataset) -> int:
     """Size of the dataset's privileged ``observation.environment_state`` (0 when it has none)."""
     return len(dataset.meta["stats"].get(flat_name(ENV_STATE_KEY), {}).get("mean", []))
-
-
-def env_state_stats(dataset: DemoDataset) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean and std (floored at :data:`~dust_rl.agents.normalizer.MIN_STD`) of the privileged state.
-
-    Raises:
-        DatasetError: the dataset stores no environment state (e.g. imported from LeRobot).
-    """
-    if not env_state_width(dataset):
-        raise DatasetError(f"{dataset.root}: no observation.environment_state to learn from (an imported dataset "
-                           "has none); train without the auxiliary state loss")
-    stats = dataset.meta["stats"][flat_name(ENV_STATE_KEY)]
-    return torch.tensor(stats["mean"]), torch.tensor(stats["std"]).clamp_min(MIN_STD)
 
 
 def feature_key(dataset: DemoDataset, policy: DustPolicy, views: int = 1, batch_size: int = 128) -> str:

@@ -32,11 +32,12 @@ SEED_KEY = "episode_seed"  # the reset seed of the episode a row belongs to
 INSTRUCTION_BYTES_KEY = "instruction_utf8"
 SUCCESS_KEY = "is_success"
 STEP_KEY = "step_count"  # steps since the episode's reset
+TASK_INDEX_KEY = "task_index"  # a rendered aux frame's task, an index into its dataset's tasks
 
 __all__ = ["ACTION_CHUNK_KEY", "ACTION_IS_PAD_KEY", "ACTION_KEY", "ACTION_NOISE_KEY", "ENV_STATE_KEY",
            "EXPERT_ACTION_KEY", "FUTURE_CHUNK_KEY", "FUTURE_KEY", "IMAGE_KEY", "INSTRUCTION_BYTES_KEY",
            "INSTRUCTION_KEY", "PREDICTED_FUTURE_KEY", "SEED_KEY", "STATE_KEY", "STEP_KEY", "SUCCESS_KEY",
-           "flat_name"]
+           "TASK_INDEX_KEY", "flat_name"]
 
 
 def flat_name(key: NestedKey) -> str:

@@ -19,6 +19,7 @@ import torch
 
 from dust_rl.agents import DustPolicy
 from dust_rl.data import DemoDataset, DemoWindows
+from dust_rl.env_state_norm import EnvStateNorm
 from dust_rl.features import FeatureCache
 from dust_rl.keys import ENV_STATE_KEY, STATE_KEY
 
@@ -27,20 +28,20 @@ EE_BLOCK = 8  # the state ends with the end effector's position, quaternion and 
 TARGET_XY = slice(0, 2)  # the named object's xy in the object state
 
 
-def readout_error_table(policy: DustPolicy, dataset: DemoDataset, stats: tuple[torch.Tensor, torch.Tensor],
-                        columns: int = 3) -> str:
+def readout_error_table(policy: DustPolicy, dataset: DemoDataset, norm: EnvStateNorm, columns: int = 3) -> str:
     """A markdown table of the read-out's xy errors (cm) on ``dataset``'s rows, by step of the episode.
 
     Args:
         policy: a policy with a state read-out.
         dataset: demonstrations from other seeds than the training data.
-        stats: mean and std that normalised the object state in training (the training data's).
+        norm: what normalised the object state in training (the training data's statistics); ``dataset``'s
+            tasks must be among its tasks.
         columns: object-state columns per object.
     """
-    mean, std = stats
     cache = FeatureCache(dataset, policy, progress=False)
     windows = list(DemoWindows(dataset, horizon=policy.config.horizon, images=False).iterate(512))
-    estimate = torch.cat([policy.estimate_env_state(cache.batch(w)) for w in windows]) * std + mean
+    task = norm.task_indices(dataset.tasks)[dataset.row_task_index]
+    estimate = norm.denormalize(torch.cat([policy.estimate_env_state(cache.batch(w)) for w in windows]), task)
     objects = torch.cat([w.get(ENV_STATE_KEY) for w in windows]).float()
     other_xy = slice(columns, columns + 2)
     target, other = objects[:, TARGET_XY], objects[:, other_xy]

@@ -53,9 +53,11 @@ from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.device import resolve_device
 from dust_rl.distributed import Ranks, data_parallel, join_process_group, leave_process_group, rank_device, spawn
 from dust_rl.env_factory import make_env
+from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
+from dust_rl.env_state_norm import PER_TASK, EnvStateNorm
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
-from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_width
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.readout_warmup import warm_up_readout
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
@@ -313,6 +315,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         write_run_config(config, command)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
                    "dataset": str(config.dataset), "variant": policy.config.variant, "steps": config.steps,
+                   ENV_STATE_NORM_INFO: PER_TASK,
                    **{name: str(getattr(config, name)) if getattr(config, name) else None
                       for name in ("video_dataset", "extra_dataset", "init_policy")}}
     features = _cached_features(config, dataset, policy, ranks)
@@ -502,7 +505,7 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                                            approach_fraction=config.aux_approach_fraction,
                                            approach_displacement=config.aux_approach_displacement,
                                            first_seed=first_seed, progress=config.progress)
-    return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+    return AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
 
 
 def _log(loggers: list[Logger], scalars: dict[str, float], step: int) -> None:

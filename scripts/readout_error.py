@@ -13,7 +13,7 @@ import torch
 
 from dust_rl.agents import load_policy, unwrap
 from dust_rl.data import DemoDataset
-from dust_rl.features import env_state_stats
+from dust_rl.env_state_norm import EnvStateNorm
 from dust_rl.readout_error import readout_error_table
 
 
@@ -25,8 +25,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     policy = unwrap(load_policy(args.policy))
-    stats = env_state_stats(DemoDataset(policy.info["dataset"]))  # the training data's normalisation
-    print(readout_error_table(policy, DemoDataset(args.dataset), stats, args.columns))
+    print(readout_error_table(policy, DemoDataset(args.dataset), EnvStateNorm.of_policy(policy), args.columns))
 
 
 if __name__ == "__main__":

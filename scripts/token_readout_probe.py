@@ -19,7 +19,8 @@ import torch
 from dust_rl.agents import make_policy, unwrap
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset
-from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.env_state_norm import EnvStateNorm
+from dust_rl.features import dataset_policy_kwargs, env_state_width
 from dust_rl.readout_error import readout_error_table
 from dust_rl.readout_warmup import warm_up_readout
 
@@ -38,6 +39,9 @@ def main() -> None:
     parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
     parser.add_argument("--image-encoder", default="efficientnet-lite0-s8")
     parser.add_argument("--cond-grid", type=int, default=8)
+    parser.add_argument("--pooled-stats", action="store_true",
+                        help="normalise the object state by the whole dataset's statistics, as before per-task ones "
+                             "(dust_rl.env_state_norm), for comparison")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 beside a training)")
     parser.add_argument("--val-dataset", help="demonstrations on other seeds: also print the read-out's error on "
                                               "their rows by step of the episode (scripts/readout_error.py's table)")
@@ -51,14 +55,14 @@ def main() -> None:
                                 variant="action_only", readout="tokens", readout_heads=args.heads,
                                 readout_coords=args.coords,
                                 aux_state_dim=width, lambda_aux=1.0, **dataset_policy_kwargs(dataset)))
-    stats = env_state_stats(dataset)
+    norm = EnvStateNorm.of_dataset(dataset, per_task=not args.pooled_stats)
 
     def frames(count: int, first_seed: int) -> AuxFrameBatches:
         rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
                                                policy.cameras, count, width, expert_fraction=args.expert_fraction,
                                                approach_fraction=args.approach_fraction,
                                                approach_displacement=args.approach_displacement, first_seed=first_seed)
-        return AuxFrameBatches(rows, instructions, policy, stats)
+        return AuxFrameBatches(rows, instructions, policy, norm)
 
     heldout = frames(HELDOUT_FRAMES, HELDOUT_FIRST_SEED)
     policy.normalizer.set_vision_stats(heldout.frames)
@@ -70,10 +74,10 @@ def main() -> None:
     with torch.no_grad():
         estimate = policy.state_readout(policy.normalizer.normalize_vision(rows.get("image_tokens")),
                                         rows.get("text_tokens"), rows.get("text_mask"))
-    truth = rows.get("env_state")
-    _, std = stats
-    def xy(normalised: torch.Tensor) -> torch.Tensor:  # per object, in metres (offsets cancel in differences)
-        return (normalised * std).unflatten(-1, (-1, args.columns))[..., :2]
+    truth, task = rows.get("env_state"), heldout.task_index
+
+    def xy(normalised: torch.Tensor) -> torch.Tensor:  # per object, in metres
+        return norm.denormalize(normalised, task).unflatten(-1, (-1, args.columns))[..., :2]
 
     cm = 100 * (xy(estimate) - xy(truth)).norm(dim=-1).mean(0)
     spread = 100 * (xy(truth) - xy(truth).mean(0)).norm(dim=-1).mean(0)
@@ -82,7 +86,7 @@ def main() -> None:
           f"predicting the mean: {[round(v, 1) for v in spread.tolist()]}")
     print("normalised squared error per column:", [round(v, 3) for v in (estimate - truth).square().mean(0).tolist()])
     if args.val_dataset:
-        print(readout_error_table(policy, DemoDataset(args.val_dataset), stats, args.columns))
+        print(readout_error_table(policy, DemoDataset(args.val_dataset), norm, args.columns))
 
 
 if __name__ == "__main__":

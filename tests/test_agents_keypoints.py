@@ -10,7 +10,8 @@ from dust_rl.agents import DustConfig, load_policy, make_policy, save_policy, un
 from dust_rl.agents.condition import ConditionProjector
 from dust_rl.agents.keypoints import SpatialKeypoints
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
-from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_stats
+from dust_rl.env_state_norm import EnvStateNorm
+from dust_rl.features import FeatureCache, dataset_policy_kwargs
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -137,9 +138,10 @@ def test_feature_batches_carry_the_normalised_environment_state(demo_dir, tiny_e
                                 aux_state_dim=width, lambda_aux=1.0))
     cache = FeatureCache(dataset, policy, progress=False)
     windows = DemoWindows(dataset, horizon=6, batch_size=5).sample()
-    mean, std = env_state_stats(dataset)
     raw = windows.get(("observation", "environment_state")).float()
-    torch.testing.assert_close(cache.batch(windows).get("env_state") * std + mean, raw)
+    task = dataset.row_task_index[windows.get("index")]
+    estimate = cache.batch(windows).get("env_state")
+    torch.testing.assert_close(EnvStateNorm.of_dataset(dataset).denormalize(estimate, task), raw)
     dataset.meta["stats"].pop("observation.environment_state")  # as in a LeRobot dataset from elsewhere
     with pytest.raises(DatasetError, match="no observation.environment_state"):
         FeatureCache(dataset, policy, progress=False)

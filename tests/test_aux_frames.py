@@ -13,7 +13,8 @@ from dust_rl.agents.attention_pooling import WIDTH
 from dust_rl.aux_frames import FIRST_SEED, MAX_EXPERT_STEPS, AuxFrameBatches, _approach_steps, render_aux_frames
 from dust_rl.data import DemoDataset
 from dust_rl.env_factory import make_env
-from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.env_state_norm import EnvStateNorm
+from dust_rl.features import dataset_policy_kwargs, env_state_width
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -110,7 +111,7 @@ def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm)
                                 keypoint_source="pixels", aux_state_dim=width, lambda_aux=1.0))
     rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
                                            width, progress=False)
-    batches = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+    batches = AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
     frames = batches.sample(5)
     assert frames.get("pixels").shape[:3] == (5, len(policy.cameras), 3) and frames.get("env_state").shape == (5, width)
     loss = policy.readout_loss(frames, torch.Generator().manual_seed(0))
@@ -134,7 +135,7 @@ def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encod
                                 aux_state_input=True))
     rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
                                            width, progress=False)
-    batches = AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+    batches = AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
     everything = batches.rows(torch.arange(3))
     assert "pixels" not in everything.keys()
     torch.testing.assert_close(everything.get("image_tokens"), policy.frame_tokens(policy.frames(rows)),

@@ -60,7 +60,8 @@ def test_row_count_disagrees_with_episode_table(copy):
         DemoDataset(copy)
 
 
-@pytest.mark.parametrize("field,value", [("length", -3), ("length", 0), ("row_start", 5), ("instruction_index", 99)])
+@pytest.mark.parametrize("field,value", [("length", -3), ("length", 0), ("row_start", 5), ("instruction_index", 99),
+                                         ("task", "fly_to_moon")])
 def test_garbled_episode_table(copy, field, value):
     meta = json.loads((copy / "meta.json").read_text())
     meta["episodes"][1][field] = value

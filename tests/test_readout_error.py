@@ -6,7 +6,8 @@ import torch
 
 from dust_rl.agents import make_policy, unwrap
 from dust_rl.data import DemoDataset
-from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.env_state_norm import EnvStateNorm
+from dust_rl.features import dataset_policy_kwargs, env_state_width
 from dust_rl.keys import ENV_STATE_KEY
 from dust_rl.readout_error import STEP_BUCKETS, TARGET_XY, readout_error_table
 
@@ -20,9 +21,10 @@ def test_a_read_out_that_always_says_the_mean_is_as_far_off_as_the_mean_is(demo_
     with torch.no_grad():  # estimate 0 in normalised units: the training mean, whatever the image
         last.weight.zero_()
         last.bias.zero_()
-    mean, std = env_state_stats(dataset)
-    table = readout_error_table(policy, dataset, (mean, std)).splitlines()
+    norm = EnvStateNorm.of_dataset(dataset)
+    table = readout_error_table(policy, dataset, norm).splitlines()
     target = dataset.data.get(ENV_STATE_KEY)[:, TARGET_XY].float()
+    mean = norm.mean[dataset.row_task_index][:, TARGET_XY]  # each row's task's mean
     step = torch.arange(len(dataset)) - torch.repeat_interleave(dataset.episode_starts, dataset.lengths)
     rows = table[2:]
     filled = [(low, high) for low, high in STEP_BUCKETS if ((step >= low) & (step < high)).any()]
@@ -31,5 +33,5 @@ def test_a_read_out_that_always_says_the_mean_is_as_far_off_as_the_mean_is(demo_
         cells = [c.strip() for c in row.strip("|").split("|")]
         m = (step >= low) & (step < high)
         assert int(cells[1]) == int(m.sum())
-        expected = 100 * (target[m] - mean[TARGET_XY]).norm(dim=1).mean().item()
+        expected = 100 * (target[m] - mean[m]).norm(dim=1).mean().item()
         assert abs(float(cells[2]) - expected) <= 0.05 + 1e-6  # printed to 0.1 cm

@@ -10,7 +10,8 @@ import torch
 from dust_rl.agents import DustPolicy, make_policy, unwrap
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset
-from dust_rl.features import dataset_policy_kwargs, env_state_stats, env_state_width
+from dust_rl.env_state_norm import EnvStateNorm
+from dust_rl.features import dataset_policy_kwargs, env_state_width
 from dust_rl.readout_warmup import heldout_loss, warm_up_readout
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -33,7 +34,7 @@ def aux_frames(dataset: DemoDataset, policy: DustPolicy, first_seed: int = FIRST
     rows, instructions = render_aux_frames("DustFranka-v0", dataset.meta["env_kwargs"], dataset.tasks,
                                            policy.cameras, 4, env_state_width(dataset), first_seed=first_seed,
                                            progress=False)
-    return AuxFrameBatches(rows, instructions, policy, env_state_stats(dataset))
+    return AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
 
 
 @pytest.mark.parametrize(("with_demos", "readout"), [(True, "pixel keypoints"), (False, "pixel keypoints"),

@@ -54,15 +54,17 @@ class DemoDataset:
             self.check_env(env)
 
     def _check_episode_table(self) -> None:
-        """Episodes must lie back to back from row 0, each at least one row long, with a known instruction."""
-        row = 0
+        """Episodes must lie back to back from row 0, each at least one row long, with a known task and
+        instruction."""
+        row, tasks = 0, self.meta.get("tasks") or []
         for i, episode in enumerate(self.meta.get("episodes") or []):
             episode = episode if isinstance(episode, dict) else {}
             length, start, index = episode.get("length"), episode.get("row_start"), episode.get("instruction_index")
             if not (_is_int(length) and length >= 1 and start == row and _is_int(index)
-                    and 0 <= index < len(self.meta.get("instructions", []))):
+                    and 0 <= index < len(self.meta.get("instructions", [])) and episode.get("task") in tasks):
                 raise DatasetError(f"{self.root / META_FILE}: episode {i} is garbled (length {length!r} at row "
-                                   f"{start!r}, expected row {row}; instruction {index!r})")
+                                   f"{start!r}, expected row {row}; instruction {index!r}; task "
+                                   f"{episode.get('task')!r} of {tasks})")
             row += length
 
     def __len__(self) -> int:
@@ -96,6 +98,13 @@ class DemoDataset:
     def row_episode_end(self) -> torch.Tensor:
         """Per row, the row index one past its episode's last row (for window boundaries)."""
         return torch.repeat_interleave(self.episode_starts + self.lengths, self.lengths)
+
+    @functools.cached_property
+    def row_task_index(self) -> torch.Tensor:
+        """Per row, the index of its episode's task in :attr:`tasks`."""
+        task_index = {task: i for i, task in enumerate(self.tasks)}
+        episode_task = torch.tensor([task_index[episode["task"]] for episode in self.meta["episodes"]])
+        return torch.repeat_interleave(episode_task, self.lengths)
 
     def episode(self, index: int) -> TensorDict:
         """Rows of episode ``index`` (a memmap view) with its instruction attached."""
