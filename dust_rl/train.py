@@ -313,9 +313,11 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         probe.close()
     if not config.resume and ranks.is_main:
         write_run_config(config, command)
+    # A fine-tuned policy's read-out keeps the object-state units it was trained in (dust_rl.env_state_norm).
+    state_units = PER_TASK if config.init_policy is None else policy.info.get(ENV_STATE_NORM_INFO)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
                    "dataset": str(config.dataset), "variant": policy.config.variant, "steps": config.steps,
-                   ENV_STATE_NORM_INFO: PER_TASK,
+                   ENV_STATE_NORM_INFO: state_units,
                    **{name: str(getattr(config, name)) if getattr(config, name) else None
                       for name in ("video_dataset", "extra_dataset", "init_policy")}}
     features = _cached_features(config, dataset, policy, ranks)

@@ -16,6 +16,8 @@ from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.dataset_batches import DatasetBatches
+from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
+from dust_rl.env_state_norm import PER_TASK
 from dust_rl.errors import ConfigError
 from dust_rl.features import FeatureCache
 from dust_rl.keys import ACTION_IS_PAD_KEY
@@ -260,6 +262,15 @@ def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inpu
                          batch_size=8, steps=3, threads=1, progress=False)
     tuned = unwrap(load_policy(train(config).policy))
     assert tuned.info["init_policy"] == str(base) and tuned.info["extra_dataset"] == str(extra_dir)
+    # The frozen read-out keeps the object-state units it was trained in: an older policy's stay the pooled ones.
+    assert tuned.info[ENV_STATE_NORM_INFO] == unwrap(load_policy(base)).info[ENV_STATE_NORM_INFO] == PER_TASK
+    older = tmp_path / "older.pt"
+    payload = torch.load(base, weights_only=True)
+    payload["info"].pop(ENV_STATE_NORM_INFO)
+    torch.save(payload, older)
+    again = TrainConfig(dataset=dataset, out=tmp_path / "tuned_older", init_policy=older, batch_size=8, steps=1,
+                        threads=1, progress=False)
+    assert unwrap(load_policy(train(again).policy)).info.get(ENV_STATE_NORM_INFO) is None
     assert any((extra_dir / "features").iterdir())  # its frames were encoded and cached
     before, after = trained_weights(base), trained_weights(tmp_path / "tuned" / "policy.pt")
     assert [k for k in before if k.startswith("normalizer.") and not torch.equal(before[k], after[k])] == []
