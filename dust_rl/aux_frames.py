@@ -96,7 +96,7 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
     try:
         for i in tqdm(range(count), desc="aux frames", disable=not progress):
             frame_seed = first_seed + seed * count + i
-            env = envs[tasks[i % len(tasks)]]  # the task_index below
+            env = envs[tasks[i % len(tasks)]]  # frame i shows task i % len(tasks): its task_index
             rng = np.random.default_rng(frame_seed)
             env.reset(seed=frame_seed)
             sim = env.unwrapped  # steps without rendering; only the frame at the end is drawn

@@ -1,16 +1,16 @@
 """Per-task normalisation of the privileged object state that the read-out learns to estimate.
 
 Why per task: each task lays its object state out its own way (pick_place: two cubes' and the plate's xyz;
-press_button: three buttons' xyz and travel; the drawers: handle, cabinet, yaw, opening), zero-padded to the
-widest. One mean and std per column over a multi-task dataset mixes unrelated quantities. On the 8 Franka tasks
+press_button: three buttons' xyz and travel; the drawers: handle, cabinet, yaw, opening), zero-padded to the widest.
+One mean and std per column over a multi-task dataset mixes unrelated quantities. On the 8 Franka tasks
 (``runs/data/all_100``) column 5 is a second object's height for most tasks (std 2.9 cm over the mixture) but the
-middle button's y for press_button (+-20 cm): press_button's aux frames sat up to 7.5 std from the mean in that
-column (6.0 in column 8) while every other task stayed within 3.4, so one task's columns dominated the read-out's
-loss; that run's read-out error on held-out aux frames stayed at 0.22-0.35 (normalised) against 0.004 on pick_place
-alone. Here each task is normalised by its own rows over its own columns and its padding stays 0. Fitted alone
-(``scripts/token_readout_probe.py --heads 4 --frames 8000 --steps 4000``), the read-out's held-out xy error on the
-first object fell from 7.2 to 4.4 cm (README, "The Franka suite, one policy"). A one-task dataset gets exactly the
-statistics in its ``meta.json``: single-task training is unchanged. The policy itself never needs the statistics
+middle button's y for press_button (+-20 cm), so one task's rows dominated the read-out's loss (fitted alone with
+the pooled statistics, a normalised squared error of 2.01 in that column against at most 0.39 in the others); the
+first multi-task run's read-out error on held-out aux frames stayed at 0.22-0.35 (normalised) against 0.004 on
+pick_place alone. Here each task is normalised by its own rows over its own columns and its padding stays 0. Fitted
+alone (``scripts/token_readout_probe.py --heads 4 --frames 8000 --steps 4000``), the read-out's held-out xy error on
+the first object fell from 7.2 to 4.4 cm (README, "The Franka suite, one policy"). A one-task dataset gets exactly
+the statistics in its ``meta.json``: single-task training is unchanged. The policy itself never needs the statistics
 (the read-out's estimate stays in normalised units inside it); diagnostics that turn it back into metres do, and a
 policy's ``info`` says which normalisation it was trained with (multi-task policies trained before this module used
 the pooled statistics).
