@@ -38,6 +38,7 @@ from dust_rl.data.seeding import HELDOUT_SEED
 from dust_rl.env_factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate import EvalConfig, evaluate, wilson_interval
+from dust_rl.quickstart import vision_recipe
 from dust_rl.report import save_png
 from dust_rl.train import TrainConfig, TrainSettings, train
 
@@ -60,9 +61,10 @@ class SuiteConfig:
     """Variants to compare (the first two of the data-scaling row: dust and action_only, when listed)."""
     seeds: tuple[int, ...] = (0, 1)
     """Training seeds; each cell's episodes are pooled over them."""
-    train: TrainSettings = field(default_factory=lambda: TrainSettings(lr=3e-4))
+    train: TrainSettings = field(default_factory=vision_recipe)
     """The recipe every cell trains with (``--train.steps``, ``--train.policy.d-model`` ...; its variant and
-    seed are the cell's)."""
+    seed are the cell's); default: the quickstart's, which solves press_button in minutes (a comparison means
+    little where every variant fails)."""
     vision_steps: tuple[int, ...] = (4, 8, 16, 32)
     """N_o of DUST's test-time scaling (async, N_A = 4) and of the synchronous control (N_A = N_o)."""
     episodes: int = 20
