@@ -1,9 +1,9 @@
-"""Where pick_place episodes fail: each episode sorted by what happened to the two cubes.
+"""Where pick_place and stack episodes fail: each episode sorted by what happened to the cubes.
 
 Why: the success rate says how often a policy fails, not where; the videos show one episode. The
-simulator's object positions (``observation.environment_state``: target cube, distractor cube, plate, xyz
-each) are in every evaluated step, so each episode is sorted, from its trajectory alone, into the
-first of
+simulator's object positions (``observation.environment_state``: pick_place's target cube, distractor cube
+and plate; stack's cube to move, cube to stack on and distractor; xyz each) are in every evaluated step, so
+each episode is sorted, from its trajectory alone, into the first of (pick_place)
 
 * ``success``;
 * ``wrong cube``: the distractor moved more than 1 cm;
@@ -12,6 +12,13 @@ first of
 * ``held at the end``: lifted, and still in the air when time ran out;
 * ``dropped off the plate``: lifted, and at the end lying off the plate;
 * ``on the plate, not released``: lifted and on the plate, the gripper still touching it.
+
+and for stack the same first five (the cube to move as the target), then
+
+* ``set down beside it``: lifted and held over the lower cube (centres within the task's 2 cm at some step,
+  the carried cube above the lower one's top), yet at the end not on it: the place itself missed;
+* ``set down elsewhere``: lifted, never held over the lower cube within 2 cm;
+* ``on the lower cube, not released``: stacked, the gripper still touching it.
 
 ``--sheet PNG`` also draws, for the first episodes of each class, the cameras at four moments of the
 episode (its last step included), so the classes can be looked at, not only counted.
@@ -31,6 +38,7 @@ import matplotlib
 import torch
 from tensordict import TensorDictBase
 
+from dust_rl.envs.tasks import stack
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
 from dust_rl.evaluate import EvalConfig, evaluate_task, prepare
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
@@ -40,14 +48,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 MOVED = 0.01  # m
 LIFTED = CUBE_HALF + 0.02  # m: the task's own "lifted" height of the cube's centre
-MODES = ("success", "wrong cube", "untouched", "not lifted", "held at the end", "dropped off the plate",
-         "on the plate, not released")
+FIRST_MODES = ("success", "wrong cube", "untouched", "not lifted", "held at the end")
+MODES = {"pick_place": (*FIRST_MODES, "dropped off the plate", "on the plate, not released"),
+         "stack": (*FIRST_MODES, "set down beside it", "set down elsewhere", "on the lower cube, not released")}
 MOMENTS = (0.25, 0.5, 0.75, 1.0)  # fractions of an episode drawn on the sheet
 
 
-def failure_mode(env_state: torch.Tensor, success: bool) -> str:
-    """The class of one episode from its object positions [T, 9] (target, distractor, plate)."""
-    target, distractor, plate = env_state[:, 0:3], env_state[:, 3:6], env_state[:, 6:9]
+def first_mode(target: torch.Tensor, distractor: torch.Tensor, success: bool) -> str | None:
+    """The class shared by both tasks from the target's and the distractor's positions [T, 3], if one applies."""
     if success:
         return "success"
     if (distractor[:, :2] - distractor[0, :2]).norm(dim=-1).max() > MOVED:
@@ -58,15 +66,41 @@ def failure_mode(env_state: torch.Tensor, success: bool) -> str:
         return "not lifted"
     if target[-1, 2] > LIFTED:
         return "held at the end"
+    return None
+
+
+def pick_place_mode(env_state: torch.Tensor, success: bool) -> str:
+    """The class of one pick_place episode from its object positions [T, 9] (target, distractor, plate)."""
+    target, distractor, plate = env_state[:, 0:3], env_state[:, 3:6], env_state[:, 6:9]
+    if mode := first_mode(target, distractor, success):
+        return mode
     if (target[-1, :2] - plate[-1, :2]).norm() >= PLATE_RADIUS - 0.01:  # the task's own on-plate radius
         return "dropped off the plate"
     return "on the plate, not released"
 
 
-def contact_sheet(trajectories: dict[int, TensorDictBase], modes: dict[int, str], cameras: tuple[str, ...],
-                  per_mode: int, path: pathlib.Path) -> None:
-    """One row per episode (the first ``per_mode`` of each class), the cameras side by side at each moment."""
-    rows = [(seed, mode) for mode in MODES for seed in [s for s, m in modes.items() if m == mode][:per_mode]]
+def stack_mode(env_state: torch.Tensor, success: bool) -> str:
+    """The class of one stack episode from its object positions [T, 9] (cube to move, lower cube, distractor)."""
+    target, lower, distractor = env_state[:, 0:3], env_state[:, 3:6], env_state[:, 6:9]
+    if mode := first_mode(target, distractor, success):
+        return mode
+    offset = (target[:, :2] - lower[:, :2]).norm(dim=-1)
+    if offset[-1] < stack.XY_TOLERANCE and target[-1, 2] > lower[-1, 2] + stack.CUBE_HALF:
+        return "on the lower cube, not released"
+    over = target[:, 2] > lower[:, 2] + 2 * stack.CUBE_HALF  # its bottom face above the lower cube's top
+    if (offset[over] < stack.XY_TOLERANCE).any():
+        return "set down beside it"
+    return "set down elsewhere"
+
+
+CLASSIFIERS = {"pick_place": pick_place_mode, "stack": stack_mode}
+
+
+def contact_sheet(trajectories: dict[int, TensorDictBase], modes: dict[int, str], order: tuple[str, ...],
+                  cameras: tuple[str, ...], per_mode: int, path: pathlib.Path) -> None:
+    """One row per episode (the first ``per_mode`` of each class, classes in ``order``), the cameras side by side
+    at each moment."""
+    rows = [(seed, mode) for mode in order for seed in [s for s, m in modes.items() if m == mode][:per_mode]]
     figure, axes = plt.subplots(len(rows), len(MOMENTS), figsize=(2.4 * len(cameras) * len(MOMENTS), 2.6 * len(rows)),
                                 squeeze=False)
     for (seed, mode), row in zip(rows, axes):
@@ -98,17 +132,19 @@ def main() -> None:
                         threads=args.threads, max_steps=args.max_steps, device="cpu")
     torch.set_num_threads(args.threads)
     policy, setup = prepare(config)
-    if setup.tasks != ("pick_place",):
-        raise SystemExit(f"{args.policy}: trained on {setup.tasks}; this script reads pick_place's objects")
-    episodes, trajectories, _, _ = evaluate_task(setup, "pick_place", policy, config)
-    modes = {e.seed: failure_mode(trajectories[e.seed].get(("next", *ENV_STATE_KEY)), e.success) for e in episodes}
+    if len(setup.tasks) != 1 or setup.tasks[0] not in CLASSIFIERS:
+        raise SystemExit(f"{args.policy}: trained on {setup.tasks}; this script reads one of {sorted(CLASSIFIERS)}")
+    task = setup.tasks[0]
+    episodes, trajectories, _, _ = evaluate_task(setup, task, policy, config)
+    modes = {e.seed: CLASSIFIERS[task](trajectories[e.seed].get(("next", *ENV_STATE_KEY)), e.success)
+             for e in episodes}
     counts = collections.Counter(modes.values())
     print(f"{args.policy}, seeds {args.seed}..{args.seed + args.episodes - 1}:")
-    for mode in MODES:
+    for mode in MODES[task]:
         print(f"  {mode}: {counts[mode]}")
     print(json.dumps(modes))
     if args.sheet:
-        contact_sheet(trajectories, modes, policy.cameras, args.per_class, args.sheet)
+        contact_sheet(trajectories, modes, MODES[task], policy.cameras, args.per_class, args.sheet)
         print(f"sheet: {args.sheet}")
 
 
