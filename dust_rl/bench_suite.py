@@ -7,7 +7,9 @@ comparison (``dust``, ``mmdit_shared``, ``decoupled``, ``joint``,
 ``action_only``) on the same demonstrations with the same recipe and
 training seeds, and evaluates each on the same held-out seeds; then DUST's
 test-time scaling (N_A = 4, N_o = q * 4, async) against the synchronous
-control (both step counts raised together), and a data-scaling row (DUST and
+control (both step counts raised together), DUST acting with its vision
+stream left as noise (whether the actions use the predicted future at all),
+and a data-scaling row (DUST and
 action_only on the first n demonstrations per task, n from ``--demos``).
 
 Every cell is a job cached on disk under ``out``: ``data/<n>/`` (collection,
@@ -43,6 +45,7 @@ from dust_rl.report import save_png
 from dust_rl.train import TrainConfig, TrainSettings, train
 
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
+VISION_AS_NOISE = "vision as noise N_A=4"  # DUST's actions sampled with its world-model stream left as noise
 
 
 @dataclass
@@ -104,9 +107,11 @@ class Cell:
 
 def samplers(config: SuiteConfig, variant: str) -> dict[str, SamplerConfig | None]:
     """What each policy of ``variant`` is evaluated with, by name: as trained, and for DUST the test-time
-    scaling (async, N_A = 4, N_o = q * 4) and the synchronous control (N_A = N_o)."""
+    scaling (async, N_A = 4, N_o = q * 4), the synchronous control (N_A = N_o) and its actions sampled with the
+    vision stream left as noise (does acting use the predicted future, or did the world model only shape training?)."""
     runs: dict[str, SamplerConfig | None] = {AS_TRAINED: None}
     if variant == "dust":
+        runs[VISION_AS_NOISE] = SamplerConfig("action_only", 4)
         for n_o in config.vision_steps:
             runs[f"async N_A=4 N_o={n_o}"] = SamplerConfig("async", 4, n_o // 4)
             runs[f"sync N_A=N_o={n_o}"] = SamplerConfig("sync", n_o)
@@ -209,7 +214,7 @@ def markdown(results: dict, command: str | None) -> str:
              f"Held-out seeds {results['eval_seeds'][0]}..{results['eval_seeds'][1]} per task; episodes pooled over "
              "training seeds; every cell trained with the same recipe.", ""]
     lines += table("Variants", [r for r in rows if r["demos"] == main and r["sampler"] == AS_TRAINED])
-    lines += table("DUST test-time scaling and the synchronous control",
+    lines += table("DUST's samplers: test-time scaling, the synchronous control, the vision stream as noise",
                    [r for r in rows if r["demos"] == main and r["sampler"] != AS_TRAINED])
     lines += table("Data scaling", sorted((r for r in rows if r["sampler"] == AS_TRAINED
                                            and r["variant"] in ("dust", "action_only")),

@@ -8,7 +8,7 @@ import pytest
 from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, save_image_encoder
-from dust_rl.bench_suite import AS_TRAINED, SuiteConfig, run_suite
+from dust_rl.bench_suite import AS_TRAINED, VISION_AS_NOISE, SuiteConfig, run_suite
 from dust_rl.errors import ConfigError
 from dust_rl.train import TrainSettings
 
@@ -28,12 +28,16 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert set(rows) == {("dust", 2, AS_TRAINED), ("action_only", 2, AS_TRAINED),
                          ("dust", 2, "async N_A=4 N_o=4"), ("dust", 2, "sync N_A=N_o=4"),
                          ("dust", 2, "async N_A=4 N_o=8"), ("dust", 2, "sync N_A=N_o=8"),
+                         ("dust", 2, VISION_AS_NOISE),
                          ("dust", 1, AS_TRAINED), ("action_only", 1, AS_TRAINED)}
     assert all(r["episodes"] == 1 and 0 <= r["ci95_low"] <= r["ci95_high"] <= 1 for r in rows.values())
     assert rows["dust", 2, AS_TRAINED]["trainable_parameters"] > rows["action_only", 2, AS_TRAINED][
         "trainable_parameters"]
     sync8 = json.loads((tmp_path / "suite" / "eval" / "dust_seed0_demos2" / "sync_N_AN_o8" / "report.json").read_text())
     assert sync8["sampler"] == {"name": "sync", "n_action_steps": 8, "vision_steps": 8, "candidates": 1}
+    noise = json.loads((tmp_path / "suite" / "eval" / "dust_seed0_demos2" / "vision_as_noise_N_A4" /
+                        "report.json").read_text())
+    assert noise["sampler"]["name"] == "action_only"
     markdown = (tmp_path / "suite" / "results.md").read_text()
     assert "## Data scaling" in markdown and "| action_only | 1 | as trained |" in markdown
     assert (tmp_path / "suite" / "results.png").read_bytes()[:4] == b"\x89PNG"
