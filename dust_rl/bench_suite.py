@@ -9,8 +9,8 @@ training seeds, and evaluates each on the same held-out seeds; then DUST's
 test-time scaling (N_A = 4, N_o = q * 4, async) against the synchronous
 control (both step counts raised together), DUST acting with its vision
 stream left as noise (whether the actions use the predicted future at all),
-and a data-scaling row (DUST and
-action_only on the first n demonstrations per task, n from ``--demos``).
+and a data-scaling row (DUST and action_only on the first n demonstrations
+per task, n from ``--demos``).
 
 Every cell is a job cached on disk under ``out``: ``data/<n>/`` (collection,
 resumed), ``train/<variant>_seed<s>_demos<n>/`` (training, resumed; skipped
