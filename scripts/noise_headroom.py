@@ -13,30 +13,24 @@ the draws against the share of layouts won by at least one draw: the best any no
 from __future__ import annotations
 
 import argparse
-import pathlib
 
 import torch
+from in_process_eval import add_eval_arguments, prepare_in_process
 
 from dust_rl.agents import execution
-from dust_rl.evaluate import EvalConfig, evaluate_task, prepare, wilson_interval
+from dust_rl.evaluate import evaluate_task, wilson_interval
 
 NOISE_OFFSET = 1_000_003  # added to the episode seed per draw: far from every seed schedule
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policy", type=pathlib.Path, required=True)
+    add_eval_arguments(parser)
     parser.add_argument("--draws", type=int, default=4, help="noise streams per layout (K)")
-    parser.add_argument("--seed", type=int, default=5000)
-    parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     if args.draws < 1:
         parser.error("--draws needs K >= 1")
-    config = EvalConfig(policy=args.policy, seed=args.seed, episodes=args.episodes, workers=1, videos=0,
-                        threads=args.threads, device="cpu", progress=False)
-    torch.set_num_threads(args.threads)
-    policy, setup = prepare(config)
+    policy, setup, config = prepare_in_process(args)
     unshifted = execution.episode_generator
     wins = torch.zeros(args.draws, len(setup.tasks), args.episodes, dtype=torch.bool)
     for draw in range(args.draws):

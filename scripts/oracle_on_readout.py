@@ -19,12 +19,13 @@ import json
 import pathlib
 
 import torch
+from in_process_eval import add_eval_arguments, prepare_in_process, success_line
 from tensordict import TensorDictBase
 from torch import nn
 
 from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.env_state_norm import EnvStateNorm
-from dust_rl.evaluate import EvalConfig, evaluate_task, prepare, summary_row
+from dust_rl.evaluate import evaluate_task
 from dust_rl.keys import STATE_KEY
 
 
@@ -51,16 +52,10 @@ class ReadoutState:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policy", type=pathlib.Path, required=True, help="trained with --privileged-state")
+    add_eval_arguments(parser)  # --policy: trained with --privileged-state
     parser.add_argument("--readout", type=pathlib.Path, required=True, help="a policy with a state read-out")
-    parser.add_argument("--seed", type=int, default=5000)
-    parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
-    config = EvalConfig(policy=args.policy, seed=args.seed, episodes=args.episodes, workers=1, videos=0,
-                        threads=args.threads, device="cpu", progress=False)
-    torch.set_num_threads(args.threads)
-    policy, setup = prepare(config)
+    policy, setup, config = prepare_in_process(args)
     readout = unwrap(load_policy(args.readout)).eval()
     if not setup.env_kwargs.get("privileged_state") or not readout.config.aux_state_dim:
         raise SystemExit("--policy must be trained with --privileged-state and --readout must have a state read-out")
@@ -69,9 +64,8 @@ def main() -> None:
     swap = ReadoutState(readout)
     policy.register_forward_pre_hook(swap, with_kwargs=True)
     episodes, _, _, _ = evaluate_task(setup, setup.tasks[0], policy, config)
-    row = summary_row(setup.tasks[0], episodes)
     print(f"{args.policy} on the read-out of {args.readout}, seeds {args.seed}..{args.seed + args.episodes - 1}: "
-          f"{row['successes']}/{row['episodes']} (95% CI {row['ci95_low']:.0%}-{row['ci95_high']:.0%})")
+          f"{success_line(setup.tasks[0], episodes)}")
     print("mean |estimate - truth| per object-state column over all re-plans:",
           " ".join(f"{v:.3f}" for v in torch.cat(swap.errors).mean(0).tolist()))
     print(json.dumps({e.seed: e.success for e in episodes}))

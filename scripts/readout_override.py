@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import pathlib
 
 import torch
+from in_process_eval import add_eval_arguments, prepare_in_process, success_line
 from tensordict import TensorDictBase
 from torch import nn
 
 from dust_rl.env_state_norm import EnvStateNorm
-from dust_rl.evaluate import EvalConfig, evaluate_task, prepare, summary_row
+from dust_rl.evaluate import evaluate_task
 from dust_rl.keys import ENV_STATE_KEY
 
 
@@ -71,22 +71,16 @@ class EstimateOverride:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policy", type=pathlib.Path, required=True)
+    add_eval_arguments(parser)
     parser.add_argument("--columns", required=True, help="lo:hi, the estimate's columns to replace")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--truth", action="store_true", help="the simulator's object state")
     source.add_argument("--hold", type=int, help="the estimate's mean over the episode's first K re-plans")
-    parser.add_argument("--seed", type=int, default=5000)
-    parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     lo, hi = (int(v) for v in args.columns.split(":"))
     if args.hold is not None and args.hold < 1:
         parser.error("--hold needs K >= 1")
-    config = EvalConfig(policy=args.policy, seed=args.seed, episodes=args.episodes, workers=1, videos=0,
-                        threads=args.threads, device="cpu", progress=False)
-    torch.set_num_threads(args.threads)
-    policy, setup = prepare(config)
+    policy, setup, config = prepare_in_process(args)
     if len(setup.tasks) != 1 or not policy.config.aux_state_input:
         raise SystemExit(f"{args.policy}: needs a single-task policy that feeds its read-out to the trunk")
     width = policy.config.aux_state_dim
@@ -94,10 +88,8 @@ def main() -> None:
         parser.error(f"--columns {args.columns} outside the estimate's {width} columns")
     EstimateOverride(EnvStateNorm.of_policy(policy), slice(lo, hi), args.hold).attach(policy)
     episodes, _, _, _ = evaluate_task(setup, setup.tasks[0], policy, config)
-    row = summary_row(setup.tasks[0], episodes)
     print(f"{args.policy}, columns {lo}:{hi} {'true' if args.truth else f'held over {args.hold} re-plans'}, seeds "
-          f"{args.seed}..{args.seed + args.episodes - 1}: {row['successes']}/{row['episodes']} "
-          f"(95% CI {row['ci95_low']:.0%}-{row['ci95_high']:.0%})")
+          f"{args.seed}..{args.seed + args.episodes - 1}: {success_line(setup.tasks[0], episodes)}")
     print(json.dumps({e.seed: e.success for e in episodes}))
 
 
