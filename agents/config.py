@@ -80,8 +80,15 @@ class SamplerConfig:
     candidates: int = 1
     """K joint samples per chunk; the one whose predicted future the policy's future scorer rates best is
     executed (``wm_select``, :mod:`.future_scorer`; needs a scorer). 1: the chunk as sampled."""
+    noise_scale: float = 1.0
+    """Scale of the initial action noise, a sampling temperature: 1 as trained; 0 integrates every chunk from the
+    noise's mean (deterministic for action_only; with a vision stream its noise still varies). A chunk given its
+    initial noise (noise-space steering, :mod:`dust_rl.steering`) uses that noise as it is."""
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.noise_scale, numbers.Real) and math.isfinite(self.noise_scale)
+                and self.noise_scale >= 0):
+            raise ValueError(f"noise_scale must be a finite number >= 0, got {self.noise_scale!r}")
         if self.sampler is not None and self.sampler not in SAMPLERS:
             raise ValueError(f"unknown sampler {self.sampler!r}; expected one of {SAMPLERS} or None")
         check_size("n_action_steps", self.n_action_steps, MAX_STEPS)

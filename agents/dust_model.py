@@ -330,6 +330,7 @@ class DustModel(nn.Module):
         schedule: list[DenoiseStep],
         generator: torch.Generator | None = None,
         callback: Callable[[DenoiseStep, torch.Tensor, torch.Tensor | None], None] | None = None,
+        noise_scale: float = 1.0,
     ) -> TensorDict:
         """Sample an action chunk (and, with a vision stream, the predicted future tokens).
 
@@ -340,13 +341,15 @@ class DustModel(nn.Module):
                 test-time scaling to N_o = 32 vision steps.
             generator: random source of the initial noise; same seed, same chunk.
             callback: called after every denoising step (see :func:`.samplers.run_schedule`).
+            noise_scale: factor on the drawn initial action noise (a sampling temperature).
 
         Returns:
             TensorDict [B] with ``action_chunk`` [B, H, Da] and, unless action_only,
             ``future_tokens`` [B, N_o, Dv].
         """
         ctx = self.encode_context(obs["state"], obs["cond_tokens"], obs.get("cond_mask", None))
-        action, vision = run_schedule(self, ctx, schedule, generator, callback, obs.get("action_noise", None))
+        action, vision = run_schedule(self, ctx, schedule, generator, callback, obs.get("action_noise", None),
+                                      noise_scale)
         out = {"action_chunk": action}
         if vision is not None:
             out["future_tokens"] = vision

@@ -411,7 +411,8 @@ class DustPolicy(VLAWrapperBase):
         if candidates > 1:  # K joint samples of each observation, side by side: [B * K]
             batch = batch[torch.arange(batch.batch_size[0], device=batch.device).repeat_interleave(candidates)]
         with autocast(self.weights_device, self.precision):
-            out = self.model.predict_action(batch, schedule_for(self.config), generator)
+            out = self.model.predict_action(batch, schedule_for(self.config), generator,
+                                            noise_scale=self.config.noise_scale)
         out = out.apply(lambda tensor: tensor.float() if tensor.is_floating_point() else tensor)
         if candidates > 1:  # keep, per observation, the sample whose predicted future scores best
             scores = self.future_scores(out.get("future_tokens")).view(-1, candidates)

@@ -90,6 +90,7 @@ def run_schedule(
     generator: torch.Generator | None = None,
     callback: Callable[[DenoiseStep, Tensor, Tensor | None], None] | None = None,
     action_noise: Tensor | None = None,
+    noise_scale: float = 1.0,
 ) -> tuple[Tensor, Tensor | None]:
     """Integrate both modalities from noise along ``schedule``.
 
@@ -103,6 +104,8 @@ def run_schedule(
         action_noise: [B, H, Da], the initial action noise to start from instead of the drawn one (the
             sampler is deterministic given it: an RL actor can steer a frozen policy through it). The
             action noise is drawn and discarded all the same, so the vision noise does not change.
+        noise_scale: factor on the drawn action noise (:attr:`.config.SamplerConfig.noise_scale`); not
+            applied to a given ``action_noise``.
 
     Returns:
         (action chunk [B, H, Da], future-vision tokens [B, N_o, Dv] or None).
@@ -115,6 +118,8 @@ def run_schedule(
             raise ValueError(f"action_noise must have shape {tuple(action.shape)} [B, H, Da], "
                              f"got {tuple(action_noise.shape)}")
         action = action_noise.to(action)
+    else:
+        action = action * noise_scale
     vision = None
     if cfg.has_vision:
         vision = cpu_drawn(torch.randn, b, cfg.n_vision_tokens, cfg.vision_dim, generator=generator, device=device)

@@ -115,11 +115,12 @@ class EvalConfig:
 
 
 def describe_sampler(sampler: SamplerConfig) -> dict:
-    """Name, N_A, N_o (vision Euler steps: q * N_A async, N_A sync, none action-only) and the joint samples per
-    chunk of a resolved sampler."""
+    """Name, N_A, N_o (vision Euler steps: q * N_A async, N_A sync, none action-only), the joint samples per
+    chunk and the initial noise's scale of a resolved sampler."""
     vision = {"async": sampler.n_action_steps * sampler.vision_step_ratio, "sync": sampler.n_action_steps}
     return {"name": sampler.sampler, "n_action_steps": sampler.n_action_steps,
-            "vision_steps": vision.get(sampler.sampler, 0), "candidates": sampler.candidates}
+            "vision_steps": vision.get(sampler.sampler, 0), "candidates": sampler.candidates,
+            "noise_scale": sampler.noise_scale}
 
 
 @dataclass(frozen=True)

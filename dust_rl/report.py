@@ -58,7 +58,8 @@ def markdown_report(report: dict, out_dir: pathlib.Path) -> str:
         f"{report.get('trainable_parameters', 0) / 1e6:.2f}M trainable parameters)",
         f"- env: `{report['env_id']}` {report['env_kwargs']}",
         f"- sampler: {sampler['name']}, N_A = {sampler['n_action_steps']}, N_o = {sampler['vision_steps']}"
-        f"{candidates_note(sampler.get('candidates', 1))}; {report.get('execute_steps', '?')} actions executed "
+        f"{candidates_note(sampler.get('candidates', 1))}, initial noise x{sampler.get('noise_scale', 1.0):g}; "
+        f"{report.get('execute_steps', '?')} actions executed "
         "per chunk",
         f"- seeds {report['seeds'][0]}..{report['seeds'][1]} per task; {report['noise_seeding']}",
         f"- {report['env_steps']} env steps in {report['episodes_time_s']:.1f} s "

@@ -10,6 +10,7 @@ import torch
 from dust_rl.agents import (
     DustConfig,
     DustModel,
+    SamplerConfig,
     action_only_schedule,
     async_schedule,
     random_batch,
@@ -142,3 +143,37 @@ def test_run_schedule_returns_final_state_of_callback():
     action, vision = run_schedule(agent, ctx, async_schedule(2, 2), torch.Generator().manual_seed(0),
                                   lambda s, a, o: seen.append((a, o)))
     assert torch.equal(action, seen[-1][0]) and torch.equal(vision, seen[-1][1])
+
+
+def test_noise_scale_scales_the_drawn_action_noise_only():
+    config = tiny()
+    agent = trained_like_agent(config)
+    obs = obs_for(config)
+    ctx = agent.encode_context(obs["state"], obs["cond_tokens"])
+
+    def sample(seed: int, **kwargs) -> tuple[torch.Tensor, torch.Tensor]:
+        return run_schedule(agent, ctx, async_schedule(2, 2), torch.Generator().manual_seed(seed), **kwargs)
+
+    drawn = torch.randn(obs["state"].shape[0], config.horizon, config.action_dim,
+                        generator=torch.Generator().manual_seed(0))  # the schedule's first draw
+    half, half_given = sample(0, noise_scale=0.5), sample(0, action_noise=0.5 * drawn)
+    assert torch.equal(half[0], half_given[0]) and torch.equal(half[1], half_given[1])
+    assert torch.equal(sample(0, action_noise=drawn, noise_scale=0.0)[0], sample(0)[0])  # given noise: unscaled
+    assert torch.equal(sample(0, noise_scale=1.0)[0], sample(0)[0])
+    assert not torch.equal(sample(0)[0], sample(1)[0])
+
+
+def test_noise_scale_zero_makes_an_action_only_policy_deterministic():
+    config = tiny(variant="action_only")
+    agent = trained_like_agent(config)
+    obs = obs_for(config)
+    ctx = agent.encode_context(obs["state"], obs["cond_tokens"])
+    chunks = [run_schedule(agent, ctx, action_only_schedule(2), torch.Generator().manual_seed(seed),
+                           noise_scale=scale)[0] for scale in (0.0, 1.0) for seed in (0, 1)]
+    assert torch.equal(chunks[0], chunks[1]) and not torch.equal(chunks[2], chunks[3])
+
+
+@pytest.mark.parametrize("scale", [-0.1, float("nan"), float("inf")])
+def test_sampler_config_rejects_a_bad_noise_scale(scale):
+    with pytest.raises(ValueError, match="noise_scale"):
+        SamplerConfig(noise_scale=scale)

@@ -34,7 +34,8 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert rows["dust", 2, AS_TRAINED]["trainable_parameters"] > rows["action_only", 2, AS_TRAINED][
         "trainable_parameters"]
     sync8 = json.loads((tmp_path / "suite" / "eval" / "dust_seed0_demos2" / "sync_N_AN_o8" / "report.json").read_text())
-    assert sync8["sampler"] == {"name": "sync", "n_action_steps": 8, "vision_steps": 8, "candidates": 1}
+    assert sync8["sampler"] == {"name": "sync", "n_action_steps": 8, "vision_steps": 8, "candidates": 1,
+                                "noise_scale": 1.0}
     noise = json.loads((tmp_path / "suite" / "eval" / "dust_seed0_demos2" / "vision_as_noise_N_A4" /
                         "report.json").read_text())
     assert noise["sampler"]["name"] == "action_only"
