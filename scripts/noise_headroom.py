@@ -6,8 +6,12 @@ some draws, a perfect chooser would win it. So each layout is evaluated K times 
 (the evaluation's per-episode noise seed shifted by a large offset), and the script prints the mean success over
 the draws against the share of layouts won by at least one draw: the best any noise chooser could reach.
 
-    .venv/bin/python scripts/noise_headroom.py --policy runs/train/T/policy.pt [--draws 4] [--seed 5000] \
-        [--episodes 50]
+``--branch-at C`` says where in an episode that choice matters: every draw follows the policy's own noise for its
+first C chunks (so it reaches the same state, bit for bit) and its own stream from chunk C on. Draw 0 is the plain
+evaluation at every C.
+
+    .venv/bin/python scripts/noise_headroom.py --policy runs/train/T/policy.pt [--draws 4] [--branch-at 0 4 8] \
+        [--seed 5000] [--episodes 50]
 """
 
 from __future__ import annotations
@@ -17,35 +21,71 @@ import argparse
 import torch
 from in_process_eval import add_eval_arguments, prepare_in_process
 
-from dust_rl.agents import execution
+from dust_rl.agents import DustPolicy, execution
 from dust_rl.evaluate import evaluate_task, wilson_interval
 
 NOISE_OFFSET = 1_000_003  # added to the episode seed per draw: far from every seed schedule
+
+
+class BranchingNoise:
+    """Gives draw ``draw`` the episode's own noise for its first ``branch_at`` chunks, then its own stream.
+
+    The evaluation lends the policy the global RNG, restarted from the episode seed at every reset
+    (:class:`~dust_rl.agents.execution.ChunkExecutor`); before chunk ``branch_at`` this swaps the global RNG's
+    state for the draw's stream.
+    """
+
+    def __init__(self, policy: DustPolicy, branch_at: int, draw: int) -> None:
+        self.policy, self.branch_at, self.draw = policy, branch_at, draw
+        self.seed = self.chunks = 0
+
+    def __enter__(self) -> BranchingNoise:
+        self.unshifted, self.plan_features = execution.episode_generator, self.policy.plan_features
+        execution.episode_generator = self._episode_generator
+        self.policy.plan_features = self._plan_features
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        execution.episode_generator = self.unshifted
+        del self.policy.plan_features  # the class's method again
+
+    def _episode_generator(self, seed: int) -> torch.Generator:
+        self.seed, self.chunks = int(seed), 0
+        return self.unshifted(seed)
+
+    def _plan_features(self, *args, **kwargs):
+        if self.draw and self.chunks == self.branch_at:
+            torch.set_rng_state(self.unshifted(self.seed + self.draw * NOISE_OFFSET).get_state())
+        self.chunks += 1
+        return self.plan_features(*args, **kwargs)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_eval_arguments(parser)
     parser.add_argument("--draws", type=int, default=4, help="noise streams per layout (K)")
+    parser.add_argument("--branch-at", type=int, nargs="+", default=[0],
+                        help="chunks every draw shares with the policy's own noise before its stream starts")
     args = parser.parse_args()
-    if args.draws < 1:
-        parser.error("--draws needs K >= 1")
+    if args.draws < 1 or min(args.branch_at) < 0:
+        parser.error("--draws needs K >= 1 and --branch-at chunk counts >= 0")
     policy, setup, config = prepare_in_process(args)
-    unshifted = execution.episode_generator
-    wins = torch.zeros(args.draws, len(setup.tasks), args.episodes, dtype=torch.bool)
-    for draw in range(args.draws):
-        execution.episode_generator = lambda seed, draw=draw: unshifted(int(seed) + draw * NOISE_OFFSET)
-        for t, task in enumerate(setup.tasks):
-            episodes, _, _, _ = evaluate_task(setup, task, policy, config)
-            wins[draw, t] = torch.tensor([e.success for e in episodes])
-        print(f"draw {draw}: {int(wins[draw].sum())}/{wins[draw].numel()}")
-    execution.episode_generator = unshifted
-    mean, best = int(wins.sum()), int(wins.any(0).sum())
-    n = wins[0].numel()
-    low, high = wilson_interval(best, n)
-    print(f"{args.policy}, seeds {args.seed}..{args.seed + args.episodes - 1}, {args.draws} noise draws per layout: "
-          f"mean success {mean / (args.draws * n):.0%}; layouts won by at least one draw {best}/{n} ({best / n:.0%}, "
-          f"95% CI {low:.0%}-{high:.0%}); won by every draw {int(wins.all(0).sum())}/{n}")
+    for branch_at in args.branch_at:
+        wins = torch.zeros(args.draws, len(setup.tasks), args.episodes, dtype=torch.bool)
+        for draw in range(args.draws):
+            with BranchingNoise(policy, branch_at, draw):
+                for t, task in enumerate(setup.tasks):
+                    episodes, _, _, _ = evaluate_task(setup, task, policy, config)
+                    wins[draw, t] = torch.tensor([e.success for e in episodes])
+            print(f"branch at chunk {branch_at}, draw {draw}: {int(wins[draw].sum())}/{wins[draw].numel()}",
+                  flush=True)
+        mean, best = int(wins.sum()), int(wins.any(0).sum())
+        n = wins[0].numel()
+        low, high = wilson_interval(best, n)
+        print(f"{args.policy}, seeds {args.seed}..{args.seed + args.episodes - 1}, {args.draws} noise draws per "
+              f"layout from chunk {branch_at} on: mean success {mean / (args.draws * n):.0%}; layouts won by at least "
+              f"one draw {best}/{n} ({best / n:.0%}, 95% CI {low:.0%}-{high:.0%}); won by every draw "
+              f"{int(wins.all(0).sum())}/{n}", flush=True)
 
 
 if __name__ == "__main__":
