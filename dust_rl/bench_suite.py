@@ -9,8 +9,10 @@ training seeds, and evaluates each on the same held-out seeds; then DUST's
 test-time scaling (N_A = 4, N_o = q * 4, async) against the synchronous
 control (both step counts raised together), DUST acting with its vision
 stream left as noise (whether the actions use the predicted future at all),
-and a data-scaling row (DUST and action_only on the first n demonstrations
-per task, n from ``--demos``).
+a data-scaling row (DUST and action_only on the first n demonstrations
+per task, n from ``--demos``) and, with ``--video-dataset``, DUST trained
+with action-free episodes beside the demonstrations (the paper pretrains
+its world model on action-free video; :mod:`dust_rl.action_free`).
 
 Every cell is a job cached on disk under ``out``: ``data/<n>/`` (collection,
 resumed), ``train/<variant>_seed<s>_demos<n>/`` (training, resumed; skipped
@@ -45,6 +47,7 @@ from dust_rl.report import save_png
 from dust_rl.train import TrainConfig, TrainSettings, train
 
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
+WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
 VISION_AS_NOISE = "vision as noise N_A=4"  # DUST's actions sampled with its world-model stream left as noise
 
 
@@ -68,6 +71,10 @@ class SuiteConfig:
     """The recipe every cell trains with (``--train.steps``, ``--train.policy.d-model`` ...; its variant and
     seed are the cell's); default: the quickstart's, which solves press_button in minutes (a comparison means
     little where every variant fails)."""
+    video_dataset: pathlib.Path | None = None
+    """Episodes of the same robot and cameras (of the same tasks with a read-out, as in the default recipe) that
+    DUST also trains on with their actions dropped, one more row at the largest demo count (e.g. more layouts than
+    the demonstrations: ``dust-rl collect --start-seed``); None: no such row."""
     vision_steps: tuple[int, ...] = (4, 8, 16, 32)
     """N_o of DUST's test-time scaling (async, N_A = 4) and of the synchronous control (N_A = N_o)."""
     episodes: int = 20
@@ -99,10 +106,16 @@ class Cell:
     variant: str
     seed: int
     demos: int
+    video: bool = False  # trained with the action-free episodes too
 
     @property
     def name(self) -> str:
-        return f"{self.variant}_seed{self.seed}_demos{self.demos}"
+        return f"{self.variant}{'_video' if self.video else ''}_seed{self.seed}_demos{self.demos}"
+
+    @property
+    def label(self) -> str:
+        """The variant as the tables name it."""
+        return WITH_VIDEO if self.video else self.variant
 
 
 def samplers(config: SuiteConfig, variant: str) -> dict[str, SamplerConfig | None]:
@@ -124,8 +137,10 @@ def plan(config: SuiteConfig) -> list[tuple[Cell, str]]:
     cells = [Cell(v, s, main) for v in config.variants for s in config.seeds]
     scaling = [v for v in ("dust", "action_only") if v in config.variants]
     cells += [Cell(v, s, n) for n in sorted(config.demos) if n != main for v in scaling for s in config.seeds]
+    if config.video_dataset is not None:
+        cells += [Cell("dust", s, main, video=True) for s in config.seeds]
     return [(cell, name) for cell in cells for name in samplers(config, cell.variant)
-            if cell.demos == main or name == AS_TRAINED]
+            if name == AS_TRAINED or (cell.demos == main and not cell.video)]
 
 
 def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
@@ -156,7 +171,9 @@ def train_cell(config: SuiteConfig, cell: Cell) -> pathlib.Path:
     out = config.out / "train" / cell.name
     if not (out / "policy.pt").is_file():
         settings = dataclasses.replace(config.train, seed=cell.seed, progress=config.progress,
-                                       policy=dataclasses.replace(config.train.policy, variant=cell.variant))
+                                       policy=dataclasses.replace(config.train.policy, variant=cell.variant),
+                                       video_dataset=config.video_dataset if cell.video else
+                                       config.train.video_dataset)
         train(TrainConfig.from_settings(settings, dataset=config.out / "data" / str(cell.demos), out=out,
                                         resume=(out / "config.json").is_file()))
     return out / "policy.pt"
@@ -177,8 +194,8 @@ def summarise(config: SuiteConfig, jobs: list[tuple[Cell, str]], reports: dict) 
     rows: dict[tuple, dict] = {}
     for cell, name in jobs:
         report = reports[cell, name]
-        key = (cell.variant, cell.demos, name)
-        row = rows.setdefault(key, {"variant": cell.variant, "demos": cell.demos, "sampler": name, "successes": 0,
+        key = (cell.label, cell.demos, name)
+        row = rows.setdefault(key, {"variant": cell.label, "demos": cell.demos, "sampler": name, "successes": 0,
                                     "episodes": 0, "seeds": [], "per_seed": [],
                                     "trainable_parameters": report["trainable_parameters"]})
         overall = report["overall"]
@@ -192,6 +209,7 @@ def summarise(config: SuiteConfig, jobs: list[tuple[Cell, str]], reports: dict) 
     return {"env": config.env, "task": config.task, "main_demos": max(config.demos),
             "eval_seeds": [config.eval_seed, config.eval_seed + config.episodes - 1],
             "train": config_json(config.train),
+            "video_dataset": None if config.video_dataset is None else str(config.video_dataset),
             "rows": list(rows.values())}
 
 

@@ -48,7 +48,7 @@ from dust_rl.agents.config import PolicyConfig
 from dust_rl.agents.flow_matching import Shard
 from dust_rl.agents.precision import Precision, autocast
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
-from dust_rl.data import DemoDataset, DemoWindows
+from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.device import resolve_device
 from dust_rl.distributed import Ranks, data_parallel, join_process_group, leave_process_group, rank_device, spawn
@@ -214,9 +214,9 @@ class TrainSettings:
         if self.init_policy is not None and self.policy != PolicyConfig():
             raise ConfigError("--policy.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
                               "settings (and its read-out, so no aux frames or read-out warm-up either)")
-        if self.video_dataset is not None and self.policy.lambda_aux:
-            raise ConfigError("video_dataset with --policy.lambda-aux: the action-free episodes' object state is "
-                              "another task's; train the read-out without them")
+        if self.video_dataset is not None and self.policy.lambda_aux and not self.readout_warmup:
+            raise ConfigError("video_dataset with --policy.lambda-aux needs --readout-warmup: the read-out is then "
+                              "fitted first and frozen, so the action-free episodes never train it")
         if self.readout_warmup and not self.aux_frames:
             raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
                               "is where the gripper is' (dust_rl.aux_frames)")
@@ -329,8 +329,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
                         ((config.video_dataset, config.video_fraction), (config.extra_dataset, config.extra_fraction)))
     windows = DemoWindows(dataset, horizon=policy.config.horizon, batch_size=config.batch_size - n_video - n_extra,
                           images=False, **start_rows)
-    video = (ActionFreeBatches(DemoDataset(config.video_dataset), policy, n_video, progress=config.progress)
-             if config.video_dataset else None)
+    video = _action_free_batches(config, dataset, policy, n_video) if config.video_dataset else None
     extra = (DatasetBatches(DemoDataset(config.extra_dataset), policy, n_extra, config.extra_action_key,
                             progress=config.progress, **start_rows) if config.extra_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
@@ -508,6 +507,22 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                                            approach_displacement=config.aux_approach_displacement,
                                            first_seed=first_seed, progress=config.progress)
     return AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
+
+
+def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy,
+                         batch_size: int) -> ActionFreeBatches:
+    """The action-free episodes' batches; with a read-out, only of the demonstrations' tasks, whose object state
+    (frozen read-out's loss, logged) means the same.
+
+    Raises:
+        DatasetError: a policy with a read-out and action-free episodes of other tasks.
+    """
+    video = DemoDataset(config.video_dataset)
+    if policy.config.aux_state_dim and set(video.tasks) - set(dataset.tasks):
+        raise DatasetError(f"{config.video_dataset}: action-free episodes of tasks {sorted(video.tasks)} beside a "
+                           f"read-out of {sorted(dataset.tasks)}: their object state means something else; use "
+                           "episodes of the demonstrations' tasks, or a policy without --policy.lambda-aux")
+    return ActionFreeBatches(video, policy, batch_size, progress=config.progress)
 
 
 def _log(loggers: list[Logger], scalars: dict[str, float], step: int) -> None:

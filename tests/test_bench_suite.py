@@ -7,8 +7,8 @@ import json
 import pytest
 from test_train import TINY_POLICY
 
-from dust_rl.agents import PolicyConfig, save_image_encoder
-from dust_rl.bench_suite import AS_TRAINED, VISION_AS_NOISE, SuiteConfig, run_suite
+from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
+from dust_rl.bench_suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, SuiteConfig, run_suite
 from dust_rl.errors import ConfigError
 from dust_rl.train import TrainSettings
 
@@ -21,15 +21,15 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
                           log_every=1, checkpoint_every=2, threads=1, progress=False)
     config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1, 2), variants=("dust", "action_only"),
                          seeds=(0,), train=train, vision_steps=(4, 8), episodes=1, image_size=32, max_steps=6,
-                         progress=False)
+                         video_dataset=tmp_path / "suite" / "data" / "1", progress=False)  # collected by the suite
     results = run_suite(config, "dust-rl bench suite ...")
-    assert "budget: collect 2 demonstrations x 1 tasks; train 4 policies x 2 steps" in capsys.readouterr().out
+    assert "budget: collect 2 demonstrations x 1 tasks; train 5 policies x 2 steps" in capsys.readouterr().out
     rows = {(r["variant"], r["demos"], r["sampler"]): r for r in results["rows"]}
     assert set(rows) == {("dust", 2, AS_TRAINED), ("action_only", 2, AS_TRAINED),
                          ("dust", 2, "async N_A=4 N_o=4"), ("dust", 2, "sync N_A=N_o=4"),
                          ("dust", 2, "async N_A=4 N_o=8"), ("dust", 2, "sync N_A=N_o=8"),
                          ("dust", 2, VISION_AS_NOISE),
-                         ("dust", 1, AS_TRAINED), ("action_only", 1, AS_TRAINED)}
+                         ("dust", 1, AS_TRAINED), ("action_only", 1, AS_TRAINED), (WITH_VIDEO, 2, AS_TRAINED)}
     assert all(r["episodes"] == 1 and 0 <= r["ci95_low"] <= r["ci95_high"] <= 1 for r in rows.values())
     assert rows["dust", 2, AS_TRAINED]["trainable_parameters"] > rows["action_only", 2, AS_TRAINED][
         "trainable_parameters"]
@@ -41,12 +41,15 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert noise["sampler"]["name"] == "action_only"
     markdown = (tmp_path / "suite" / "results.md").read_text()
     assert "## Data scaling" in markdown and "| action_only | 1 | as trained |" in markdown
+    assert f"| {WITH_VIDEO} | 2 | as trained |" in markdown
+    video_policy = tmp_path / "suite" / "train" / "dust_video_seed0_demos2" / "policy.pt"
+    assert unwrap(load_policy(video_policy)).info["video_dataset"] == str(config.video_dataset)
     assert (tmp_path / "suite" / "results.png").read_bytes()[:4] == b"\x89PNG"
 
     # A rerun finds every cell on disk: no training, no evaluation.
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "suite").rglob("*") if p.name in ("policy.pt",
                                                                                             "report.json")}
-    assert len(stamps) == 4 + len(rows)
+    assert len(stamps) == 5 + len(rows)
     assert run_suite(config)["rows"] == results["rows"]
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
 

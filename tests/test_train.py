@@ -253,6 +253,19 @@ def test_action_free_episodes_train_the_world_model_but_not_the_actions(run_inpu
         tiny_config(run_inputs, tmp_path / "x", video_dataset=video_dir, video_fraction=1.0)
 
 
+def test_action_free_episodes_beside_a_read_out_need_it_frozen_and_the_same_tasks(run_inputs, demo_dir, tmp_path):
+    video_dir = shutil.copytree(demo_dir, tmp_path / "video")
+    readout = {"readout": "tokens", "lambda_aux": 1.0, "aux_frames": 2, "video_dataset": video_dir}
+    with pytest.raises(ConfigError, match="needs --readout-warmup"):
+        tiny_config(run_inputs, tmp_path / "x", **readout)
+    result = train(tiny_config(run_inputs, tmp_path / "run", steps=2, readout_warmup=2, **readout))
+    assert unwrap(load_policy(result.policy)).info["video_dataset"] == str(video_dir)
+    meta = json.loads((video_dir / "meta.json").read_text())
+    (video_dir / "meta.json").write_text(json.dumps({**meta, "tasks": [*meta["tasks"], "stack"]}))
+    with pytest.raises(DatasetError, match="object state means something else"):
+        train(tiny_config(run_inputs, tmp_path / "other", steps=2, readout_warmup=2, **readout))
+
+
 def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inputs, demo_dir, tmp_path):
     readout = {"readout": "tokens", "lambda_aux": 1.0, "aux_frames": 2, "readout_warmup": 2}
     base = train(tiny_config(run_inputs, tmp_path / "base", steps=2, **readout)).policy
