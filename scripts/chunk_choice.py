@@ -77,9 +77,9 @@ def main() -> None:
     choice = ChunkChoice(policy, args.rule, args.k, args.target_columns, args.holding_below)
     for task in setup.tasks:
         episodes, _, _, _ = evaluate_task(setup, task, policy, config)
+        chosen = f"; a chosen chunk at {choice.chosen} of {choice.plans} re-plans" if args.rule == "nearest" else ""
         print(f"{args.policy}, {args.rule} of K = {args.k}, seeds {args.seed}..{args.seed + args.episodes - 1}: "
-              f"{success_line(task, episodes)}; a chosen chunk at {choice.chosen} of {choice.plans} re-plans",
-              flush=True)
+              f"{success_line(task, episodes)}{chosen}", flush=True)
 
 
 if __name__ == "__main__":
