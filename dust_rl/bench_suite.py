@@ -74,7 +74,7 @@ class SuiteConfig:
     video_dataset: pathlib.Path | None = None
     """Episodes of the same robot and cameras (of the same tasks with a read-out, as in the default recipe) that
     DUST also trains on with their actions dropped, one more row at the largest demo count (e.g. more layouts than
-    the demonstrations: ``dust-rl collect --start-seed``); None: no such row."""
+    the demonstrations: ``dust-rl collect --seed N``); None: no such row."""
     vision_steps: tuple[int, ...] = (4, 8, 16, 32)
     """N_o of DUST's test-time scaling (async, N_A = 4) and of the synchronous control (N_A = N_o)."""
     episodes: int = 20
