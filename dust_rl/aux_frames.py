@@ -40,6 +40,12 @@ motions only, 6.1 cm from the named cube at the first step of unseen
 demonstrations and 8.9 cm over steps 10-29 (the grasp) instead of 2.4 and
 3.5 cm (README).
 
+Expert frames have the same shortcut where it matters for stacking: while
+the cube is carried over the one below, that one sits under the gripper in
+every frame. ``--aux-expert-displacement r`` moves every free object the
+gripper does not hold (farther than :data:`HELD_WITHIN` from it) by up to
+r metres after an expert frame's motion.
+
 Seeds start at :data:`FIRST_SEED`, away from the demonstration (0..),
 validation (5000..) and held-out (10000..) seeds, so the frames never show a
 layout the policy is scored on.
@@ -64,12 +70,14 @@ HELDOUT_FRAMES = 256
 MAX_RANDOM_STEPS = 40
 MAX_EXPERT_STEPS = 80
 MAX_NUDGE_STEPS = 10  # random motions after an approach
+HELD_WITHIN = 0.03  # metres from the gripper's site within which an object counts as held (a 4 cm cube's centre)
 
 
 def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: list[str], count: int,
                       env_state_width: int, seed: int = 0, expert_fraction: float = 0.0,
                       approach_fraction: float = 0.0, approach_displacement: float = 0.0,
-                      first_seed: int = FIRST_SEED, progress: bool = True) -> tuple[TensorDict, list[str]]:
+                      first_seed: int = FIRST_SEED, progress: bool = True,
+                      expert_displacement: float = 0.0) -> tuple[TensorDict, list[str]]:
     """``count`` frames of random resets and random arm motions (or expert motions, or approaches), tasks in turn.
 
     Args:
@@ -85,6 +93,8 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
             plane (module doc); 0: leave them.
         first_seed: :data:`FIRST_SEED` for frames to fit, :data:`HELDOUT_FIRST_SEED` for frames that measure.
         progress: show a progress bar.
+        expert_displacement: after an expert frame's motion, move every free object not held by up to this many
+            metres on the table plane (module doc); 0: leave them.
 
     Returns:
         (rows with ``(observation, image, cam)`` uint8 [count, 3, H, W], the object state [count, S] and
@@ -103,6 +113,8 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
             draw = rng.random() if expert_fraction or approach_fraction else 1.0  # none at 0: old frames stay
             if draw < expert_fraction:
                 _expert_steps(sim, int(rng.integers(0, MAX_EXPERT_STEPS)))
+                if expert_displacement:
+                    sim.displace_free_bodies(rng, expert_displacement, spare_within=HELD_WITHIN)
             elif draw < expert_fraction + approach_fraction:
                 closure = _approach_steps(sim, int(rng.integers(0, MAX_EXPERT_STEPS)))
                 _random_steps(sim, rng, int(rng.integers(0, MAX_NUDGE_STEPS)), closure)

@@ -108,6 +108,10 @@ class TrainSettings:
     """Metres: after each approach frame's motion, every free object is moved by its own random offset within
     this radius on the table plane (:mod:`dust_rl.aux_frames`), so the read-out cannot take the gripper's place
     for the target's; 0: off. Needs ``aux_approach_fraction``."""
+    aux_expert_displacement: float = 0.0
+    """Metres: after each expert frame's motion, every free object the gripper does not hold is moved by its own
+    random offset within this radius on the table plane (:mod:`dust_rl.aux_frames`), so the object below a carried
+    one is not always under the gripper; 0: off. Needs ``aux_expert_fraction``."""
     readout_warmup: int = 0
     """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
     the policy trains; they are then frozen (:mod:`dust_rl.readout_warmup`). Needs ``aux_frames``; 0: off."""
@@ -192,10 +196,11 @@ class TrainSettings:
                 raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
             if getattr(self, name) and not self.aux_frames:
                 raise ConfigError(f"{name} needs --aux-frames > 0: it is a share of those frames")
-        check_finite(self, "aux_approach_displacement")
-        if self.aux_approach_displacement and not self.aux_approach_fraction:
-            raise ConfigError("aux_approach_displacement moves the objects of approach frames: it needs "
-                              "--aux-approach-fraction > 0")
+        for kind in ("approach", "expert"):
+            check_finite(self, f"aux_{kind}_displacement")
+            if getattr(self, f"aux_{kind}_displacement") and not getattr(self, f"aux_{kind}_fraction"):
+                raise ConfigError(f"aux_{kind}_displacement moves the objects of {kind} frames: it needs "
+                                  f"--aux-{kind}-fraction > 0")
         if self.aux_expert_fraction + self.aux_approach_fraction > 1:
             raise ConfigError("aux_expert_fraction + aux_approach_fraction must be at most 1 (shares of the same "
                               f"frames), got {self.aux_expert_fraction} + {self.aux_approach_fraction}")
@@ -505,6 +510,7 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                                            seed=config.seed, expert_fraction=config.aux_expert_fraction,
                                            approach_fraction=config.aux_approach_fraction,
                                            approach_displacement=config.aux_approach_displacement,
+                                           expert_displacement=config.aux_expert_displacement,
                                            first_seed=first_seed, progress=config.progress)
     return AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
 

@@ -32,6 +32,7 @@ def main() -> None:
     parser.add_argument("--expert-fraction", type=float, default=0.0, help="as --aux-expert-fraction")
     parser.add_argument("--approach-fraction", type=float, default=0.0, help="as --aux-approach-fraction")
     parser.add_argument("--approach-displacement", type=float, default=0.0, help="as --aux-approach-displacement")
+    parser.add_argument("--expert-displacement", type=float, default=0.0, help="as --aux-expert-displacement")
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--decay", action="store_true", help="as --readout-lr-decay")
     parser.add_argument("--heads", type=int, default=1, help="attention poolings of the read-out")
@@ -61,7 +62,8 @@ def main() -> None:
         rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
                                                policy.cameras, count, width, expert_fraction=args.expert_fraction,
                                                approach_fraction=args.approach_fraction,
-                                               approach_displacement=args.approach_displacement, first_seed=first_seed)
+                                               approach_displacement=args.approach_displacement, first_seed=first_seed,
+                                               expert_displacement=args.expert_displacement)
         return AuxFrameBatches(rows, instructions, policy, norm)
 
     heldout = frames(HELDOUT_FRAMES, HELDOUT_FIRST_SEED)

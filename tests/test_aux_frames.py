@@ -10,7 +10,14 @@ from tensordict import TensorDict
 
 from dust_rl.agents import DustConfig, DustPolicy, make_policy, unwrap
 from dust_rl.agents.attention_pooling import WIDTH
-from dust_rl.aux_frames import FIRST_SEED, MAX_EXPERT_STEPS, AuxFrameBatches, _approach_steps, render_aux_frames
+from dust_rl.aux_frames import (
+    FIRST_SEED,
+    HELD_WITHIN,
+    MAX_EXPERT_STEPS,
+    AuxFrameBatches,
+    _approach_steps,
+    render_aux_frames,
+)
 from dust_rl.data import DemoDataset
 from dust_rl.env_factory import make_env
 from dust_rl.env_state_norm import EnvStateNorm
@@ -101,6 +108,27 @@ def test_displaced_approach_frames_move_every_object_within_the_radius_and_not_t
     # before the displacement's kinematics update did not include yet (well under a millimetre).
     assert offsets[..., 2].abs().max() < 1e-3
     assert not torch.equal(moved.get((*IMAGE_KEY, "front")), still.get((*IMAGE_KEY, "front")))
+
+
+def test_displacement_spares_the_object_the_gripper_holds():
+    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
+    sim = env.unwrapped
+    rest = env.reset(seed=0)[0]["observation.environment_state"]
+    expert = sim.make_expert()
+    for _ in range(MAX_EXPERT_STEPS * 2):  # until the named cube is lifted off the table
+        sim.advance(expert.act())
+        held = sim.observe()["observation.environment_state"]
+        if held[2] > rest[2] + 0.02:
+            break
+    else:
+        pytest.fail("the expert never lifted the cube")
+    sim.displace_free_bodies(np.random.default_rng(0), 0.05, spare_within=HELD_WITHIN)
+    moved = sim.observe()["observation.environment_state"]
+    env.close()
+    # The state read before the displacement's kinematics update lacks the last substep's motion (well under a
+    # millimetre; see the test above): the held cube stays within that, the distractor moves farther.
+    assert np.abs(moved[:3] - held[:3]).max() < 1e-3
+    assert np.linalg.norm(moved[3:5] - held[3:5]) > 1e-3
 
 
 def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm):

@@ -149,6 +149,8 @@ def test_training_logs_the_aux_frame_loss(readout, run_inputs, tmp_path):
         tiny_config(run_inputs, out, aux_approach_fraction=0.5, **pixels)
     with pytest.raises(ConfigError, match="aux_approach_displacement moves the objects of approach frames"):
         tiny_config(run_inputs, out, aux_frames=3, aux_approach_displacement=0.05, **pixels)
+    with pytest.raises(ConfigError, match="aux_expert_displacement moves the objects of expert frames"):
+        tiny_config(run_inputs, out, aux_frames=3, aux_expert_displacement=0.05, **pixels)
     with pytest.raises(ConfigError, match="aux_approach_displacement must be a finite number >= 0"):
         tiny_config(run_inputs, out, aux_frames=3, aux_approach_fraction=0.5, aux_approach_displacement=-0.1,
                     **pixels)
