@@ -1,7 +1,7 @@
 """The shared part of the diagnostics that evaluate a policy in this process with hooks attached.
 
-Why in this process: the hooks (forward hooks on the policy, a shifted noise generator) must reach the policy that
-acts, so the evaluation runs one env, here (``workers=1``, the local collector).
+Why in this process: the hooks (forward hooks on the policy, a swapped ``plan_features`` or noise generator) must
+reach the policy that acts, so the evaluation runs one env, here (``workers=1``, the local collector).
 """
 
 from __future__ import annotations
