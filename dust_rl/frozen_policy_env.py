@@ -36,9 +36,6 @@ from dust_rl.agents.execution import episode_generator
 from dust_rl.keys import INSTRUCTION_KEY, STATE_KEY, flat_name
 
 STATE_NAME = flat_name(STATE_KEY)
-OBSERVATION_ENTRIES = ("robot_state", "object_estimate", "features", "predicted_future")
-"""The observation's entries (``object_estimate`` and ``predicted_future`` where present)."""
-
 
 def observation_td(obs: dict) -> TensorDict:
     """A dust-rl gymnasium observation as the TensorDict a :class:`~dust_rl.agents.DustPolicy` plans from."""

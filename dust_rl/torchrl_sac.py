@@ -27,7 +27,6 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate
 from tqdm.auto import tqdm
 
-from dust_rl.frozen_policy_env import OBSERVATION_ENTRIES
 from dust_rl.start_at_base import check_initial_std
 
 FIXED_STD_ALPHA = 1e-6
@@ -36,9 +35,9 @@ FIXED_STD_ALPHA = 1e-6
 
 
 def torchrl_env(env: gym.Env) -> TransformedEnv:
-    """A fine-tuning env as a torchrl env with one ``observation`` vector: its entries
-    (:data:`~dust_rl.frozen_policy_env.OBSERVATION_ENTRIES`) in the alphabetical order ``CatTensors`` sorts them to."""
-    entries = [name for name in OBSERVATION_ENTRIES if name in env.observation_space.spaces]
+    """A fine-tuning env as a torchrl env with one ``observation`` vector: every entry of its observation (the
+    residual env's ``base_action`` too) in the alphabetical order ``CatTensors`` sorts them to."""
+    entries = list(env.observation_space.spaces)
     return TransformedEnv(GymWrapper(env), CatTensors(entries, "observation", del_keys=False))
 
 

@@ -198,6 +198,9 @@ def test_the_residual_agent_can_see_the_future_dust_sampled_with_the_chunk(steer
     expected = policy.normalizer.normalize_vision(plan["future_tokens"])[0].flatten()
     torch.testing.assert_close(torch.from_numpy(obs["predicted_future"]), expected, rtol=0, atol=0)
     assert np.array_equal(obs["base_action"], plan["action_chunk"][0, 0].numpy())
+    td = torchrl_env(env).reset(seed=5)  # torchrl's agent sees what SB3's does: the base action and the future too
+    assert torch.equal(td["observation"], torch.cat([td[name] for name in sorted(env.observation_space.spaces)]))
+    assert td["observation"].shape == (sum(space.shape[0] for space in env.observation_space.spaces.values()),)
     futures = [obs["predicted_future"]]
     for _ in range(3):  # execute_steps 2: the future changes with the re-plan, not between
         obs, *_ = env.step(np.zeros(7, np.float32))
