@@ -92,8 +92,12 @@ class FinetuneConfig:
     task: str | None = None
     """Task to fine-tune on; default: the policy's first training task."""
     reward: Literal["sparse", "dense"] = "sparse"
-    """The env's reward while training: 1 on success only, or the change in the task's staged progress each step
-    (potential-based shaping, ``DustEnv.step``; evaluation counts successes either way)."""
+    """The env's reward while training: 1 on success only, or that plus potential-based shaping by the task's
+    staged progress, shaped for ``gamma`` (``DustEnv.step``; evaluation counts successes either way)."""
+    gamma: float = 0.99
+    """The RL agent's discount per RL step (an env step for residual, a chunk when steering; steering discounts
+    the rewards within a chunk by ``gamma ** (1 / execute_steps)`` per env step, the discount the dense reward is
+    then shaped for)."""
     noise_bound: float = 2.0
     """Steering: the noise magnitude an RL action of +-1 maps to."""
     residual_scale: float = 0.1
@@ -175,6 +179,8 @@ class FinetuneConfig:
             raise ConfigError(f"wm_select needs rollouts >= {VALIDATION_EVERY}: every {VALIDATION_EVERY}th episode "
                               "validates the scorer")
         check_finite(self, "noise_bound", "residual_scale", positive=True)
+        if not 0 < self.gamma <= 1:
+            raise ConfigError(f"gamma must be a discount factor in (0, 1], got {self.gamma}")
         if self.world_model_obs and self.method != "residual":
             raise ConfigError(f"world_model_obs applies to --method residual, not {self.method}")
         if self.initial_std is not None:
@@ -270,12 +276,13 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
 def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
     """The SB3 agent ``config`` asks for, on ``env`` (the same settings rebuild it to resume)."""
     algorithm = ALGORITHMS[config.algorithm]
+    kwargs: dict = {"gamma": config.gamma}
     if algorithm is SAC:  # a replay buffer no larger than the run
-        kwargs = {"learning_starts": config.learning_starts, "batch_size": config.batch_size,
+        kwargs |= {"learning_starts": config.learning_starts, "batch_size": config.batch_size,
                   "buffer_size": config.steps}
     else:  # a rollout no longer than the run, minibatches no larger than a rollout
         n_steps = min(2048, config.steps)
-        kwargs = {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
+        kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
     if algorithm is SAC and config.initial_std is not None:
         algorithm = WarmStartSAC
         kwargs["ent_coef"] = 0.0  # the std is fixed: an entropy bonus would only swamp the reward (start_at_base)
@@ -316,10 +323,13 @@ def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Ca
     """A factory of fresh fine-tuning envs for ``config``'s task (checked once, here), and the task."""
     env_id, env_kwargs, task = policy_env(config, policy)
 
+    step_discount = config.gamma ** (1 / policy.execute_steps) if config.method == "steer" else config.gamma
+
     def make() -> FrozenPolicyEnv:
-        env = make_env(env_id, {**env_kwargs, "task": task, "reward_type": config.reward})
+        env = make_env(env_id, {**env_kwargs, "task": task, "reward_type": config.reward,
+                                "shaping_discount": step_discount})
         if config.method == "steer":
-            return NoiseSteeringEnv(env, policy, noise_bound=config.noise_bound)
+            return NoiseSteeringEnv(env, policy, noise_bound=config.noise_bound, step_discount=step_discount)
         half_width = (env.action_space.high - env.action_space.low) / 2
         return ResidualEnv(env, policy, residual_scale=config.residual_scale * half_width,
                            world_model=config.world_model_obs)

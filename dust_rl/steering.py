@@ -11,7 +11,11 @@ exactly its own chunk.
 :class:`NoiseSteeringEnv`'s action is that noise, scaled from [-1, 1] to
 ``[-noise_bound, noise_bound]`` (a standard normal draw lies within +-2 for
 95% of its entries), row-major [H * Da]; one step samples a chunk from it and
-executes the chunk's first ``execute_steps`` actions, summing their rewards.
+executes the chunk's first ``execute_steps`` actions, summing their rewards
+discounted to the chunk's start by ``step_discount`` per env step: with the
+env's dense reward shaped for that discount (``shaping_discount``), a chunk's
+reward is then potential-based shaping for an agent whose discount per chunk
+is ``step_discount ** execute_steps`` (the shaping telescopes within the chunk).
 Observations: :mod:`dust_rl.frozen_policy_env`. Any SB3 algorithm with
 ``MultiInputPolicy`` runs on it unchanged.
 """
@@ -35,14 +39,17 @@ class NoiseSteeringEnv(FrozenPolicyEnv):
         policy: the frozen policy.
         noise_bound: the largest noise magnitude an action of +-1 maps to.
         execute_steps: env steps per chunk; default: the policy's own.
+        step_discount: per env step, the discount of the rewards within a chunk (module doc); 1: their sum.
     """
 
     def __init__(self, env: gym.Env, policy: DustPolicy, noise_bound: float = 2.0,
-                 execute_steps: int | None = None) -> None:
+                 execute_steps: int | None = None, step_discount: float = 1.0) -> None:
         if not (np.isfinite(noise_bound) and noise_bound > 0):
             raise ValueError(f"noise_bound must be a positive number, got {noise_bound}")
+        if not 0 < step_discount <= 1:
+            raise ValueError(f"step_discount must be a discount factor in (0, 1], got {step_discount}")
         super().__init__(env, policy, execute_steps)
-        self.noise_bound = float(noise_bound)
+        self.noise_bound, self.step_discount = float(noise_bound), float(step_discount)
         self.chunk_shape = (policy.config.horizon, policy.config.action_dim)
         self.action_space = spaces.Box(-1.0, 1.0, (int(np.prod(self.chunk_shape)),), np.float32)
 
@@ -63,9 +70,9 @@ class NoiseSteeringEnv(FrozenPolicyEnv):
 
     def _execute(self, chunk: torch.Tensor) -> tuple[dict, float, bool, bool, dict]:
         total, terminated, truncated, info = 0.0, False, False, {}
-        for env_action in chunk[:self.execute_steps].numpy():
+        for i, env_action in enumerate(chunk[:self.execute_steps].numpy()):
             obs, reward, terminated, truncated, info = self.env_step(env_action)
-            total += float(reward)
+            total += self.step_discount ** i * float(reward)
             if terminated or truncated:
                 break
         return self.observe(obs), total, terminated, truncated, info

@@ -73,6 +73,13 @@ def non_negative(name: str, value: object) -> float:
     return float(value)
 
 
+def discount(name: str, value: object) -> float:
+    """A discount factor in (0, 1]."""
+    if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and 0 < value <= 1):
+        raise ValueError(f"{name} must be a discount factor in (0, 1], got {value!r}")
+    return float(value)
+
+
 def _positive_finite(name: str, value: object) -> float:
     if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value) and value > 0):
         raise ValueError(f"{name} must be a positive finite number, got {value!r}")

@@ -69,8 +69,10 @@ class DustEnv(gym.Env):
         image_size: image height and width in pixels (a positive int or ``(height, width)``).
         cameras: cameras to render; defaults to the robot's (Franka: ``front``, ``wrist``;
             humanoid: ``head``, with ``left_wrist``, ``right_wrist`` and ``front`` on request).
-        reward_type: ``"sparse"`` (1 on success) or ``"dense"`` (potential-based staged shaping: the change
-            in :meth:`progress` each step, which counts 1 on success; see :meth:`step`).
+        reward_type: ``"sparse"`` (1 on success) or ``"dense"`` (the sparse reward plus potential-based
+            shaping by the task's staged :meth:`progress`; see :meth:`step`).
+        shaping_discount: the per-step discount of the agent the dense reward is shaped for (``gamma``: SB3's
+            default 0.99); its optimal policies are then the sparse reward's.
         render_mode: ``"rgb_array"`` or None.
         render_quality: ``"fast"`` (no shadows/MSAA, low-poly robot) or ``"visual"``.
         max_episode_steps: overrides the task's default time limit (a positive int).
@@ -107,6 +109,7 @@ class DustEnv(gym.Env):
         image_size: int | Sequence[int] = 128,
         cameras: Sequence[str] | None = None,
         reward_type: str = "sparse",
+        shaping_discount: float = 0.99,
         render_mode: str | None = None,
         render_quality: str = "fast",
         max_episode_steps: int | None = None,
@@ -119,6 +122,7 @@ class DustEnv(gym.Env):
         arguments.check_choice("obs_mode", obs_mode, OBS_MODES)
         arguments.check_choice("control_mode", control_mode, CONTROL_MODES)
         arguments.check_choice("reward_type", reward_type, REWARD_TYPES)
+        self.shaping_discount = arguments.discount("shaping_discount", shaping_discount)
         arguments.check_choice("render_mode", render_mode, (None, *self.metadata["render_modes"]))
         arguments.check_choice("render_quality", render_quality, RENDER_QUALITIES)
         arguments.check_choice("robot", robot, tuple(ROBOT_BUILDERS))
@@ -230,15 +234,19 @@ class DustEnv(gym.Env):
         return self.observe(), self._info(success=False, reason="")
 
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
-        """One control step. The dense reward is potential-based (Ng et al. 1999): progress(s') - progress(s),
-        with progress 1 on success, so an episode's rewards sum to what it gained and standing still earns 0.
-        Paying the progress itself each step, as this env did before, made success (1, then the episode ends)
-        worth less to an RL agent than hovering just short of it (up to ~100 times its progress at a discount
-        of 0.99)."""
+        """One control step. The dense reward is the sparse one plus potential-based shaping (Ng, Harada and
+        Russell 1999): gamma * progress(s') - progress(s) with ``gamma = shaping_discount`` and progress 0 once
+        the episode has ended in success, so success pays 1 - progress(s), an episode's discounted rewards sum to
+        its discounted sparse return minus the start's progress, and an agent with that discount has the sparse
+        reward's optimal policies. Two earlier forms were exploitable: paying the progress itself each step made
+        hovering short of success worth up to ~100 times its progress; paying its undiscounted change
+        (gamma = 1 for an agent with gamma < 1) made lifting a cube and dropping it again pay (the lift is
+        counted at full value, the loss discounted)."""
         success, reason = self.advance(action)
         if self.reward_type == "dense":
-            progress = 1.0 if success else self.progress()
-            reward, self._progress = progress - self._progress, progress
+            progress = self.progress()
+            reward = (1.0 if success else self.shaping_discount * progress) - self._progress
+            self._progress = progress
         else:
             reward = float(success)
         return self.observe(), float(reward), success, bool(reason), self._info(success, reason)

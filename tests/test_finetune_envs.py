@@ -65,6 +65,24 @@ def test_the_policy_own_noise_gives_its_own_chunk(steering):
     assert not np.array_equal(steered["robot_state"], obs["robot_state"])  # other noise, other chunk
 
 
+def test_a_chunk_of_dense_reward_is_shaping_for_the_discount_per_chunk(steering):
+    _, policy = steering
+    gamma = 0.9  # per env step; per chunk of execute_steps 2: 0.81
+    env = NoiseSteeringEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE,
+                                                      "reward_type": "dense", "shaping_discount": gamma}),
+                           policy, step_discount=gamma)
+    env.reset(seed=4)
+    sim = env.env.unwrapped
+    before = sim.progress()
+    _, reward, terminated, *_ = env.step(np.zeros(28, np.float32))
+    assert not terminated  # an untrained policy does not press the button in two steps
+    # float64 products and differences: a few ulps of the progress (< 1) per step
+    assert abs(reward - (gamma ** 2 * sim.progress() - before)) <= 16 * np.finfo(np.float64).eps
+    with pytest.raises(ValueError, match=r"step_discount must be a discount factor in \(0, 1\]"):
+        NoiseSteeringEnv(env.env, policy, step_discount=1.5)
+    env.close()
+
+
 def test_bad_steering_actions_are_named(steering):
     env, _ = steering
     with pytest.raises(RuntimeError, match="reset"):
