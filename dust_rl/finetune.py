@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import pathlib
 import time
 from collections.abc import Callable
@@ -107,6 +108,17 @@ class FinetuneConfig:
     executed (:mod:`dust_rl.residual`); needs a policy that predicts one."""
     learning_starts: int = 1000
     """SAC: steps before the first update (uniformly random actions, unless ``initial_std`` is set)."""
+    gradient_steps: int = 1
+    """SAC: gradient steps per RL step, the update-to-data ratio (DSRL: 20)."""
+    target_entropy: float | None = None
+    """SAC: learn the entropy coefficient so the policy keeps this entropy (SB3's ``ent_coef="auto"``; DSRL: 0),
+    starting from ``initial_alpha``; with ``initial_std`` the std then starts there and is learnt. None: SB3's
+    target (minus the action dimension), or with ``initial_std`` a fixed std and no entropy bonus
+    (:mod:`dust_rl.start_at_base`)."""
+    initial_alpha: float = 1.0
+    """SAC: the entropy coefficient's start when it is learnt (SB3's 1.0). Each step's entropy bonus is about alpha
+    times the action dimension (112 when steering stack) against a sparse reward of 1, so a steering run with
+    ``target_entropy`` wants it far smaller."""
     initial_std: float | None = None
     """Start the RL agent at the base policy (:mod:`dust_rl.start_at_base`): mean action 0 (no residual; steering:
     the centre of the base policy's noise) and this exploration standard deviation (SAC: before the tanh), acting so
@@ -185,6 +197,12 @@ class FinetuneConfig:
             raise ConfigError(f"world_model_obs applies to --method residual, not {self.method}")
         if self.initial_std is not None:
             check_finite(self, "initial_std", positive=True)
+        check_at_least(self, 1, "gradient_steps")
+        check_finite(self, "initial_alpha", positive=True)
+        if self.target_entropy is not None and not math.isfinite(self.target_entropy):
+            raise ConfigError(f"target_entropy must be a finite number, got {self.target_entropy}")
+        if self.algorithm != "sac" and (self.gradient_steps != 1 or self.target_entropy is not None):
+            raise ConfigError(f"gradient_steps and target_entropy are SAC settings; --algorithm is {self.algorithm}")
         if not self.net_arch or min(self.net_arch) < 1:
             raise ConfigError(f"net_arch must list positive layer widths, got {self.net_arch}")
         resolve_device(self.device)
@@ -279,17 +297,22 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
     kwargs: dict = {"gamma": config.gamma}
     if algorithm is SAC:  # a replay buffer no larger than the run
         kwargs |= {"learning_starts": config.learning_starts, "batch_size": config.batch_size,
-                  "buffer_size": config.steps}
+                   "buffer_size": config.steps, "gradient_steps": config.gradient_steps}
+        if config.target_entropy is not None:
+            kwargs |= {"ent_coef": f"auto_{config.initial_alpha}", "target_entropy": config.target_entropy}
+        elif config.initial_std is None:
+            kwargs["ent_coef"] = f"auto_{config.initial_alpha}"
     else:  # a rollout no longer than the run, minibatches no larger than a rollout
         n_steps = min(2048, config.steps)
         kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
     if algorithm is SAC and config.initial_std is not None:
         algorithm = WarmStartSAC
-        kwargs["ent_coef"] = 0.0  # the std is fixed: an entropy bonus would only swamp the reward (start_at_base)
+        if config.target_entropy is None:  # the std is fixed: an entropy bonus would only swamp the reward
+            kwargs["ent_coef"] = 0.0
     agent = algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
                       policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
     if config.initial_std is not None:
-        start_at_base(agent, config.initial_std)
+        start_at_base(agent, config.initial_std, learn_std=config.target_entropy is not None)
     return agent
 
 

@@ -48,11 +48,13 @@ def check_initial_std(std: float) -> None:
         raise ValueError(f"the initial exploration std must be a finite number > 0, got {std}")
 
 
-def start_at_base(agent: BaseAlgorithm, std: float) -> None:
+def start_at_base(agent: BaseAlgorithm, std: float, learn_std: bool = False) -> None:
     """Make ``agent``'s mean action 0 for every observation and its exploration standard deviation ``std``, fixed.
 
     SAC: ``std`` is before the tanh squashing (the action is ``tanh`` of a Gaussian), and the agent should be built
     with ``ent_coef=0`` (as ``dust-rl finetune`` does; the module docstring says why). PPO: of the Gaussian itself.
+    ``learn_std``: the std only starts at ``std`` (SAC with a learnt entropy coefficient and target, which holds
+    it where the fixed std's reasons above do not apply).
 
     Raises:
         ValueError: ``std`` is not a finite positive number.
@@ -71,4 +73,5 @@ def start_at_base(agent: BaseAlgorithm, std: float) -> None:
             raise TypeError(f"start_at_base supports SAC and PPO, not {type(agent).__name__}")
         mean.weight.zero_()
         mean.bias.zero_()
-    log_std.requires_grad_(False)  # the optimisers skip parameters without gradients
+    if not learn_std:
+        log_std.requires_grad_(False)  # the optimisers skip parameters without gradients

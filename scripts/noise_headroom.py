@@ -10,8 +10,14 @@ the draws against the share of layouts won by at least one draw: the best any no
 first C chunks (so it reaches the same state, bit for bit) and its own stream from chunk C on. Draw 0 is the plain
 evaluation at every C.
 
+``--spread K`` asks what a noise chooser controls: along the plain evaluation, each chunk is also sampled from K
+other noises (the episode's own noise stream untouched), and the script prints how far apart the draws put the
+gripper at the end of the chunk's executed actions (RMS distance from their mean, mm, in delta control) and how
+often some draw commands the gripper otherwise than the chunk executed. A noise chooser (steering, best-of-K)
+can only pick among chunks this far apart.
+
     .venv/bin/python scripts/noise_headroom.py --policy runs/train/T/policy.pt [--draws 4] [--branch-at 0 4 8] \
-        [--seed 5000] [--episodes 50]
+        [--spread K] [--seed 5000] [--episodes 50]
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import torch
 from in_process_eval import add_eval_arguments, prepare_in_process
 
 from dust_rl.agents import DustPolicy, execution
+from dust_rl.envs.env import MAX_TRANSLATION
 from dust_rl.evaluate import evaluate_task, wilson_interval
 
 NOISE_OFFSET = 1_000_003  # added to the episode seed per draw: far from every seed schedule
@@ -60,16 +67,71 @@ class BranchingNoise:
         return self.plan_features(*args, **kwargs)
 
 
+class NoiseSpread:
+    """Records, at every plan of the evaluation, how far ``draws`` other noises move the chunk's executed part.
+
+    The extra samples draw from their own generators, so the episode (its noise stream included) is the plain
+    evaluation's. Rows of :attr:`rows`: (RMS spread of the executed end point in mm, the executed gripper command
+    closed, some draw's gripper command differs in sign from the executed one on an executed step).
+    """
+
+    def __init__(self, policy: DustPolicy, draws: int) -> None:
+        self.policy, self.draws = policy, draws
+        self.rows: list[tuple[float, bool, bool]] = []
+
+    def __enter__(self) -> NoiseSpread:
+        self.plan_features = self.policy.plan_features
+        self.policy.plan_features = self._plan_features
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        del self.policy.plan_features
+
+    def _plan_features(self, features, generator=None, action_noise=None):
+        out = self.plan_features(features, generator, action_noise)
+        steps = self.policy.execute_steps
+        executed = out["action_chunk"][:, :steps]
+        others = [self.plan_features(features, torch.Generator().manual_seed(len(self.rows) * self.draws + d))
+                  ["action_chunk"][:, :steps] for d in range(self.draws)]
+        chunks = torch.cat([executed, *others])  # [1 + K, steps, Da]
+        ends = chunks[..., :3].clamp(-1, 1).sum(1) * MAX_TRANSLATION * 1000  # mm from where the chunk starts
+        spread = float((ends - ends.mean(0)).square().sum(-1).mean().sqrt())
+        flips = bool((torch.sign(chunks[1:, :, -1]) != torch.sign(executed[:, :, -1])).any())
+        self.rows.append((spread, bool(executed[0, -1, -1] > 0), flips))
+        return out
+
+
+def print_spread(policy: DustPolicy, setup, config, draws: int) -> None:
+    """The ``--spread`` table: the chunks' noise spread, all of them and those executed with the gripper closed."""
+    with NoiseSpread(policy, draws) as spread:
+        wins = sum(e.success for task in setup.tasks for e in evaluate_task(setup, task, policy, config)[0])
+    rows = torch.tensor(spread.rows, dtype=torch.float64)
+    print(f"{config.policy}, seeds {config.seed}..{config.seed + config.episodes - 1} ({wins} successes), "
+          f"{draws} other noises per chunk:\n\n| chunks | n | spread of the end point, mm: median | 90% | max "
+          f"| some draw flips the gripper |\n|---|---|---|---|---|---|")
+    for name, mask in (("all", rows[:, 0] >= 0), ("gripper closed", rows[:, 1] > 0), ("gripper open", rows[:, 1] == 0)):
+        part = rows[mask]
+        if len(part):
+            q = torch.quantile(part[:, 0], torch.tensor([0.5, 0.9], dtype=torch.float64))
+            print(f"| {name} | {len(part)} | {q[0]:.2f} | {q[1]:.2f} | {part[:, 0].max():.2f} | "
+                  f"{int(part[:, 2].sum())} ({part[:, 2].mean():.0%}) |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_eval_arguments(parser)
     parser.add_argument("--draws", type=int, default=4, help="noise streams per layout (K)")
     parser.add_argument("--branch-at", type=int, nargs="+", default=[0],
                         help="chunks every draw shares with the policy's own noise before its stream starts")
+    parser.add_argument("--spread", type=int, default=0, metavar="K",
+                        help="instead: the spread of K other noises' chunks along the plain evaluation (module doc)")
     args = parser.parse_args()
-    if args.draws < 1 or min(args.branch_at) < 0:
-        parser.error("--draws needs K >= 1 and --branch-at chunk counts >= 0")
+    if args.draws < 1 or min(args.branch_at) < 0 or args.spread < 0:
+        parser.error("--draws needs K >= 1, --branch-at chunk counts >= 0, --spread K >= 0")
     policy, setup, config = prepare_in_process(args)
+    if args.spread:
+        print_spread(policy, setup, config, args.spread)
+        return
     for branch_at in args.branch_at:
         wins = torch.zeros(args.draws, len(setup.tasks), args.episodes, dtype=torch.bool)
         for draw in range(args.draws):

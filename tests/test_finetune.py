@@ -107,11 +107,35 @@ def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path)
     env.close()
 
 
+def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_path):
+    config = FinetuneConfig(policy=policy_path, method="steer", steps=12, learning_starts=4, batch_size=4,
+                            net_arch=(16,), max_steps=EPISODE_STEPS, initial_std=0.5, target_entropy=0.0,
+                            initial_alpha=0.01, gradient_steps=3, progress=False)
+    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    agent = build_agent(config, env)
+    obs, _ = env.reset(seed=0)
+    assert np.array_equal(agent.predict(obs, deterministic=True)[0], np.zeros(env.action_space.shape, np.float32))
+    assert agent.ent_coef_optimizer is not None  # learnt, from 0.01
+    assert agent.log_ent_coef.exp().item() == pytest.approx(0.01) and agent.target_entropy == 0.0
+    start = agent.actor.log_std.bias.detach().clone()
+    agent.learn(total_timesteps=12)
+    assert agent._n_updates == 3 * (12 - 4)  # gradient_steps per RL step once learning starts
+    assert not torch.equal(agent.actor.log_std.bias, start)  # the std is learnt
+    assert agent.log_ent_coef.exp().item() != pytest.approx(0.01)
+    env.close()
+
+
 def test_bad_finetune_settings_are_named(policy_path, tmp_path):
     with pytest.raises(ConfigError, match="noise_bound"):
         FinetuneConfig(policy=policy_path, noise_bound=0.0)
     with pytest.raises(ConfigError, match="initial_std must be a finite number > 0"):
         FinetuneConfig(policy=policy_path, initial_std=0.0)
+    with pytest.raises(ConfigError, match="gradient_steps and target_entropy are SAC settings; --algorithm is ppo"):
+        FinetuneConfig(policy=policy_path, algorithm="ppo", target_entropy=0.0)
+    with pytest.raises(ConfigError, match="target_entropy must be a finite number"):
+        FinetuneConfig(policy=policy_path, target_entropy=float("nan"))
+    with pytest.raises(ConfigError, match="gradient_steps"):
+        FinetuneConfig(policy=policy_path, gradient_steps=0)
     with pytest.raises(ConfigError, match="net_arch"):
         FinetuneConfig(policy=policy_path, net_arch=())
     with pytest.raises(ConfigError, match="world_model_obs applies to --method residual, not steer"):
