@@ -298,17 +298,17 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
     if algorithm is SAC:  # a replay buffer no larger than the run
         kwargs |= {"learning_starts": config.learning_starts, "batch_size": config.batch_size,
                    "buffer_size": config.steps, "gradient_steps": config.gradient_steps}
-        if config.target_entropy is not None:
-            kwargs |= {"ent_coef": f"auto_{config.initial_alpha}", "target_entropy": config.target_entropy}
-        elif config.initial_std is None:
+        if config.initial_std is not None and config.target_entropy is None:
+            kwargs["ent_coef"] = 0.0  # the std is fixed: an entropy bonus would only swamp the reward (start_at_base)
+        else:
             kwargs["ent_coef"] = f"auto_{config.initial_alpha}"
+            if config.target_entropy is not None:
+                kwargs["target_entropy"] = config.target_entropy
     else:  # a rollout no longer than the run, minibatches no larger than a rollout
         n_steps = min(2048, config.steps)
         kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
     if algorithm is SAC and config.initial_std is not None:
         algorithm = WarmStartSAC
-        if config.target_entropy is None:  # the std is fixed: an entropy bonus would only swamp the reward
-            kwargs["ent_coef"] = 0.0
     agent = algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
                       policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
     if config.initial_std is not None:
@@ -345,7 +345,6 @@ def policy_env(config: FinetuneConfig, policy: DustPolicy) -> tuple[str, dict, s
 def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Callable[[], FrozenPolicyEnv], str]:
     """A factory of fresh fine-tuning envs for ``config``'s task (checked once, here), and the task."""
     env_id, env_kwargs, task = policy_env(config, policy)
-
     step_discount = config.gamma ** (1 / policy.execute_steps) if config.method == "steer" else config.gamma
 
     def make() -> FrozenPolicyEnv:
