@@ -1,0 +1,91 @@
+"""How well a DUST policy's world model predicts the future it acts in, in closed loop.
+
+Why: DUST's claim is that the jointly sampled future (the t+H tokens of ``future_camera``) makes the actions
+better. If the predicted future is no closer to what the camera then shows than the present frame is, the
+actions cannot draw anything from it. Along a plain evaluation, every plan's predicted future is compared with
+the tokens the camera gives H env steps later (the plan ``H / execute_steps`` re-plans on; the chunk executed
+in between is the first ``execute_steps`` actions of each plan, not the whole predicted one), beside two
+baselines: the present frame's tokens (nothing moves) and the targets' own mean (nothing known). Errors are
+mean squares in the policy's normalised token units, so 1 is about the variance of a token.
+
+    .venv/bin/python scripts/world_model_error.py --policy runs/bench/press_button/train/dust_seed0_demos200/policy.pt \
+        [--seed 5000] [--episodes 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+from in_process_eval import add_eval_arguments, prepare_in_process
+
+from dust_rl.agents import DustPolicy, execution
+from dust_rl.evaluate import evaluate_task
+
+
+class FutureRecorder:
+    """Records, per episode, each plan's observed tokens and predicted future (the evaluation itself unchanged)."""
+
+    def __init__(self, policy: DustPolicy) -> None:
+        self.policy = policy
+        self.episodes: list[list[tuple[torch.Tensor, torch.Tensor]]] = []
+
+    def __enter__(self) -> FutureRecorder:
+        self.unshifted, self.plan_features = execution.episode_generator, self.policy.plan_features
+        execution.episode_generator = self._episode_generator
+        self.policy.plan_features = self._plan_features
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        execution.episode_generator = self.unshifted
+        del self.policy.plan_features
+
+    def _episode_generator(self, seed: int) -> torch.Generator:
+        self.episodes.append([])
+        return self.unshifted(seed)
+
+    def _plan_features(self, features, generator=None, action_noise=None):
+        out = self.plan_features(features, generator, action_noise)
+        self.episodes[-1].append((features["image_tokens"][0], out["future_tokens"][0]))
+        return out
+
+
+def errors(policy: DustPolicy, episodes: list[list[tuple[torch.Tensor, torch.Tensor]]]) -> dict[str, float]:
+    """Mean squared errors (normalised units) of the world model, the present frame and the targets' mean."""
+    ahead = policy.config.horizon // policy.execute_steps
+    predicted, present, target = [], [], []
+    for plans in episodes:
+        for k in range(len(plans) - ahead):
+            predicted.append(plans[k][1])
+            present.append(policy.future_targets(plans[k][0]))
+            target.append(policy.future_targets(plans[k + ahead][0]))
+    if not target:
+        raise SystemExit("no episode lasted long enough to compare a predicted future with the real one")
+    predicted, present, target = (policy.normalizer.normalize_vision(torch.stack(x)).double()
+                                  for x in (predicted, present, target))
+    return {"plans": len(target), "world model": float((predicted - target).square().mean()),
+            "present frame": float((present - target).square().mean()),
+            "targets' mean": float((target - target.mean(0)).square().mean())}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_eval_arguments(parser)
+    args = parser.parse_args()
+    policy, setup, config = prepare_in_process(args)
+    if not policy.writes_future:
+        parser.error(f"{args.policy} predicts no future (variant {policy.config.variant!r})")
+    if policy.config.horizon % policy.execute_steps:
+        parser.error(f"the horizon ({policy.config.horizon}) is not a whole number of re-plans "
+                     f"({policy.execute_steps} steps each), so no plan sees the frame at t+H")
+    with FutureRecorder(policy) as recorder:
+        wins = sum(e.success for task in setup.tasks for e in evaluate_task(setup, task, policy, config)[0])
+    row = errors(policy, recorder.episodes)
+    plans = row.pop("plans")
+    print(f"{args.policy}, seeds {args.seed}..{args.seed + args.episodes - 1} ({wins} successes), {plans} plans "
+          f"compared with the frame H = {policy.config.horizon} steps on (MSE, normalised tokens): "
+          + " | ".join(f"{name} {value:.3f}" for name, value in row.items()))
+
+
+if __name__ == "__main__":
+    main()
