@@ -242,6 +242,10 @@ class PolicyConfig(ModelConfig):
     or a file from ``dust-rl pretrain-encoder``."""
     execute_steps: int | None = None
     """Actions executed per chunk before re-planning (receding horizon, 1..H); None: H // 2."""
+    future_camera: str | None = None
+    """The camera whose frame at t+H is the world-model target (one of the dataset's); None: its first. The
+    front camera's 4x4 grid barely changes in H steps (README "The variant comparison"); the wrist camera moves
+    with the arm."""
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -494,7 +494,7 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset, env: gym.Env) -> Du
     try:
         settings = config.policy
         return unwrap(make_policy(**settings.model_settings(), image_encoder=settings.image_encoder,
-                                  execute_steps=settings.execute_steps,
+                                  execute_steps=settings.execute_steps, future_camera=settings.future_camera,
                                   aux_state_dim=env_state_width(dataset) if settings.lambda_aux else 0,
                                   **dataset_policy_kwargs(dataset)))
     except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)

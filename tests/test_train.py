@@ -222,6 +222,18 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
         train(tiny_config(run_inputs, out, steps=4, resume=True))
 
 
+def test_the_world_model_target_can_be_another_camera(run_inputs, tmp_path):
+    result = train(tiny_config(run_inputs, tmp_path / "wrist", steps=4, future_camera="wrist"))
+    policy = unwrap(load_policy(result.policy))
+    assert policy.future_camera == "wrist" and policy.cameras == ["front", "wrist"]
+    tokens = torch.stack([torch.zeros(policy.config.n_image_tokens, policy.config.vision_dim),
+                          torch.ones(policy.config.n_image_tokens, policy.config.vision_dim)])
+    assert torch.equal(policy.future_targets(tokens), torch.ones(policy.config.n_vision_tokens,
+                                                                 policy.config.vision_dim))  # the wrist's
+    with pytest.raises(ConfigError, match="future_camera 'top' is not among the cameras"):
+        train(tiny_config(run_inputs, tmp_path / "top", steps=4, future_camera="top"))
+
+
 def test_bad_training_input_is_named(run_inputs, tmp_path):
     with pytest.raises(ValueError, match=r"execute_steps must be in \[1, horizon=4\], got 9"):
         tiny_config(run_inputs, tmp_path / "a", execute_steps=9)
