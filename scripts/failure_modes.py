@@ -1,4 +1,4 @@
-"""Where pick_place and stack episodes fail: each episode sorted by what happened to the cubes.
+"""Where pick_place, stack and pick_into_bin episodes fail: each episode sorted by what happened to the objects.
 
 Why: the success rate says how often a policy fails, not where; the videos show one episode. The
 simulator's object positions (``observation.environment_state``: pick_place's target cube, distractor cube
@@ -20,6 +20,13 @@ and for stack the same first five (the cube to move as the target), then
 * ``set down elsewhere``: lifted, never held over the lower cube within 2 cm;
 * ``on the lower cube, not released``: stacked, the gripper still touching it.
 
+and for pick_into_bin the same first five (the named object as the target, the distractor that moved most as the
+distractor), then
+
+* ``at the bin, not in it``: lifted, and at the end within the bin's footprint (at any yaw) yet not resting inside
+  (on a wall, or still held);
+* ``dropped away from the bin``: lifted, and at the end outside that footprint.
+
 ``--sheet PNG`` also draws, for the first episodes of each class, the cameras at four moments of the
 episode (its last step included), so the classes can be looked at, not only counted.
 
@@ -38,7 +45,7 @@ import matplotlib
 import torch
 from tensordict import TensorDictBase
 
-from dust_rl.envs.tasks import stack
+from dust_rl.envs.tasks import pick_into_bin, stack
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
 from dust_rl.evaluate import EvalConfig, evaluate_task, prepare
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
@@ -50,7 +57,8 @@ MOVED = 0.01  # m
 LIFTED = CUBE_HALF + 0.02  # m: the task's own "lifted" height of the cube's centre
 FIRST_MODES = ("success", "wrong cube", "untouched", "not lifted", "held at the end")
 MODES = {"pick_place": (*FIRST_MODES, "dropped off the plate", "on the plate, not released"),
-         "stack": (*FIRST_MODES, "set down beside it", "set down elsewhere", "on the lower cube, not released")}
+         "stack": (*FIRST_MODES, "set down beside it", "set down elsewhere", "on the lower cube, not released"),
+         "pick_into_bin": (*FIRST_MODES, "at the bin, not in it", "dropped away from the bin")}
 MOMENTS = (0.25, 0.5, 0.75, 1.0)  # fractions of an episode drawn on the sheet
 
 
@@ -93,7 +101,18 @@ def stack_mode(env_state: torch.Tensor, success: bool) -> str:
     return "set down elsewhere"
 
 
-CLASSIFIERS = {"pick_place": pick_place_mode, "stack": stack_mode}
+def pick_into_bin_mode(env_state: torch.Tensor, success: bool) -> str:
+    """The class of one pick_into_bin episode from its object positions [T, 12] (target, two distractors, bin)."""
+    target, distractors, bin_ = env_state[:, 0:3], (env_state[:, 3:6], env_state[:, 6:9]), env_state[:, 9:12]
+    moved = [(d[:, :2] - d[0, :2]).norm(dim=-1).max() for d in distractors]
+    if mode := first_mode(target, distractors[int(moved[1] > moved[0])], success):
+        return mode
+    if (target[-1, :2] - bin_[-1, :2]).norm() <= pick_into_bin.BIN_OUTER_HALF * 2 ** 0.5:
+        return "at the bin, not in it"
+    return "dropped away from the bin"
+
+
+CLASSIFIERS = {"pick_place": pick_place_mode, "stack": stack_mode, "pick_into_bin": pick_into_bin_mode}
 
 
 def contact_sheet(trajectories: dict[int, TensorDictBase], modes: dict[int, str], order: tuple[str, ...],
