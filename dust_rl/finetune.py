@@ -54,6 +54,7 @@ from dust_rl.episode_collector import torch_threads
 from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.evaluate import Episode, episode_digest, summary_row
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
+from dust_rl.layer_norm_mlp import LayerNormReLU
 from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
@@ -128,6 +129,10 @@ class FinetuneConfig:
     """SAC/PPO minibatch size."""
     net_arch: tuple[int, ...] = (256, 256)
     """Hidden layers of the RL actor and critic."""
+    layer_norm: bool = False
+    """Normalise each hidden layer of the RL actor and critic before its ReLU (:mod:`dust_rl.layer_norm_mlp`: caps
+    how far the critic's Q extrapolates to actions the actor has not tried; DSRL's setting). PPO's MLPs then use
+    ReLU instead of their default tanh."""
     seed: int = 0
     """Seed of the RL agent, and reset seed of the first training episode (later ones follow the env's RNG)."""
     eval_episodes: int = 20
@@ -309,8 +314,11 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
         kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
     if algorithm is SAC and config.initial_std is not None:
         algorithm = WarmStartSAC
+    policy_kwargs = {"net_arch": list(config.net_arch)}
+    if config.layer_norm:
+        policy_kwargs["activation_fn"] = LayerNormReLU
     agent = algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
-                      policy_kwargs={"net_arch": list(config.net_arch)}, **kwargs)
+                      policy_kwargs=policy_kwargs, **kwargs)
     if config.initial_std is not None:
         start_at_base(agent, config.initial_std, learn_std=config.target_entropy is not None)
     return agent

@@ -18,6 +18,7 @@ from dust_rl.data.episodes import scan_episodes
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import EvalConfig, evaluate
 from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
+from dust_rl.layer_norm_mlp import LayerNormReLU
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import restore
 
@@ -122,6 +123,26 @@ def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_pa
     assert agent._n_updates == 3 * (12 - 4)  # gradient_steps per RL step once learning starts
     assert not torch.equal(agent.actor.log_std.bias, start)  # the std is learnt
     assert agent.log_ent_coef.exp().item() != pytest.approx(0.01)
+    env.close()
+
+
+def test_layer_norm_caps_the_critic_off_its_data(policy_path):
+    config = FinetuneConfig(policy=policy_path, method="steer", steps=8, net_arch=(16, 16), layer_norm=True,
+                            max_steps=EPISODE_STEPS, progress=False)
+    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    agent = build_agent(config, env)
+    obs, _ = env.reset(seed=0)
+    obs_t, _ = agent.policy.obs_to_tensor(obs)
+    q_net = agent.critic.q_networks[0]
+    assert sum(isinstance(m, LayerNormReLU) for m in q_net) == 2  # after each hidden layer
+    last = q_net[-1]
+    # Each normalised-then-rectified hidden entry is at most sqrt(width), so |Q| <= |w|_1 sqrt(16) + |b| for any
+    # action, however far off the box it is.
+    bound = float(last.weight.abs().sum() * 16 ** 0.5 + last.bias.abs().sum())
+    with torch.no_grad():
+        far = torch.full((1, env.action_space.shape[0]), 1e6)
+        q = agent.critic(obs_t, far)[0]
+    assert q.abs().item() <= bound * (1 + 1e-5)
     env.close()
 
 
