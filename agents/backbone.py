@@ -148,7 +148,7 @@ def save_image_encoder(encoder: ImageEncoder, path: str | pathlib.Path, info: di
 NAMED_IMAGE_ENCODERS = {
     "conv-ae": lambda: load_image_encoder(DEFAULT_IMAGE_ENCODER_FILE),
     **{f"efficientnet-{lite}{suffix}": (lambda lite=lite, stride=stride: EfficientNetLite(lite, stride))
-       for lite in ("lite0", "lite1", "lite2") for suffix, stride in (("", 16), ("-s8", 8), ("-s32", 32))},
+       for lite in ("lite0", "lite1", "lite2") for suffix, stride in (("", 16), ("-s4", 4), ("-s8", 8), ("-s32", 32))},
 }
 DEFAULT_IMAGE_ENCODER = "conv-ae"
 DEFAULT_IMAGE_ENCODER_FILE = pathlib.Path(__file__).parent / "weights" / "conv_ae_franka128.pt"

