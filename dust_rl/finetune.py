@@ -47,6 +47,7 @@ from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.agents.checkpoint_io import save_checkpoint
 from dust_rl.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.config_json import config_json
+from dust_rl.critic_limits import LayerNormReLU, bound_critic
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
@@ -54,7 +55,6 @@ from dust_rl.episode_collector import torch_threads
 from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.evaluate import Episode, episode_digest, summary_row
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
-from dust_rl.layer_norm_mlp import LayerNormReLU
 from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
@@ -130,9 +130,12 @@ class FinetuneConfig:
     net_arch: tuple[int, ...] = (256, 256)
     """Hidden layers of the RL actor and critic."""
     layer_norm: bool = False
-    """Normalise each hidden layer of the RL actor and critic before its ReLU (:mod:`dust_rl.layer_norm_mlp`: caps
+    """Normalise each hidden layer of the RL actor and critic before its ReLU (:mod:`dust_rl.critic_limits`: caps
     how far the critic's Q extrapolates to actions the actor has not tried; DSRL's setting). PPO's MLPs then use
     ReLU instead of their default tanh."""
+    q_bounds: tuple[float, float] | None = None
+    """SAC: squash the critic's output into (LO, HI), the returns the reward can pay (sparse: 0 1;
+    :mod:`dust_rl.critic_limits`). None: unbounded."""
     seed: int = 0
     """Seed of the RL agent, and reset seed of the first training episode (later ones follow the env's RNG)."""
     eval_episodes: int = 20
@@ -206,8 +209,13 @@ class FinetuneConfig:
         check_finite(self, "initial_alpha", positive=True)
         if self.target_entropy is not None and not math.isfinite(self.target_entropy):
             raise ConfigError(f"target_entropy must be a finite number, got {self.target_entropy}")
-        if self.algorithm != "sac" and (self.gradient_steps != 1 or self.target_entropy is not None):
-            raise ConfigError(f"gradient_steps and target_entropy are SAC settings; --algorithm is {self.algorithm}")
+        if self.algorithm != "sac" and (self.gradient_steps != 1 or self.target_entropy is not None
+                                        or self.q_bounds is not None):
+            raise ConfigError(f"gradient_steps, target_entropy and q_bounds are SAC settings; --algorithm is "
+                              f"{self.algorithm}")
+        if self.q_bounds is not None and not (len(self.q_bounds) == 2 and all(map(math.isfinite, self.q_bounds))
+                                              and self.q_bounds[0] < self.q_bounds[1]):
+            raise ConfigError(f"q_bounds must be two finite numbers LO < HI, got {self.q_bounds}")
         if not self.net_arch or min(self.net_arch) < 1:
             raise ConfigError(f"net_arch must list positive layer widths, got {self.net_arch}")
         resolve_device(self.device)
@@ -321,6 +329,8 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
                       policy_kwargs=policy_kwargs, **kwargs)
     if config.initial_std is not None:
         start_at_base(agent, config.initial_std, learn_std=config.target_entropy is not None)
+    if config.q_bounds is not None:
+        bound_critic(agent, *config.q_bounds)
     return agent
 
 

@@ -13,12 +13,12 @@ from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import load_checkpoint
+from dust_rl.critic_limits import LayerNormReLU
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import EvalConfig, evaluate
 from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
-from dust_rl.layer_norm_mlp import LayerNormReLU
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import restore
 
@@ -146,12 +146,35 @@ def test_layer_norm_caps_the_critic_off_its_data(policy_path):
     env.close()
 
 
+def test_q_bounds_hold_the_critic_and_its_target_within_the_returns(policy_path):
+    config = FinetuneConfig(policy=policy_path, method="steer", steps=8, net_arch=(16,), q_bounds=(0.0, 1.0),
+                            max_steps=EPISODE_STEPS, progress=False)
+    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    agent = build_agent(config, env)
+    obs_t, _ = agent.policy.obs_to_tensor(env.reset(seed=0)[0])
+    with torch.no_grad():
+        for layer in agent.critic.q_networks[0]:  # a last layer that would say 1e6 anywhere
+            if isinstance(layer, torch.nn.Linear):
+                last = layer
+        last.bias.fill_(1e6)
+        agent.critic_target.q_networks[1][-2].bias.fill_(-1e6)
+        far = torch.full((1, env.action_space.shape[0]), 1e6)
+        q, _ = agent.critic(obs_t, far)
+        _, q_target = agent.critic_target(obs_t, far)
+    assert 0.0 <= q.item() <= 1.0 and 0.0 <= q_target.item() <= 1.0
+    assert set(agent.policy.state_dict()) == set(build_agent(dataclasses.replace(config, q_bounds=None),
+                                                             env).policy.state_dict())  # loads as before
+    env.close()
+
+
 def test_bad_finetune_settings_are_named(policy_path, tmp_path):
     with pytest.raises(ConfigError, match="noise_bound"):
         FinetuneConfig(policy=policy_path, noise_bound=0.0)
     with pytest.raises(ConfigError, match="initial_std must be a finite number > 0"):
         FinetuneConfig(policy=policy_path, initial_std=0.0)
-    with pytest.raises(ConfigError, match="gradient_steps and target_entropy are SAC settings; --algorithm is ppo"):
+    with pytest.raises(ConfigError, match="q_bounds must be two finite numbers LO < HI"):
+        FinetuneConfig(policy=policy_path, q_bounds=(1.0, 0.0))
+    with pytest.raises(ConfigError, match="target_entropy and q_bounds are SAC settings; --algorithm is ppo"):
         FinetuneConfig(policy=policy_path, algorithm="ppo", target_entropy=0.0)
     with pytest.raises(ConfigError, match="target_entropy must be a finite number"):
         FinetuneConfig(policy=policy_path, target_entropy=float("nan"))
