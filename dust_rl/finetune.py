@@ -100,6 +100,10 @@ class FinetuneConfig:
     """The RL agent's discount per RL step (an env step for residual, a chunk when steering; steering discounts
     the rewards within a chunk by ``gamma ** (1 / execute_steps)`` per env step, the discount the dense reward is
     then shaped for)."""
+    finite_horizon: bool = False
+    """The time limit ends an episode as a failure for the RL agent (terminated: nothing is bootstrapped past it)
+    and the agent observes the fraction of the episode left (:mod:`dust_rl.frozen_policy_env`). Default: a
+    time-limit end is a truncation, bootstrapped as if the episode went on."""
     noise_bound: float = 2.0
     """Steering: the noise magnitude an RL action of +-1 maps to."""
     residual_scale: float = 0.1
@@ -369,10 +373,11 @@ def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Ca
         env = make_env(env_id, {**env_kwargs, "task": task, "reward_type": config.reward,
                                 "shaping_discount": step_discount})
         if config.method == "steer":
-            return NoiseSteeringEnv(env, policy, noise_bound=config.noise_bound, step_discount=step_discount)
+            return NoiseSteeringEnv(env, policy, noise_bound=config.noise_bound, step_discount=step_discount,
+                                    finite_horizon=config.finite_horizon)
         half_width = (env.action_space.high - env.action_space.low) / 2
         return ResidualEnv(env, policy, residual_scale=config.residual_scale * half_width,
-                           world_model=config.world_model_obs)
+                           world_model=config.world_model_obs, finite_horizon=config.finite_horizon)
 
     return make, task
 

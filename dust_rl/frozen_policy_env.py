@@ -20,7 +20,16 @@ observation               shape              meaning
                                              features no longer say where a small object is
 ``predicted_future``      [N_o * Dv]         residual with ``world_model`` only
                                              (:mod:`dust_rl.residual`)
+``time_left``             [1]                with ``finite_horizon`` only: the fraction of the
+                                             episode's time limit still to run
 ========================  =================  ===================================================
+
+``finite_horizon`` makes the time limit part of the RL task. By default a time-limit end is a truncation, which
+SB3 bootstraps past as if the episode went on; with a sparse reward for success within the limit, the critic
+then values a failing state by what the policy might reach after the limit, and on stack its Q sat at the top
+of the returns everywhere (BENCHMARKS "Headroom for noise steering on stack"). With ``finite_horizon`` the
+limit ends the episode as terminated, a failure worth 0, and the observation says how much time is left, so
+the value of a state can depend on it (Pardo et al. 2018, "Time limits in reinforcement learning").
 """
 
 from __future__ import annotations
@@ -50,11 +59,13 @@ class FrozenPolicyEnv(gym.Env):
         env: a dust-rl gymnasium env in image mode (the policy's cameras, state and instruction).
         policy: the frozen policy (put in eval mode; its weights are never changed here).
         execute_steps: env steps per chunk; default: the policy's own.
+        finite_horizon: a time-limit end is terminated, not truncated, and ``time_left`` is observed (module doc).
     """
 
     metadata = {"render_modes": []}
 
-    def __init__(self, env: gym.Env, policy: DustPolicy, execute_steps: int | None = None) -> None:
+    def __init__(self, env: gym.Env, policy: DustPolicy, execute_steps: int | None = None,
+                 finite_horizon: bool = False) -> None:
         self.env, self.policy = env, policy.eval()
         self.execute_steps = execute_steps or policy.execute_steps
         if not 1 <= self.execute_steps <= policy.config.horizon:
@@ -64,6 +75,9 @@ class FrozenPolicyEnv(gym.Env):
                    "features": spaces.Box(-np.inf, np.inf, (n_features,), np.float32)}
         if policy.config.aux_state_dim:
             entries["object_estimate"] = spaces.Box(-np.inf, np.inf, (policy.config.aux_state_dim,), np.float32)
+        self.finite_horizon = finite_horizon
+        if finite_horizon:
+            entries["time_left"] = spaces.Box(0.0, 1.0, (1,), np.float32)
         self.observation_space = spaces.Dict(entries)
         self.features: TensorDict | None = None  # of the newest observation, for the next plan
         self.generator = episode_generator(0)
@@ -85,7 +99,10 @@ class FrozenPolicyEnv(gym.Env):
         action = np.asarray(action, dtype=np.float32)
         self.executed.append(action)
         self.env_steps += 1
-        return self.env.step(action)
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if self.finite_horizon and truncated:
+            terminated, truncated = True, False
+        return obs, reward, terminated, truncated, info
 
     def check_action(self, action: np.ndarray) -> np.ndarray:
         """``action`` as float32 in [-1, 1] (clipped).
@@ -112,6 +129,9 @@ class FrozenPolicyEnv(gym.Env):
         seen = {"robot_state": np.asarray(obs[STATE_NAME], dtype=np.float32), "features": features}
         if "object_estimate" in self.observation_space.spaces:
             seen["object_estimate"] = self.policy.estimate_env_state(self.features)[0].cpu().numpy().astype(np.float32)
+        if self.finite_horizon:
+            limit = self.env.unwrapped.max_episode_steps
+            seen["time_left"] = np.array([max(0.0, 1.0 - len(self.executed) / limit)], np.float32)
         return seen
 
     def step_base(self) -> tuple[dict, float, bool, bool, dict]:

@@ -35,14 +35,15 @@ class ResidualEnv(FrozenPolicyEnv):
             the action box's half-width.
         execute_steps: actions executed per chunk before the policy re-plans; default: the policy's own.
         world_model: also observe the predicted future of the chunk being executed (module doc).
+        finite_horizon: see :class:`~dust_rl.frozen_policy_env.FrozenPolicyEnv`.
 
     Raises:
         ValueError: ``world_model`` with a policy that predicts no future (the action-only variant or sampler).
     """
 
     def __init__(self, env: gym.Env, policy: DustPolicy, residual_scale: float | np.ndarray | None = None,
-                 execute_steps: int | None = None, world_model: bool = False) -> None:
-        super().__init__(env, policy, execute_steps)
+                 execute_steps: int | None = None, world_model: bool = False, finite_horizon: bool = False) -> None:
+        super().__init__(env, policy, execute_steps, finite_horizon)
         if world_model and policy.config.sampler_name == "action_only":
             raise ValueError(f"world_model needs a policy that predicts the future; this one (variant "
                              f"{policy.config.variant!r}, sampler {policy.config.sampler_name!r}) does not")

@@ -40,15 +40,16 @@ class NoiseSteeringEnv(FrozenPolicyEnv):
         noise_bound: the largest noise magnitude an action of +-1 maps to.
         execute_steps: env steps per chunk; default: the policy's own.
         step_discount: per env step, the discount of the rewards within a chunk (module doc); 1: their sum.
+        finite_horizon: see :class:`~dust_rl.frozen_policy_env.FrozenPolicyEnv`.
     """
 
     def __init__(self, env: gym.Env, policy: DustPolicy, noise_bound: float = 2.0,
-                 execute_steps: int | None = None, step_discount: float = 1.0) -> None:
+                 execute_steps: int | None = None, step_discount: float = 1.0, finite_horizon: bool = False) -> None:
         if not (np.isfinite(noise_bound) and noise_bound > 0):
             raise ValueError(f"noise_bound must be a positive number, got {noise_bound}")
         if not 0 < step_discount <= 1:
             raise ValueError(f"step_discount must be a discount factor in (0, 1], got {step_discount}")
-        super().__init__(env, policy, execute_steps)
+        super().__init__(env, policy, execute_steps, finite_horizon)
         self.noise_bound, self.step_discount = float(noise_bound), float(step_discount)
         self.chunk_shape = (policy.config.horizon, policy.config.action_dim)
         self.action_space = spaces.Box(-1.0, 1.0, (int(np.prod(self.chunk_shape)),), np.float32)

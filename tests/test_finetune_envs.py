@@ -83,6 +83,25 @@ def test_a_chunk_of_dense_reward_is_shaping_for_the_discount_per_chunk(steering)
     env.close()
 
 
+@pytest.mark.parametrize("finite_horizon", [False, True])
+def test_a_finite_horizon_ends_at_the_time_limit_and_shows_the_time_left(steering, finite_horizon):
+    _, policy = steering
+    env = NoiseSteeringEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE,
+                                                      "max_episode_steps": 4}), policy, finite_horizon=finite_horizon)
+    check_env(env)
+    obs, _ = env.reset(seed=2)
+    assert ("time_left" in obs) == finite_horizon
+    ends = []
+    for _ in range(2):  # two chunks of execute_steps 2: the limit of 4 env steps
+        obs, _, terminated, truncated, info = env.step(np.zeros(28, np.float32))
+        ends.append((terminated, truncated))
+        if finite_horizon:
+            assert obs["time_left"][0] == 1.0 - len(env.executed) / 4
+    assert not info["is_success"] and ends[0] == (False, False)
+    assert ends[1] == ((True, False) if finite_horizon else (False, True))  # a failure, not a truncation
+    env.close()
+
+
 def test_bad_steering_actions_are_named(steering):
     env, _ = steering
     with pytest.raises(RuntimeError, match="reset"):
