@@ -28,8 +28,9 @@ observation               shape              meaning
 SB3 bootstraps past as if the episode went on; with a sparse reward for success within the limit, the critic
 then values a failing state by what the policy might reach after the limit, and on stack its Q sat at the top
 of the returns everywhere (BENCHMARKS "Headroom for noise steering on stack"). With ``finite_horizon`` the
-limit ends the episode as terminated, a failure worth 0, and the observation says how much time is left, so
-the value of a state can depend on it (Pardo et al. 2018, "Time limits in reinforcement learning").
+limit ends the episode as terminated, a failure worth 0 (so does the env's other truncation, an infeasible IK
+problem or diverging physics), and the observation says how much time is left, so the value of a state can
+depend on it (Pardo et al. 2018, "Time limits in reinforcement learning").
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from dust_rl.agents.execution import episode_generator
 from dust_rl.keys import INSTRUCTION_KEY, STATE_KEY, flat_name
 
 STATE_NAME = flat_name(STATE_KEY)
+
 
 def observation_td(obs: dict) -> TensorDict:
     """A dust-rl gymnasium observation as the TensorDict a :class:`~dust_rl.agents.DustPolicy` plans from."""
