@@ -12,8 +12,33 @@ from collections.abc import Sequence
 
 import torch
 
-from dust_rl.agents import DustPolicy
+from dust_rl.agents import DustPolicy, execution
 from dust_rl.evaluate import Episode, EvalConfig, EvalSetup, prepare, summary_row
+
+
+class PlanHook:
+    """Inside a ``with`` block, the acting policy plans through :meth:`_plan_features` and every episode's noise
+    generator comes from :meth:`_episode_generator` (both pass through here; subclasses watch or change them);
+    leaving the block restores both."""
+
+    def __init__(self, policy: DustPolicy) -> None:
+        self.policy = policy
+
+    def __enter__(self):
+        self.unshifted, self.plan_features = execution.episode_generator, self.policy.plan_features
+        execution.episode_generator = self._episode_generator
+        self.policy.plan_features = self._plan_features
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        execution.episode_generator = self.unshifted
+        del self.policy.plan_features  # the class's method again
+
+    def _episode_generator(self, seed: int) -> torch.Generator:
+        return self.unshifted(seed)
+
+    def _plan_features(self, *args, **kwargs):
+        return self.plan_features(*args, **kwargs)
 
 
 def add_eval_arguments(parser: argparse.ArgumentParser) -> None:

@@ -25,16 +25,16 @@ from __future__ import annotations
 import argparse
 
 import torch
-from in_process_eval import add_eval_arguments, prepare_in_process
+from in_process_eval import PlanHook, add_eval_arguments, prepare_in_process
 
-from dust_rl.agents import DustPolicy, execution
+from dust_rl.agents import DustPolicy
 from dust_rl.envs.env import MAX_TRANSLATION
 from dust_rl.evaluate import evaluate_task, wilson_interval
 
 NOISE_OFFSET = 1_000_003  # added to the episode seed per draw: far from every seed schedule
 
 
-class BranchingNoise:
+class BranchingNoise(PlanHook):
     """Gives draw ``draw`` the episode's own noise for its first ``branch_at`` chunks, then its own stream.
 
     The evaluation lends the policy the global RNG, restarted from the episode seed at every reset
@@ -43,18 +43,9 @@ class BranchingNoise:
     """
 
     def __init__(self, policy: DustPolicy, branch_at: int, draw: int) -> None:
-        self.policy, self.branch_at, self.draw = policy, branch_at, draw
+        super().__init__(policy)
+        self.branch_at, self.draw = branch_at, draw
         self.seed = self.chunks = 0
-
-    def __enter__(self) -> BranchingNoise:
-        self.unshifted, self.plan_features = execution.episode_generator, self.policy.plan_features
-        execution.episode_generator = self._episode_generator
-        self.policy.plan_features = self._plan_features
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        execution.episode_generator = self.unshifted
-        del self.policy.plan_features  # the class's method again
 
     def _episode_generator(self, seed: int) -> torch.Generator:
         self.seed, self.chunks = int(seed), 0
@@ -67,7 +58,7 @@ class BranchingNoise:
         return self.plan_features(*args, **kwargs)
 
 
-class NoiseSpread:
+class NoiseSpread(PlanHook):
     """Records, at every plan of the evaluation, how far ``draws`` other noises move the chunk's executed part.
 
     The extra samples draw from their own generators, so the episode (its noise stream included) is the plain
@@ -76,16 +67,9 @@ class NoiseSpread:
     """
 
     def __init__(self, policy: DustPolicy, draws: int) -> None:
-        self.policy, self.draws = policy, draws
+        super().__init__(policy)
+        self.draws = draws
         self.rows: list[tuple[float, bool, bool]] = []
-
-    def __enter__(self) -> NoiseSpread:
-        self.plan_features = self.policy.plan_features
-        self.policy.plan_features = self._plan_features
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        del self.policy.plan_features
 
     def _plan_features(self, features, generator=None, action_noise=None):
         out = self.plan_features(features, generator, action_noise)

@@ -17,28 +17,18 @@ from __future__ import annotations
 import argparse
 
 import torch
-from in_process_eval import add_eval_arguments, prepare_in_process
+from in_process_eval import PlanHook, add_eval_arguments, prepare_in_process
 
-from dust_rl.agents import DustPolicy, execution
+from dust_rl.agents import DustPolicy
 from dust_rl.evaluate import evaluate_task
 
 
-class FutureRecorder:
+class FutureRecorder(PlanHook):
     """Records, per episode, each plan's observed tokens and predicted future (the evaluation itself unchanged)."""
 
     def __init__(self, policy: DustPolicy) -> None:
-        self.policy = policy
+        super().__init__(policy)
         self.episodes: list[list[tuple[torch.Tensor, torch.Tensor]]] = []
-
-    def __enter__(self) -> FutureRecorder:
-        self.unshifted, self.plan_features = execution.episode_generator, self.policy.plan_features
-        execution.episode_generator = self._episode_generator
-        self.policy.plan_features = self._plan_features
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        execution.episode_generator = self.unshifted
-        del self.policy.plan_features
 
     def _episode_generator(self, seed: int) -> torch.Generator:
         self.episodes.append([])
