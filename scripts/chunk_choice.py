@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 
 import torch
-from in_process_eval import add_eval_arguments, prepare_in_process, success_line
+from in_process_eval import PlanHook, add_eval_arguments, prepare_in_process, success_line
 from tensordict import TensorDict
 
 from dust_rl.agents import DustPolicy
@@ -29,20 +29,19 @@ from dust_rl.evaluate import evaluate_task
 EE_POSITION, EE_OPENING = slice(-8, -5), -1  # the robot state ends with the gripper's position, quaternion, opening
 
 
-class ChunkChoice:
-    """Replaces ``policy.plan_features``: K samples per re-plan, one chunk executed by ``rule``."""
+class ChunkChoice(PlanHook):
+    """While in a ``with`` block, the policy plans K samples per re-plan and executes one chunk chosen by ``rule``."""
 
     def __init__(self, policy: DustPolicy, rule: str, k: int, target_columns: list[int], holding_below: float) -> None:
-        self.policy, self.rule, self.k = policy, rule, k
+        super().__init__(policy)
+        self.rule, self.k = rule, k
         self.target_columns, self.holding_below = target_columns, holding_below
         self.norm = EnvStateNorm.of_policy(policy)
-        self.sample = policy.plan_features
         self.chosen = self.plans = 0
-        policy.plan_features = self
 
-    def __call__(self, features: TensorDict, generator: torch.Generator | None = None,
-                 action_noise: torch.Tensor | None = None) -> TensorDict:
-        samples = [self.sample(features, generator, action_noise) for _ in range(self.k)]
+    def _plan_features(self, features: TensorDict, generator: torch.Generator | None = None,
+                       action_noise: torch.Tensor | None = None) -> TensorDict:
+        samples = [self.plan_features(features, generator, action_noise) for _ in range(self.k)]
         chunks = torch.stack([s.get("action_chunk")[0] for s in samples])  # [K, H, Da], env units
         out, self.plans = samples[0], self.plans + 1
         if self.rule == "mean":
@@ -74,9 +73,9 @@ def main() -> None:
     policy, setup, config = prepare_in_process(args)
     if args.rule == "nearest" and not policy.config.aux_state_dim:
         raise SystemExit("--rule nearest needs a policy with a state read-out (--policy.lambda-aux)")
-    choice = ChunkChoice(policy, args.rule, args.k, args.target_columns, args.holding_below)
     for task in setup.tasks:
-        episodes, _, _, _ = evaluate_task(setup, task, policy, config)
+        with ChunkChoice(policy, args.rule, args.k, args.target_columns, args.holding_below) as choice:
+            episodes, _, _, _ = evaluate_task(setup, task, policy, config)
         chosen = f"; a chosen chunk at {choice.chosen} of {choice.plans} re-plans" if args.rule == "nearest" else ""
         print(f"{args.policy}, {args.rule} of K = {args.k}, seeds {args.seed}..{args.seed + args.episodes - 1}: "
               f"{success_line(task, episodes)}{chosen}", flush=True)
