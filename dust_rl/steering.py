@@ -28,6 +28,7 @@ import torch
 from gymnasium import spaces
 
 from dust_rl.agents import DustPolicy
+from dust_rl.envs import arguments
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
 
 
@@ -47,10 +48,8 @@ class NoiseSteeringEnv(FrozenPolicyEnv):
                  execute_steps: int | None = None, step_discount: float = 1.0, finite_horizon: bool = False) -> None:
         if not (np.isfinite(noise_bound) and noise_bound > 0):
             raise ValueError(f"noise_bound must be a positive number, got {noise_bound}")
-        if not 0 < step_discount <= 1:
-            raise ValueError(f"step_discount must be a discount factor in (0, 1], got {step_discount}")
         super().__init__(env, policy, execute_steps, finite_horizon)
-        self.noise_bound, self.step_discount = float(noise_bound), float(step_discount)
+        self.noise_bound, self.step_discount = float(noise_bound), arguments.discount("step_discount", step_discount)
         self.chunk_shape = (policy.config.horizon, policy.config.action_dim)
         self.action_space = spaces.Box(-1.0, 1.0, (int(np.prod(self.chunk_shape)),), np.float32)
 

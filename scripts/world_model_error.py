@@ -45,10 +45,11 @@ def errors(policy: DustPolicy, episodes: list[list[tuple[torch.Tensor, torch.Ten
     ahead = policy.config.horizon // policy.execute_steps
     predicted, present, target = [], [], []
     for plans in episodes:
+        seen = [policy.future_targets(tokens) for tokens, _ in plans]  # each plan's frame, as a world-model target
         for k in range(len(plans) - ahead):
             predicted.append(plans[k][1])
-            present.append(policy.future_targets(plans[k][0]))
-            target.append(policy.future_targets(plans[k + ahead][0]))
+            present.append(seen[k])
+            target.append(seen[k + ahead])
     if not target:
         raise SystemExit("no episode lasted long enough to compare a predicted future with the real one")
     predicted, present, target = (policy.normalizer.normalize_vision(torch.stack(x)).double()
