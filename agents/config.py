@@ -31,10 +31,12 @@ Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 SamplerName = Literal["async", "sync", "action_only"]
 KeypointSource = Literal["features", "pixels"]
 ReadoutInput = Literal["keypoints", "tokens"]
+FutureTarget = Literal["frame", "change"]
 
 VARIANTS: tuple[str, ...] = get_args(Variant)
 KEYPOINT_SOURCES: tuple[str, ...] = get_args(KeypointSource)
 READOUT_INPUTS: tuple[str, ...] = get_args(ReadoutInput)
+FUTURE_TARGETS: tuple[str, ...] = get_args(FutureTarget)
 SAMPLERS: tuple[str, ...] = get_args(SamplerName)
 
 # Caps on sizes, checked before anything is allocated: a policy file names its sizes, and a file
@@ -112,6 +114,11 @@ class ModelConfig:
     """Action chunk length H (paper: 16); the world-model target is the frame at t+H."""
     vision_grid: tuple[int, int] = (4, 4)
     """(rows, cols) of the future-vision token grid; N_o tokens = rows * cols."""
+    future_target: FutureTarget = "frame"
+    """What the vision stream predicts: ``frame`` (the paper's: the standardised tokens at t+H) or ``change``
+    (those minus the present frame's, in units of their RMS over the dataset). The front camera's coarse grid
+    barely changes in H steps, so a frame target is mostly the present scene again (README "The variant
+    comparison"); a change target asks for the motion alone. Acting and :meth:`plan` return frames either way."""
     cond_grid: tuple[int, int] | None = None
     """Condition tokens per camera (rows, cols); the paper conditions on many more backbone tokens than it
     predicts, and the future target is this grid pooled to ``vision_grid`` (a multiple of it). None: the image
@@ -205,6 +212,8 @@ class ModelConfig:
         for name in ("readout_grid", "readout_coords"):
             if getattr(self, name) not in (None, False) and self.readout != "tokens":
                 raise ValueError(f"{name} belongs to the token read-out: it needs readout 'tokens'")
+        if self.future_target not in FUTURE_TARGETS:
+            raise ValueError(f"unknown future_target {self.future_target!r}; expected one of {FUTURE_TARGETS}")
         if self.keypoint_source not in KEYPOINT_SOURCES:
             raise ValueError(f"unknown keypoint_source {self.keypoint_source!r}; expected one of {KEYPOINT_SOURCES}")
         if self.keypoint_source == "pixels" and not self.keypoints:

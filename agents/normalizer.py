@@ -12,6 +12,7 @@ checkpoint and a policy never runs with stats other than those it was trained wi
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -29,13 +30,15 @@ class Normalizer(nn.Module):
         vision_dim: size of one image token (identity statistics until :meth:`set_vision_stats`).
     """
 
-    # Buffers that policy files written before image-token statistics existed lack (identity then).
-    OPTIONAL_BUFFERS = ("vision_mean", "vision_std")
+    # Buffers that policy files written before they existed lack (identity then).
+    OPTIONAL_BUFFERS = ("vision_mean", "vision_std", "future_change_scale")
 
     def __init__(self, state_dim: int, action_dim: int, vision_dim: int) -> None:
         super().__init__()
         self.register_buffer("vision_mean", torch.zeros(vision_dim))
         self.register_buffer("vision_std", torch.ones(vision_dim))
+        # RMS of the standardised future's change over H steps (a ``future_target="change"`` policy's target unit)
+        self.register_buffer("future_change_scale", torch.ones(()))
         self.register_buffer("state_mean", torch.zeros(state_dim))
         self.register_buffer("state_std", torch.ones(state_dim))
         self.register_buffer("action_mean", torch.zeros(action_dim))
@@ -74,6 +77,14 @@ class Normalizer(nn.Module):
         var = (square / n - mean.square()).clamp_min(0.0) * n / (n - 1)
         self.vision_mean.copy_(mean)
         self.vision_std.copy_(var.sqrt().clamp_min(MIN_STD))
+
+    @torch.no_grad()
+    def set_future_change_scale(self, rms: float) -> None:
+        """The unit of a change target: the root mean square of the standardised changes over the dataset (one
+        scale for every channel, so channels that barely move are not blown up into noise to model)."""
+        if not (math.isfinite(rms) and rms > 0):
+            raise ValueError(f"the future's change scale must be a positive finite number, got {rms!r}")
+        self.future_change_scale.fill_(max(rms, MIN_STD))
 
     def normalize_vision(self, tokens: Tensor) -> Tensor:
         return (tokens.float() - self.vision_mean) / self.vision_std

@@ -313,8 +313,25 @@ class DustPolicy(VLAWrapperBase):
         if self.config.aux_state_input:
             batch.set("state", torch.cat([batch.get("state"), batch.get("env_state_estimate")], dim=-1))
         if "future_tokens" in features.keys():
-            batch.set("future_tokens", self.normalizer.normalize_vision(features.get("future_tokens")))
+            future = self.normalizer.normalize_vision(features.get("future_tokens"))
+            if self.config.future_target == "change":
+                future = (future - self.future_targets(image)) / self.normalizer.future_change_scale
+            batch.set("future_tokens", future)
         return batch
+
+    def future_changes(self, features: TensorDictBase) -> Tensor:
+        """Standardised changes [B', N_o, Dv] from the present frame to t+H of a training feature batch, the
+        clamped futures (t+H past the episode's end) left out: what sets a change target's unit."""
+        image = self.normalizer.normalize_vision(features.get("image_tokens"))
+        change = self.normalizer.normalize_vision(features.get("future_tokens")) - self.future_targets(image)
+        return change[~features.get("future_is_clamped")] if "future_is_clamped" in features.keys() else change
+
+    def _predicted_frame(self, future: Tensor, features: TensorDictBase) -> Tensor:
+        """The trunk's future [B, N_o, Dv] as a standardised frame (a change target adds the present frame)."""
+        if self.config.future_target == "frame":
+            return future
+        present = self.future_targets(self.normalizer.normalize_vision(features.get("image_tokens")))
+        return present + future * self.normalizer.future_change_scale
 
     @torch.no_grad()
     def estimate_env_state(self, features: TensorDictBase) -> Tensor:
@@ -409,11 +426,14 @@ class DustPolicy(VLAWrapperBase):
             batch.set("action_noise", action_noise.reshape(batch.batch_size[0], *action_noise.shape[-2:]))
         candidates = self.config.candidates
         if candidates > 1:  # K joint samples of each observation, side by side: [B * K]
-            batch = batch[torch.arange(batch.batch_size[0], device=batch.device).repeat_interleave(candidates)]
+            rows = torch.arange(batch.batch_size[0], device=batch.device).repeat_interleave(candidates)
+            batch, features = batch[rows], features[rows]
         with autocast(self.weights_device, self.precision):
             out = self.model.predict_action(batch, schedule_for(self.config), generator,
                                             noise_scale=self.config.noise_scale)
         out = out.apply(lambda tensor: tensor.float() if tensor.is_floating_point() else tensor)
+        if "future_tokens" in out.keys():
+            out.set("future_tokens", self._predicted_frame(out.get("future_tokens"), features))
         if candidates > 1:  # keep, per observation, the sample whose predicted future scores best
             scores = self.future_scores(out.get("future_tokens")).view(-1, candidates)
             out = out.view(-1, candidates)[torch.arange(scores.shape[0], device=scores.device), scores.argmax(-1)]
@@ -424,8 +444,8 @@ class DustPolicy(VLAWrapperBase):
         return out
 
     def future_scores(self, future_tokens: Tensor) -> Tensor:
-        """The future scorer's success logits [B] of predicted futures [B, N_o, Dv] (the trunk's normalised
-        units, as :meth:`~.dust_model.DustModel.predict_action` returns them).
+        """The future scorer's success logits [B] of predicted futures [B, N_o, Dv] (standardised frames, as
+        :meth:`_predicted_frame` makes them of the trunk's output).
 
         Raises:
             ValueError: the policy has no future scorer.

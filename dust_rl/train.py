@@ -28,6 +28,7 @@ weights, so no checkpoint or ``policy.pt`` holds NaN weights.
 from __future__ import annotations
 
 import gc
+import math
 import os
 import pathlib
 import time
@@ -326,14 +327,16 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
                    **{name: str(getattr(config, name)) if getattr(config, name) else None
                       for name in ("video_dataset", "extra_dataset", "init_policy")}}
     features = _cached_features(config, dataset, policy, ranks)
-    if config.init_policy is None:  # a fine-tuned policy keeps the normalisation its weights were trained with
-        policy.normalizer.set_vision_stats(features.image_tokens)
     start_rows = {"start_rows": config.start_rows,
                   "start_fraction": config.start_fraction if config.start_rows else 0.0}
     n_video, n_extra = (_share(config.batch_size, fraction) if path else 0 for path, fraction in
                         ((config.video_dataset, config.video_fraction), (config.extra_dataset, config.extra_fraction)))
     windows = DemoWindows(dataset, horizon=policy.config.horizon, batch_size=config.batch_size - n_video - n_extra,
                           images=False, **start_rows)
+    if config.init_policy is None:  # a fine-tuned policy keeps the normalisation its weights were trained with
+        policy.normalizer.set_vision_stats(features.image_tokens)
+        if policy.config.has_vision and policy.config.future_target == "change":
+            policy.normalizer.set_future_change_scale(_future_change_rms(policy, features, windows))
     video = _action_free_batches(config, dataset, policy, n_video) if config.video_dataset else None
     extra = (DatasetBatches(DemoDataset(config.extra_dataset), policy, n_extra, config.extra_action_key,
                             progress=config.progress, **start_rows) if config.extra_dataset else None)
@@ -513,6 +516,16 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                                            expert_displacement=config.aux_expert_displacement,
                                            first_seed=first_seed, progress=config.progress)
     return AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
+
+
+def _future_change_rms(policy: DustPolicy, features: FeatureCache, windows: DemoWindows) -> float:
+    """Root mean square of the standardised change from each row's frame to its t+H frame, over every window."""
+    total, count = 0.0, 0
+    with torch.random.fork_rng(devices=[]):  # a feature batch may draw cached views; training's draws stay put
+        for window in windows.iterate(1024):
+            change = policy.future_changes(features.batch(window)).double()
+            total, count = total + change.square().sum().item(), count + change.numel()
+    return math.sqrt(total / count) if count else 1.0
 
 
 def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy,

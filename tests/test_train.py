@@ -234,6 +234,26 @@ def test_the_world_model_target_can_be_another_camera(run_inputs, tmp_path):
         train(tiny_config(run_inputs, tmp_path / "top", steps=4, future_camera="top"))
 
 
+def test_a_change_target_is_the_motion_in_units_of_its_rms(run_inputs, tmp_path):
+    policy = unwrap(load_policy(train(tiny_config(run_inputs, tmp_path / "change", steps=4,
+                                                  future_target="change")).policy))
+    dataset = DemoDataset(run_inputs[0])
+    features = FeatureCache(dataset, policy, progress=False)
+    windows = DemoWindows(dataset, horizon=policy.config.horizon, images=False)
+    batch = features.batch(next(windows.iterate(len(dataset))))  # every window
+    moving = ~batch.get("future_is_clamped")
+    target = policy._model_batch(batch).get("future_tokens")
+    assert policy.normalizer.future_change_scale != 1.0
+    # The scale is the changes' RMS over the dataset, so the targets of unclamped windows have unit RMS.
+    assert math.isclose(target[moving].double().square().mean().sqrt().item(), 1.0,
+                        rel_tol=100 * torch.finfo(torch.float32).eps)
+    # Acting adds the present frame back: the target, decoded, is the real future frame.
+    frame = policy.normalizer.normalize_vision(batch.get("future_tokens"))
+    torch.testing.assert_close(policy._predicted_frame(target, batch), frame)
+    with pytest.raises(ValueError, match="unknown future_target 'delta'"):
+        tiny_config(run_inputs, tmp_path / "bad", future_target="delta")
+
+
 def test_bad_training_input_is_named(run_inputs, tmp_path):
     with pytest.raises(ValueError, match=r"execute_steps must be in \[1, horizon=4\], got 9"):
         tiny_config(run_inputs, tmp_path / "a", execute_steps=9)
