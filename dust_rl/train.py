@@ -48,7 +48,8 @@ from dust_rl.agents import DustPolicy, load_policy, make_policy, save_policy, un
 from dust_rl.agents.config import PolicyConfig
 from dust_rl.agents.flow_matching import Shard
 from dust_rl.agents.precision import Precision, autocast
-from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches, render_aux_frames
+from dust_rl.aux_frame_cache import cached_aux_frames
+from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.device import resolve_device
@@ -96,7 +97,8 @@ class TrainSettings:
     """Decay of the exponential moving average of the weights (the saved policy uses the average)."""
     aux_frames: int = 0
     """Frames of random resets and random arm motions (objects independent of the arm,
-    :mod:`dust_rl.aux_frames`) rendered once at the start; every step adds the read-out's error on a batch
+    :mod:`dust_rl.aux_frames`) rendered once at the start (and kept in ``<dataset>/aux_frames/`` for any run
+    that asks for the same, :mod:`dust_rl.aux_frame_cache`); every step adds the read-out's error on a batch
     of them to the loss (weight ``lambda_aux``), so the read-out cannot settle for "the target is where the
     gripper is". Needs ``lambda_aux`` and ``readout tokens`` or ``keypoint_source pixels``; 0: off."""
     aux_expert_fraction: float = 0.0
@@ -508,8 +510,9 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                        first_seed: int = FIRST_SEED) -> AuxFrameBatches:
     """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed): ``aux_frames``
     of them to fit, or ``count`` from ``first_seed`` on (frames that only measure)."""
-    rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
-                                           policy.cameras, count or config.aux_frames, env_state_width(dataset),
+    rows, instructions = cached_aux_frames(dataset.root / "aux_frames", dataset.meta["env_id"],
+                                           dataset.meta["env_kwargs"], dataset.tasks, policy.cameras,
+                                           count or config.aux_frames, env_state_width(dataset),
                                            seed=config.seed, expert_fraction=config.aux_expert_fraction,
                                            approach_fraction=config.aux_approach_fraction,
                                            approach_displacement=config.aux_approach_displacement,

@@ -1,0 +1,81 @@
+"""Rendered aux frames kept beside the dataset, so runs that ask for the same frames render them once.
+
+Why: a run's aux frames (:mod:`dust_rl.aux_frames`) depend only on the
+dataset's env and tasks, the policy's cameras and the frame settings and seed,
+yet every run rendered its own: press_button frames took 0.12 s each with two
+trainings beside them on the 2 cores (8,000 frames: 16 min; measured), and every cell of ``dust-rl bench suite``
+with the same training seed rendered the same frames again. They are now
+stored in ``<dataset>/aux_frames/<key>.npz`` (the key hashes every setting
+that shapes a frame) and read back by any later run that asks for the same.
+The file holds plain arrays (the frames as uint8, so a cached run encodes
+exactly what a fresh one would), is read with ``allow_pickle=False``, and is
+written beside its final name and renamed when complete. 8,000 frames of two
+128 px cameras take 786 MB.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pathlib
+import zipfile
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from dust_rl.atomic_files import atomic_write
+from dust_rl.aux_frames import render_aux_frames
+from dust_rl.data import DatasetError
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, TASK_INDEX_KEY
+
+FORMAT = 1  # raise when what render_aux_frames draws changes, so older files are not read as current
+
+
+def cached_aux_frames(folder: pathlib.Path, env_id: str, env_kwargs: dict, tasks: list[str], cameras: list[str],
+                      count: int, env_state_width: int, progress: bool = True,
+                      **settings) -> tuple[TensorDict, list[str]]:
+    """:func:`~dust_rl.aux_frames.render_aux_frames`, read from ``folder`` when an earlier run rendered the same.
+
+    Args:
+        folder: where the frames are kept (``<dataset>/aux_frames``).
+        env_id, env_kwargs, tasks, cameras, count, env_state_width, progress, settings: as
+            :func:`~dust_rl.aux_frames.render_aux_frames` takes them.
+
+    Raises:
+        DatasetError: a stored file that does not hold what its name promises (delete it to render again).
+    """
+    key = {"format": FORMAT, "env_id": env_id, "env_kwargs": env_kwargs, "tasks": tasks, "cameras": cameras,
+           "count": count, "env_state_width": env_state_width, **settings}
+    path = folder / f"{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.npz"
+    if path.is_file():
+        return _read(path, cameras, count, env_state_width)
+    rows, instructions = render_aux_frames(env_id, env_kwargs, tasks, cameras, count, env_state_width,
+                                           progress=progress, **settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "wb") as file:
+        np.savez(file, **{f"image_{i}": rows.get((*IMAGE_KEY, cam)).numpy() for i, cam in enumerate(cameras)},
+                 env_state=rows.get(ENV_STATE_KEY).numpy(), task_index=rows.get(TASK_INDEX_KEY).numpy(),
+                 instructions=np.array(instructions, dtype=str))
+    return rows, instructions
+
+
+def _read(path: pathlib.Path, cameras: list[str], count: int, env_state_width: int) -> tuple[TensorDict, list[str]]:
+    try:
+        with np.load(path, allow_pickle=False) as stored:
+            arrays = {name: stored[name] for name in stored.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as err:
+        raise DatasetError(f"{path}: unreadable aux frames ({err}); delete the file to render them again") from err
+    expected = {**{f"image_{i}": (np.uint8, (count, 3)) for i in range(len(cameras))},
+                "env_state": (np.float32, (count, env_state_width)), "task_index": (np.int64, (count,)),
+                "instructions": (np.str_, (count,))}
+    for name, (dtype, leading) in expected.items():
+        array = arrays.get(name)
+        if array is None or not np.issubdtype(array.dtype, dtype) or array.shape[:len(leading)] != leading:
+            found = "missing" if array is None else f"{array.dtype} {array.shape}"
+            raise DatasetError(f"{path}: aux frames' {name} is {found}, expected {np.dtype(dtype).name} "
+                               f"{leading}...; delete the file to render them again")
+    rows = TensorDict({**{(*IMAGE_KEY, cam): torch.from_numpy(arrays[f"image_{i}"]) for i, cam in enumerate(cameras)},
+                       ENV_STATE_KEY: torch.from_numpy(arrays["env_state"]),
+                       TASK_INDEX_KEY: torch.from_numpy(arrays["task_index"])}, batch_size=[count])
+    return rows, arrays["instructions"].tolist()
