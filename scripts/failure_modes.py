@@ -6,7 +6,7 @@ and plate; stack's cube to move, cube to stack on and distractor; xyz each) are 
 each episode is sorted, from its trajectory alone, into the first of (pick_place)
 
 * ``success``;
-* ``wrong cube``: the distractor moved more than 1 cm;
+* ``wrong object``: the distractor moved more than 1 cm;
 * ``untouched``: the target cube never moved more than 1 cm (the grasp missed it);
 * ``not lifted``: the target moved but never rose 2 cm above the table;
 * ``held at the end``: lifted, and still in the air when time ran out;
@@ -55,7 +55,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 MOVED = 0.01  # m
 LIFTED = CUBE_HALF + 0.02  # m: the task's own "lifted" height of the cube's centre
-FIRST_MODES = ("success", "wrong cube", "untouched", "not lifted", "held at the end")
+FIRST_MODES = ("success", "wrong object", "untouched", "not lifted", "held at the end")
 MODES = {"pick_place": (*FIRST_MODES, "dropped off the plate", "on the plate, not released"),
          "stack": (*FIRST_MODES, "set down beside it", "set down elsewhere", "on the lower cube, not released"),
          "pick_into_bin": (*FIRST_MODES, "at the bin, not in it", "dropped away from the bin")}
@@ -67,7 +67,7 @@ def first_mode(target: torch.Tensor, distractor: torch.Tensor, success: bool) ->
     if success:
         return "success"
     if (distractor[:, :2] - distractor[0, :2]).norm(dim=-1).max() > MOVED:
-        return "wrong cube"
+        return "wrong object"
     if (target - target[0]).norm(dim=-1).max() <= MOVED:
         return "untouched"
     if target[:, 2].max() <= LIFTED:
