@@ -8,8 +8,13 @@ in between is the first ``execute_steps`` actions of each plan, not the whole pr
 baselines: the present frame's tokens (nothing moves) and the targets' own mean (nothing known). Errors are
 mean squares in the policy's normalised token units, so 1 is about the variance of a token.
 
+One sampled future is a draw from what the model thinks may happen: even a perfectly calibrated model's draw
+misses the truth by twice its uncertainty's variance, where the mean of its draws misses by once. ``--samples K``
+also draws K - 1 more futures per plan (from their own generator: the actions, and so the episode, stay those
+of a plain evaluation) and scores the mean of the K, the model's estimate of the expected future.
+
     .venv/bin/python scripts/world_model_error.py --policy runs/bench/press_button/train/dust_seed0_demos200/policy.pt \
-        [--seed 5000] [--episodes 20]
+        [--seed 5000] [--episodes 20] [--samples 8]
 """
 
 from __future__ import annotations
@@ -26,22 +31,28 @@ from dust_rl.evaluate import evaluate_task
 class FutureRecorder(PlanHook):
     """Records, per episode, each plan's observed tokens and predicted future (the evaluation itself unchanged)."""
 
-    def __init__(self, policy: DustPolicy) -> None:
+    def __init__(self, policy: DustPolicy, samples: int = 1) -> None:
         super().__init__(policy)
+        self.samples = samples
+        self.extra = torch.Generator(policy.weights_device)  # the further draws' own noise
         self.episodes: list[list[tuple[torch.Tensor, torch.Tensor]]] = []
 
     def _episode_generator(self, seed: int) -> torch.Generator:
         self.episodes.append([])
+        self.extra.manual_seed(seed)
         return self.unshifted(seed)
 
     def _plan_features(self, features, generator=None, action_noise=None):
         out = self.plan_features(features, generator, action_noise)
-        self.episodes[-1].append((features["image_tokens"][0], out["future_tokens"][0]))
+        futures = [out["future_tokens"][0]] + [self.plan_features(features, self.extra)["future_tokens"][0]
+                                               for _ in range(self.samples - 1)]
+        self.episodes[-1].append((features["image_tokens"][0], torch.stack(futures)))
         return out
 
 
 def errors(policy: DustPolicy, episodes: list[list[tuple[torch.Tensor, torch.Tensor]]]) -> dict[str, float]:
-    """Mean squared errors (normalised units) of the world model, the present frame and the targets' mean."""
+    """Mean squared errors (normalised units) of the world model (the acting draw, and the mean of every draw when
+    there are several), the present frame and the targets' mean."""
     ahead = policy.config.horizon // policy.execute_steps
     predicted, present, target = [], [], []
     for plans in episodes:
@@ -53,23 +64,28 @@ def errors(policy: DustPolicy, episodes: list[list[tuple[torch.Tensor, torch.Ten
     if not target:
         raise SystemExit("no episode lasted long enough to compare a predicted future with the real one")
     predicted, present, target = (policy.normalizer.normalize_vision(torch.stack(x)).double()
-                                  for x in (predicted, present, target))
-    return {"plans": len(target), "world model": float((predicted - target).square().mean()),
-            "present frame": float((present - target).square().mean()),
-            "targets' mean": float((target - target.mean(0)).square().mean())}
+                                  for x in (predicted, present, target))  # predicted: [plans, K, N_o, Dv]
+    row = {"plans": len(target), "world model": float((predicted[:, 0] - target).square().mean())}
+    if predicted.shape[1] > 1:
+        row[f"mean of {predicted.shape[1]} draws"] = float((predicted.mean(1) - target).square().mean())
+    return row | {"present frame": float((present - target).square().mean()),
+                  "targets' mean": float((target - target.mean(0)).square().mean())}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_eval_arguments(parser)
+    parser.add_argument("--samples", type=int, default=1, help="futures drawn per plan (module doc)")
     args = parser.parse_args()
+    if args.samples < 1:
+        parser.error(f"--samples must be at least 1, got {args.samples}")
     policy, setup, config = prepare_in_process(args)
     if not policy.writes_future:
         parser.error(f"{args.policy} predicts no future (variant {policy.config.variant!r})")
     if policy.config.horizon % policy.execute_steps:
         parser.error(f"the horizon ({policy.config.horizon}) is not a whole number of re-plans "
                      f"({policy.execute_steps} steps each), so no plan sees the frame at t+H")
-    with FutureRecorder(policy) as recorder:
+    with FutureRecorder(policy, args.samples) as recorder:
         wins = sum(e.success for task in setup.tasks for e in evaluate_task(setup, task, policy, config)[0])
     row = errors(policy, recorder.episodes)
     plans = row.pop("plans")
