@@ -10,7 +10,7 @@ that shapes a frame) and read back by any later run that asks for the same.
 The file holds plain arrays (the frames as uint8, so a cached run encodes
 exactly what a fresh one would), is read with ``allow_pickle=False``, and is
 written beside its final name and renamed when complete. 8,000 frames of two
-128 px cameras take 786 MB.
+128 px cameras take 788 MB.
 """
 
 from __future__ import annotations
