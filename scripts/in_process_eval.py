@@ -15,6 +15,8 @@ import torch
 from dust_rl.agents import DustPolicy, execution
 from dust_rl.evaluate import Episode, EvalConfig, EvalSetup, prepare, summary_row
 
+NOISE_OFFSET = 1_000_003  # added to the episode seed per further draw: far from every seed schedule
+
 
 class PlanHook:
     """Inside a ``with`` block, the acting policy plans through :meth:`_plan_features` and every episode's noise

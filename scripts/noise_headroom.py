@@ -25,13 +25,11 @@ from __future__ import annotations
 import argparse
 
 import torch
-from in_process_eval import PlanHook, add_eval_arguments, prepare_in_process
+from in_process_eval import NOISE_OFFSET, PlanHook, add_eval_arguments, prepare_in_process
 
 from dust_rl.agents import DustPolicy
 from dust_rl.envs.env import MAX_TRANSLATION
 from dust_rl.evaluate import evaluate_task, wilson_interval
-
-NOISE_OFFSET = 1_000_003  # added to the episode seed per draw: far from every seed schedule
 
 
 class BranchingNoise(PlanHook):

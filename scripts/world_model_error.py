@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 
 import torch
-from in_process_eval import PlanHook, add_eval_arguments, prepare_in_process
+from in_process_eval import NOISE_OFFSET, PlanHook, add_eval_arguments, prepare_in_process
 
 from dust_rl.agents import DustPolicy
 from dust_rl.evaluate import evaluate_task
@@ -39,7 +39,7 @@ class FutureRecorder(PlanHook):
 
     def _episode_generator(self, seed: int) -> torch.Generator:
         self.episodes.append([])
-        self.extra.manual_seed(seed)
+        self.extra.manual_seed(int(seed) + NOISE_OFFSET)  # not the episode's stream: no draw repeats the acting one
         return self.unshifted(seed)
 
     def _plan_features(self, features, generator=None, action_noise=None):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from conftest import DEMO_ENV_KWARGS
 
+from dust_rl import aux_frame_cache
 from dust_rl.aux_frame_cache import cached_aux_frames
 from dust_rl.aux_frames import render_aux_frames
 from dust_rl.data import DatasetError
@@ -14,14 +15,20 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 ARGS = ("DustFranka-v0", DEMO_ENV_KWARGS, ["pick_place", "push"], ["front", "wrist"], 3, 9)
 
 
-def test_stored_frames_are_the_rendered_ones_and_keyed_by_their_settings(tmp_path):
+def test_stored_frames_are_the_rendered_ones_and_keyed_by_their_settings(tmp_path, monkeypatch):
     first, instructions = cached_aux_frames(tmp_path, *ARGS, seed=1, progress=False)
     (stored,) = tmp_path.iterdir()
-    again, instructions_again = cached_aux_frames(tmp_path, *ARGS, seed=1, progress=False)
     fresh, fresh_instructions = render_aux_frames(*ARGS, seed=1, progress=False)
+
+    def render_again(*args, **kwargs):
+        raise AssertionError("the stored frames were rendered again")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(aux_frame_cache, "render_aux_frames", render_again)
+        again, instructions_again = cached_aux_frames(tmp_path, *ARGS, seed=1, progress=False)
     assert (again == first).all() and (again == fresh).all()  # read back bit for bit, as a fresh render
     assert instructions_again == instructions == fresh_instructions
-    assert list(tmp_path.iterdir()) == [stored]  # nothing rendered the second time
+    assert list(tmp_path.iterdir()) == [stored]
     other, _ = cached_aux_frames(tmp_path, *ARGS, seed=2, progress=False)
     assert len(list(tmp_path.iterdir())) == 2 and not (other == first).all()
 
