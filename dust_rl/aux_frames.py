@@ -56,6 +56,8 @@ layout the policy is scored on.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 from tensordict import TensorDict
@@ -183,15 +185,19 @@ class AuxFrameBatches:
         policy: supplies the cameras, the text encoder and (for a token read-out) the frozen image encoder.
         env_state_norm: normalises the object state (the training data's statistics, task by task; ``rows``'
             ``task_index`` points into its ``tasks``).
+        encode: frames [F, C, 3, H, W] to the policy's frozen tokens [F, C, N, Dv], for a token read-out;
+            default :func:`encode_frames` (training passes one that reads tokens an earlier run stored).
     """
 
     def __init__(self, rows: TensorDict, instructions: list[str], policy: DustPolicy,
-                 env_state_norm: EnvStateNorm) -> None:
+                 env_state_norm: EnvStateNorm, encode: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
         self.device = policy.weights_device
         # What the read-out reads, made once: the frozen tokens (encoded here) or the raw frames (shifted per draw).
         self.frame_key = "image_tokens" if policy.config.readout == "tokens" else "pixels"
         frames = policy.frames(rows)
-        self.frames = _encoded(policy, frames) if self.frame_key == "image_tokens" else frames
+        if self.frame_key == "image_tokens":
+            frames = encode(frames) if encode is not None else encode_frames(policy, frames)
+        self.frames = frames
         distinct = {text: i for i, text in enumerate(dict.fromkeys(instructions))}  # tokens once per instruction
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(list(distinct))
         self.instruction_index = torch.tensor([distinct[text] for text in instructions])
@@ -214,7 +220,7 @@ class AuxFrameBatches:
 
 
 @torch.no_grad()
-def _encoded(policy: DustPolicy, frames: torch.Tensor, chunk: int = 256) -> torch.Tensor:
+def encode_frames(policy: DustPolicy, frames: torch.Tensor, chunk: int = 256) -> torch.Tensor:
     """Frozen condition tokens [F, C, N, Dv] of frames [F, C, 3, H, W], ``chunk`` frames at a time."""
     return torch.cat([policy.frame_tokens(frames[i:i + chunk].to(policy.weights_device)).cpu()
                       for i in range(0, len(frames), chunk)])

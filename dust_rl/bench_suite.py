@@ -64,7 +64,8 @@ class SuiteConfig:
     demos: tuple[int, ...] = (50, 100, 200)
     """Demonstrations per task; the largest trains every variant, the others give the data-scaling row."""
     variants: tuple[Variant, ...] = VARIANTS
-    """Variants to compare (the first two of the data-scaling row: dust and action_only, when listed)."""
+    """Variants to compare (the first two of the data-scaling row: dust and action_only, when listed); none, with
+    ``video_dataset``: only the action-free row (its baseline DUST cells trained elsewhere)."""
     seeds: tuple[int, ...] = (0, 1)
     """Training seeds; each cell's episodes are pooled over them."""
     train: TrainSettings = field(default_factory=vision_recipe)
@@ -93,8 +94,10 @@ class SuiteConfig:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "episodes", "image_size", "max_steps", "workers")
         check_at_least(self, 0, "eval_seed")
-        if not self.demos or min(self.demos) < 1 or not self.seeds or not self.variants:
-            raise ConfigError("demos, seeds and variants must each list at least one value (demos >= 1)")
+        if not self.demos or min(self.demos) < 1 or not self.seeds:
+            raise ConfigError("demos and seeds must each list at least one value (demos >= 1)")
+        if not self.variants and self.video_dataset is None:
+            raise ConfigError("variants is empty and there is no --video-dataset: the study would train nothing")
         if any(v % 4 for v in self.vision_steps):
             raise ConfigError(f"vision_steps must be multiples of N_A = 4, got {self.vision_steps}")
 

@@ -48,7 +48,7 @@ from dust_rl.agents import DustPolicy, load_policy, make_policy, save_policy, un
 from dust_rl.agents.config import PolicyConfig
 from dust_rl.agents.flow_matching import Shard
 from dust_rl.agents.precision import Precision, autocast
-from dust_rl.aux_frame_cache import cached_aux_frames
+from dust_rl.aux_frame_cache import cached_aux_frames, cached_frame_tokens
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.dataset_batches import DatasetBatches
@@ -510,15 +510,15 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                        first_seed: int = FIRST_SEED) -> AuxFrameBatches:
     """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed): ``aux_frames``
     of them to fit, or ``count`` from ``first_seed`` on (frames that only measure)."""
-    rows, instructions = cached_aux_frames(dataset.root / "aux_frames", dataset.meta["env_id"],
-                                           dataset.meta["env_kwargs"], dataset.tasks, policy.cameras,
-                                           count or config.aux_frames, env_state_width(dataset),
-                                           seed=config.seed, expert_fraction=config.aux_expert_fraction,
-                                           approach_fraction=config.aux_approach_fraction,
-                                           approach_displacement=config.aux_approach_displacement,
-                                           expert_displacement=config.aux_expert_displacement,
-                                           first_seed=first_seed, progress=config.progress)
-    return AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
+    stored = cached_aux_frames(dataset.root / "aux_frames", dataset.meta["env_id"], dataset.meta["env_kwargs"],
+                               dataset.tasks, policy.cameras, count or config.aux_frames, env_state_width(dataset),
+                               seed=config.seed, expert_fraction=config.aux_expert_fraction,
+                               approach_fraction=config.aux_approach_fraction,
+                               approach_displacement=config.aux_approach_displacement,
+                               expert_displacement=config.aux_expert_displacement, first_seed=first_seed,
+                               progress=config.progress)
+    return AuxFrameBatches(stored.rows, stored.instructions, policy, EnvStateNorm.of_dataset(dataset),
+                           encode=lambda frames: cached_frame_tokens(stored.path, policy, frames))
 
 
 def _future_change_rms(policy: DustPolicy, features: FeatureCache, windows: DemoWindows) -> float:

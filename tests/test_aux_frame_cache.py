@@ -1,22 +1,28 @@
-"""The aux-frame store: a second run asking for the same frames reads them; other settings render their own."""
+"""The aux-frame store: a second run asking for the same frames (or their tokens) reads them; other settings
+render (or encode) their own."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
+import torch
 from conftest import DEMO_ENV_KWARGS
 
 from dust_rl import aux_frame_cache
-from dust_rl.aux_frame_cache import cached_aux_frames
-from dust_rl.aux_frames import render_aux_frames
-from dust_rl.data import DatasetError
+from dust_rl.agents import make_policy, unwrap
+from dust_rl.aux_frame_cache import cached_aux_frames, cached_frame_tokens
+from dust_rl.aux_frames import encode_frames, render_aux_frames
+from dust_rl.data import DatasetError, DemoDataset
+from dust_rl.features import dataset_policy_kwargs, env_state_width
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 ARGS = ("DustFranka-v0", DEMO_ENV_KWARGS, ["pick_place", "push"], ["front", "wrist"], 3, 9)
 
 
 def test_stored_frames_are_the_rendered_ones_and_keyed_by_their_settings(tmp_path, monkeypatch):
-    first, instructions = cached_aux_frames(tmp_path, *ARGS, seed=1, progress=False)
+    first, instructions, _ = cached_aux_frames(tmp_path, *ARGS, seed=1, progress=False)
     (stored,) = tmp_path.iterdir()
     fresh, fresh_instructions = render_aux_frames(*ARGS, seed=1, progress=False)
 
@@ -25,11 +31,11 @@ def test_stored_frames_are_the_rendered_ones_and_keyed_by_their_settings(tmp_pat
 
     with monkeypatch.context() as patch:
         patch.setattr(aux_frame_cache, "render_aux_frames", render_again)
-        again, instructions_again = cached_aux_frames(tmp_path, *ARGS, seed=1, progress=False)
+        again, instructions_again, _ = cached_aux_frames(tmp_path, *ARGS, seed=1, progress=False)
     assert (again == first).all() and (again == fresh).all()  # read back bit for bit, as a fresh render
     assert instructions_again == instructions == fresh_instructions
     assert list(tmp_path.iterdir()) == [stored]
-    other, _ = cached_aux_frames(tmp_path, *ARGS, seed=2, progress=False)
+    other = cached_aux_frames(tmp_path, *ARGS, seed=2, progress=False).rows
     assert len(list(tmp_path.iterdir())) == 2 and not (other == first).all()
 
 
@@ -43,3 +49,41 @@ def test_a_damaged_store_is_named(tmp_path):
         np.savez(file, image_0=np.zeros((3, 3, 8, 8), np.uint8), image_1=np.zeros((2, 3, 8, 8), np.uint8))
     with pytest.raises(DatasetError, match=r"image_1 is uint8 \(2, 3, 8, 8\), expected uint8 \(3, 3\)"):
         cached_aux_frames(tmp_path, *ARGS, progress=False)
+
+
+def test_stored_tokens_are_the_encoded_ones_and_keyed_by_encoder_weights_and_grid(tmp_path, monkeypatch, demo_dir,
+                                                                                    tiny_encoder, minilm):
+    dataset = DemoDataset(demo_dir)
+
+    def token_policy(encoder, grid):
+        return unwrap(make_policy(image_encoder=encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                                  horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                                  cond_grid=(2, 2), vision_grid=(2, 2), readout_grid=grid, aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
+
+    stored = cached_aux_frames(tmp_path, *ARGS, progress=False)
+    policy = token_policy(tiny_encoder, (4, 4))
+    frames = policy.frames(stored.rows)
+    first = cached_frame_tokens(stored.path, policy, frames)
+    assert torch.equal(first, encode_frames(policy, frames))
+
+    def encode_again(*args, **kwargs):
+        raise AssertionError("the stored tokens were encoded again")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(aux_frame_cache, "encode_frames", encode_again)
+        assert torch.equal(cached_frame_tokens(stored.path, policy, frames), first)  # read back bit for bit
+    (tokens_file,) = tmp_path.glob("*.tokens-*.npy")
+    coarser = token_policy(tiny_encoder, (2, 2))
+    assert cached_frame_tokens(stored.path, coarser, frames).shape[2] == 4
+    retrained = copy.deepcopy(tiny_encoder)
+    with torch.no_grad():
+        next(retrained.parameters()).add_(1.0)
+    assert not torch.equal(cached_frame_tokens(stored.path, token_policy(retrained, (4, 4)), frames), first)
+    assert len(list(tmp_path.glob("*.tokens-*.npy"))) == 3
+
+    np.save(tokens_file, first.numpy()[:2])  # readable, but not the frames' tokens
+    with pytest.raises(DatasetError, match=r"tokens are float32 \(2, 2, 16, 16\), expected float32 \(3, 2\)"):
+        cached_frame_tokens(stored.path, policy, frames)
+    tokens_file.write_bytes(b"\x93NUMPY")
+    with pytest.raises(DatasetError, match="unreadable aux-frame tokens.*delete the file"):
+        cached_frame_tokens(stored.path, policy, frames)

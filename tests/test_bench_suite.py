@@ -8,7 +8,7 @@ import pytest
 from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
-from dust_rl.bench_suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, SuiteConfig, run_suite
+from dust_rl.bench_suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, Cell, SuiteConfig, plan, run_suite
 from dust_rl.errors import ConfigError
 from dust_rl.train import TrainSettings
 
@@ -59,3 +59,11 @@ def test_suite_settings_are_checked():
         SuiteConfig(vision_steps=(4, 6))
     with pytest.raises(ConfigError, match="at least one value"):
         SuiteConfig(seeds=())
+    with pytest.raises(ConfigError, match="would train nothing"):
+        SuiteConfig(variants=())
+
+
+def test_no_variants_with_a_video_dataset_plans_only_the_action_free_row(tmp_path):
+    config = SuiteConfig(variants=(), seeds=(0, 1), demos=(50, 200), video_dataset=tmp_path)
+    assert plan(config) == [(Cell("dust", 0, 200, video=True), AS_TRAINED), (Cell("dust", 1, 200, video=True),
+                                                                            AS_TRAINED)]
