@@ -221,6 +221,8 @@ def markdown(results: dict, command: str | None) -> str:
     main = results["main_demos"]
 
     def table(title: str, rows: list[dict]) -> list[str]:
+        if not rows:  # a study without that part (e.g. --vision-steps with no value, one demo count)
+            return []
         lines = [f"## {title}", "", "| variant | demos | sampler | parameters | success | 95% CI | per seed |",
                  "|---|---|---|---|---|---|---|"]
         for r in rows:

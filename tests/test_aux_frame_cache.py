@@ -58,7 +58,8 @@ def test_stored_tokens_are_the_encoded_ones_and_keyed_by_encoder_weights_and_gri
     def token_policy(encoder, grid):
         return unwrap(make_policy(image_encoder=encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                                   horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                                  cond_grid=(2, 2), vision_grid=(2, 2), readout_grid=grid, aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
+                                  cond_grid=(2, 2), vision_grid=(2, 2), readout_grid=grid,
+                                  aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
 
     stored = cached_aux_frames(tmp_path, *ARGS, progress=False)
     policy = token_policy(tiny_encoder, (4, 4))

@@ -8,7 +8,7 @@ import pytest
 from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
-from dust_rl.bench_suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, Cell, SuiteConfig, plan, run_suite
+from dust_rl.bench_suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, Cell, SuiteConfig, markdown, plan, run_suite
 from dust_rl.errors import ConfigError
 from dust_rl.train import TrainSettings
 
@@ -67,3 +67,12 @@ def test_no_variants_with_a_video_dataset_plans_only_the_action_free_row(tmp_pat
     config = SuiteConfig(variants=(), seeds=(0, 1), demos=(50, 200), video_dataset=tmp_path)
     assert plan(config) == [(Cell("dust", 0, 200, video=True), AS_TRAINED), (Cell("dust", 1, 200, video=True),
                                                                             AS_TRAINED)]
+
+
+def test_the_tables_leave_out_parts_the_study_did_not_run():
+    row = {"variant": "joint", "demos": 200, "sampler": AS_TRAINED, "trainable_parameters": 2e6, "success_rate": 0.8,
+           "successes": 40, "episodes": 50, "ci95_low": 0.67, "ci95_high": 0.89, "per_seed": [0.8]}
+    text = markdown({"task": "press_button", "env": "DustFranka-v0", "eval_seeds": [10000, 10049], "main_demos": 200,
+                     "rows": [row]}, None)
+    assert "| joint | 200 | as trained | 2.00M | 80% (40/50) | 67-89% | 80% |" in text
+    assert "## Variants" in text and "## Data scaling" not in text and "## DUST's samplers" not in text
