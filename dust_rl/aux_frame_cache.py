@@ -22,7 +22,9 @@ thread beside two trainings (EfficientNet-Lite0 at stride 8, 16x16 tokens),
 part of every bench cell's start. The tokens are stored beside their frames
 (``<key>.tokens-<encoder key>.npy``, float32 as encoded, 655 MB for those
 frames), keyed by the image encoder's description, a digest of its weights
-and the token grid, so any run with the same frozen encoder reads them back.
+and the token grid, so any run with the same frozen encoder reads them back
+(the stored ones: an encoding on another machine or thread count may differ in
+the last bits).
 """
 
 from __future__ import annotations

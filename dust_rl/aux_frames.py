@@ -192,7 +192,7 @@ class AuxFrameBatches:
     def __init__(self, rows: TensorDict, instructions: list[str], policy: DustPolicy,
                  env_state_norm: EnvStateNorm, encode: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
         self.device = policy.weights_device
-        # What the read-out reads, made once: the frozen tokens (encoded here) or the raw frames (shifted per draw).
+        # What the read-out reads, made once: the frozen tokens (``encode``) or the raw frames (shifted per draw).
         self.frame_key = "image_tokens" if policy.config.readout == "tokens" else "pixels"
         frames = policy.frames(rows)
         if self.frame_key == "image_tokens":
