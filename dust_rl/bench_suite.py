@@ -18,7 +18,8 @@ Every cell is a job cached on disk under ``out``: ``data/<n>/`` (collection,
 resumed), ``train/<variant>_seed<s>_demos<n>/`` (training, resumed; skipped
 once its ``policy.pt`` exists) and ``eval/<cell>/<sampler>/`` (skipped once
 its ``report.json`` exists), so rerunning the command after an interruption
-redoes nothing that finished. The budget (episodes to collect, training
+redoes nothing that finished; two suites run side by side on one data
+folder take turns (the second waits while the first collects). The budget (episodes to collect, training
 steps, evaluation episodes) is printed before anything runs. Output:
 ``results.json``, ``results.md`` (the paper's form: success with 95%
 intervals, episodes pooled over training seeds) and ``results.png`` (bars).
@@ -157,7 +158,7 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     env_kwargs = {"image_size": config.image_size}
     for demos in sorted(config.demos):  # the first n seeds of every task: each smaller set is a prefix of the next
         collect_demos(config.out / "data" / str(demos), config.env, tasks, demos, env_kwargs=env_kwargs,
-                      workers=config.workers, progress=config.progress)
+                      workers=config.workers, progress=config.progress, wait_for_writer=True)
     reports = {}
     for cell, name in jobs:
         policy = train_cell(config, cell)

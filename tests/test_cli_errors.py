@@ -17,6 +17,7 @@ from test_train import TINY_ARGS
 from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
+from dust_rl.data.lock import dataset_lock
 from dust_rl.env_factory import env_tasks
 from dust_rl.envs import list_tasks
 from dust_rl.errors import ConfigError
@@ -91,6 +92,24 @@ def test_a_second_collector_is_refused_and_told_who_holds_the_folder(dataset_cop
         holder.kill()
         holder.wait()
     main(collect_args(dataset_copy))  # the kernel released the lock of the killed process
+
+
+def test_a_waiting_writer_takes_the_lock_when_the_holder_lets_go(dataset_copy, tmp_path, capsys):
+    released = tmp_path / "released"  # written by the holder just before it lets go
+    script = ("import pathlib, time; from dust_rl.data.lock import dataset_lock; "
+              f"lock = dataset_lock(pathlib.Path({str(dataset_copy)!r})); lock.__enter__(); "
+              "print('locked', flush=True); "
+              f"time.sleep(1); pathlib.Path({str(released)!r}).touch(); lock.__exit__(None, None, None); "
+              "time.sleep(120)")
+    holder = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "locked\n"
+        with dataset_lock(dataset_copy, wait=True):
+            assert released.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert f"(pid {holder.pid} on " in capsys.readouterr().err
 
 
 def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):

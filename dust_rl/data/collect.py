@@ -57,7 +57,8 @@ MAX_SEEDS_PER_EPISODE = {"expert": 3, "policy": 20}
 def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks: Sequence[str] = ("pick_place",),
                   episodes: int = 100, *, env_kwargs: dict | None = None, workers: int | Workers = 1,
                   start_seed: int = 0, noise_std: float = 0.0, keep_failed: bool = False,
-                  policy: str | pathlib.Path | None = None, progress: bool = True) -> dict:
+                  policy: str | pathlib.Path | None = None, progress: bool = True,
+                  wait_for_writer: bool = False) -> dict:
     """Collect (or resume collecting) ``episodes`` successful expert demos (or policy rollouts) per task into
     ``root``.
 
@@ -72,6 +73,8 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         noise_std: DART perturbation of the executed action (the stored label stays the expert's).
         keep_failed: also store failed episodes (flagged ``success=False``).
         policy: a trained policy file (``policy.pt``) to roll out instead of the expert; it must fit the env.
+        wait_for_writer: when another process is collecting into ``root``, wait for it (then resume or find the
+            data complete) instead of raising.
 
     Returns:
         the dataset metadata (``meta.json``).
@@ -81,7 +84,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
             policy (DART perturbs the expert).
         CheckpointError: a missing or corrupt policy file, or one that does not fit the env.
         DatasetError: ``root`` holds a collection with other settings.
-        DatasetLockedError: another process is collecting into ``root``.
+        DatasetLockedError: another process is collecting into ``root`` (and ``wait_for_writer`` is off).
     """
     tasks = list(dict.fromkeys(tasks))
     workers = workers if isinstance(workers, Workers) else Workers(workers)
@@ -111,7 +114,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
               "policy": None if policy is None else {"file": policy.name, "sha256": _file_digest(policy)}}
     root = pathlib.Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    with dataset_lock(root), ray_runtime(workers), torch_threads(workers.threads):
+    with dataset_lock(root, wait=wait_for_writer), ray_runtime(workers), torch_threads(workers.threads):
         clear_staging(root)
         meta = open_meta(root, config, tasks, episodes, spec)
         for task in tasks:

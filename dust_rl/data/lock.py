@@ -5,7 +5,9 @@ on ``meta.json`` (a task can vanish from the request, or a write fails with
 ``OSError``). The lock is held for the whole collection; the kernel releases it when
 the process ends, however it ends, so a killed collection never leaves a stale lock.
 The holder writes who it is (pid, host, command, start time) into the file, so a
-refused process can say which one holds it.
+refused process can say which one holds it. A caller that only needs the data
+to be there (``dust-rl bench suite``, two of which often share a folder) waits
+for the holder instead of failing.
 """
 
 from __future__ import annotations
@@ -31,11 +33,14 @@ class DatasetLockedError(UserError):
 
 
 @contextlib.contextmanager
-def dataset_lock(root: pathlib.Path) -> Iterator[None]:
+def dataset_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
     """Hold the write lock of the dataset folder ``root`` (which must exist) for the ``with`` body.
 
+    Args:
+        wait: when another process holds it, say so on stderr and wait until it lets go.
+
     Raises:
-        DatasetLockedError: another process holds it; the message names that process.
+        DatasetLockedError: another process holds it and ``wait`` is off; the message names that process.
     """
     path = root / LOCK_FILE
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -43,8 +48,11 @@ def dataset_lock(root: pathlib.Path) -> Iterator[None]:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise DatasetLockedError(f"{root} is being written by another process ({_holder(path)}); "
-                                     "wait for it to finish or stop it") from None
+            message = f"{root} is being written by another process ({_holder(path)})"
+            if not wait:
+                raise DatasetLockedError(f"{message}; wait for it to finish or stop it") from None
+            print(f"{message}; waiting for it to finish", file=sys.stderr, flush=True)
+            fcntl.flock(fd, fcntl.LOCK_EX)
         holder = {"pid": os.getpid(), "host": socket.gethostname(), "command": shlex.join(sys.orig_argv),
                   "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds")}
         os.ftruncate(fd, 0)
