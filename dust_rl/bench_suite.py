@@ -18,7 +18,8 @@ Every cell is a job cached on disk under ``out``: ``data/<n>/`` (collection,
 resumed), ``train/<variant>_seed<s>_demos<n>/`` (training, resumed; skipped
 once its ``policy.pt`` exists) and ``eval/<cell>/<sampler>/`` (skipped once
 its ``report.json`` exists), so rerunning the command after an interruption
-redoes nothing that finished; two suites run side by side on one data
+redoes nothing that finished (a cell on disk from other ``--train.*`` settings or
+other evaluation seeds is refused, not reused); two suites run side by side on one data
 folder take turns (the second waits while the first collects). The budget (episodes to collect, training
 steps, evaluation episodes) is printed before anything runs. Output:
 ``results.json``, ``results.md`` (the paper's form: success with 95%
@@ -45,7 +46,8 @@ from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate import EvalConfig, evaluate, wilson_interval
 from dust_rl.quickstart import vision_recipe
 from dust_rl.report import save_png
-from dust_rl.train import TrainConfig, TrainSettings, train
+from dust_rl.run_folder import check_run_folder
+from dust_rl.train import RESUMABLE_FIELDS, TrainConfig, TrainSettings, train
 
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
@@ -171,26 +173,42 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
 
 
 def train_cell(config: SuiteConfig, cell: Cell) -> pathlib.Path:
-    """The cell's policy file, trained (or resumed) unless it is already there."""
+    """The cell's policy file, trained (or resumed) unless it is already there.
+
+    Raises:
+        ConfigError: the cell on disk was trained with other settings (``--train.*``) than the study asks for.
+    """
     out = config.out / "train" / cell.name
-    if not (out / "policy.pt").is_file():
-        settings = dataclasses.replace(config.train, seed=cell.seed, progress=config.progress,
-                                       policy=dataclasses.replace(config.train.policy, variant=cell.variant),
-                                       video_dataset=config.video_dataset if cell.video else
-                                       config.train.video_dataset)
-        train(TrainConfig.from_settings(settings, dataset=config.out / "data" / str(cell.demos), out=out,
-                                        resume=(out / "config.json").is_file()))
+    settings = dataclasses.replace(config.train, seed=cell.seed, progress=config.progress,
+                                   policy=dataclasses.replace(config.train.policy, variant=cell.variant),
+                                   video_dataset=config.video_dataset if cell.video else config.train.video_dataset)
+    train_config = TrainConfig.from_settings(settings, dataset=config.out / "data" / str(cell.demos), out=out,
+                                             resume=(out / "config.json").is_file())
+    if (out / "policy.pt").is_file():
+        check_run_folder(train_config, RESUMABLE_FIELDS)  # a finished cell is reused only for the same study
+    else:
+        train(train_config)
     return out / "policy.pt"
 
 
 def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Path, command: str | None) -> dict:
-    """The cell's evaluation report with sampler ``name``, run unless already on disk."""
+    """The cell's evaluation report with sampler ``name``, run unless already on disk.
+
+    Raises:
+        ConfigError: the report on disk is of other episodes (seeds, count or step limit) than the study asks for.
+    """
     out = config.out / "eval" / cell.name / name.replace(" ", "_").replace("=", "")
     if not (out / "report.json").is_file():
         evaluate(EvalConfig(policy=policy, out=out, episodes=config.episodes, seed=config.eval_seed,
                             workers=config.workers, videos=0, max_steps=config.max_steps,
                             sampling=samplers(config, cell.variant)[name], progress=config.progress), command)
-    return json.loads((out / "report.json").read_text())
+    report = json.loads((out / "report.json").read_text())
+    seeds, max_steps = [config.eval_seed, config.eval_seed + config.episodes - 1], config.max_steps
+    if report["seeds"] != seeds or report["env_kwargs"].get("max_episode_steps") != max_steps:
+        raise ConfigError(f"{out} holds an evaluation of seeds {report['seeds']} (step limit "
+                          f"{report['env_kwargs'].get('max_episode_steps')}), the study asks for seeds {seeds} (step "
+                          f"limit {max_steps}); use another --out")
+    return report
 
 
 def summarise(config: SuiteConfig, jobs: list[tuple[Cell, str]], reports: dict) -> dict:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -51,6 +52,14 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
                                                                                             "report.json")}
     assert len(stamps) == 5 + len(rows)
     assert run_suite(config)["rows"] == results["rows"]
+    assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
+
+    # Cells on disk from other settings are refused, not passed off as this study's.
+    longer = dataclasses.replace(config, train=dataclasses.replace(train, steps=3))
+    with pytest.raises(ConfigError, match="other settings"):
+        run_suite(longer)
+    with pytest.raises(ConfigError, match="holds an evaluation of seeds"):
+        run_suite(dataclasses.replace(config, episodes=2))
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
 
 
