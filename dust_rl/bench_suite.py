@@ -258,9 +258,9 @@ def markdown(results: dict, command: str | None) -> str:
     lines += table("Variants", [r for r in rows if r["demos"] == main and r["sampler"] == AS_TRAINED])
     lines += table("DUST's samplers: test-time scaling, the synchronous control, the vision stream as noise",
                    [r for r in rows if r["demos"] == main and r["sampler"] != AS_TRAINED])
-    lines += table("Data scaling", sorted((r for r in rows if r["sampler"] == AS_TRAINED
-                                           and r["variant"] in ("dust", "action_only")),
-                                          key=lambda r: (r["variant"], r["demos"])))
+    scaling = [r for r in rows if r["sampler"] == AS_TRAINED and r["variant"] in ("dust", "action_only")]
+    if len({r["demos"] for r in scaling}) > 1:  # one demo count: the Variants table already holds these rows
+        lines += table("Data scaling", sorted(scaling, key=lambda r: (r["variant"], r["demos"])))
     if command:
         lines += ["Reproduce:", "", f"    {command}", ""]
     return "\n".join(lines)

@@ -82,6 +82,6 @@ def test_the_tables_leave_out_parts_the_study_did_not_run():
     row = {"variant": "joint", "demos": 200, "sampler": AS_TRAINED, "trainable_parameters": 2e6, "success_rate": 0.8,
            "successes": 40, "episodes": 50, "ci95_low": 0.67, "ci95_high": 0.89, "per_seed": [0.8]}
     text = markdown({"task": "press_button", "env": "DustFranka-v0", "eval_seeds": [10000, 10049], "main_demos": 200,
-                     "rows": [row]}, None)
+                     "rows": [row, {**row, "variant": "action_only"}]}, None)
     assert "| joint | 200 | as trained | 2.00M | 80% (40/50) | 67-89% | 80% |" in text
     assert "## Variants" in text and "## Data scaling" not in text and "## DUST's samplers" not in text
