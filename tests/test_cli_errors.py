@@ -6,6 +6,8 @@ import json
 import shutil
 import subprocess
 import sys
+import threading
+import time
 
 import pytest
 import torch
@@ -78,14 +80,19 @@ def test_bad_task_list_writes_nothing(dataset_copy, tmp_path):
     assert not new.exists()
 
 
+def hold_lock(folder) -> subprocess.Popen:
+    """A process that holds ``folder``'s dataset lock until a line arrives on its stdin."""
+    script = ("import pathlib, sys, time; from dust_rl.data.lock import dataset_lock; "
+              f"lock = dataset_lock(pathlib.Path({str(folder)!r})); lock.__enter__(); "
+              "print('locked', flush=True); sys.stdin.readline(); lock.__exit__(None, None, None); time.sleep(120)")
+    holder = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline() == "locked\n"
+    return holder
+
+
 def test_a_second_collector_is_refused_and_told_who_holds_the_folder(dataset_copy):
-    script = ("import pathlib, time; from dust_rl.data.lock import dataset_lock; "
-              f"lock = dataset_lock(pathlib.Path({str(dataset_copy)!r})); lock.__enter__(); "
-              "print('locked', flush=True); "
-              "time.sleep(120)")
-    holder = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    holder = hold_lock(dataset_copy)
     try:
-        assert holder.stdout.readline() == "locked\n"
         message = error_of(collect_args(dataset_copy))
         assert f"is being written by another process (pid {holder.pid} on " in message and "dataset_lock" in message
     finally:
@@ -94,22 +101,30 @@ def test_a_second_collector_is_refused_and_told_who_holds_the_folder(dataset_cop
     main(collect_args(dataset_copy))  # the kernel released the lock of the killed process
 
 
-def test_a_waiting_writer_takes_the_lock_when_the_holder_lets_go(dataset_copy, tmp_path, capsys):
-    released = tmp_path / "released"  # written by the holder just before it lets go
-    script = ("import pathlib, time; from dust_rl.data.lock import dataset_lock; "
-              f"lock = dataset_lock(pathlib.Path({str(dataset_copy)!r})); lock.__enter__(); "
-              "print('locked', flush=True); "
-              f"time.sleep(1); pathlib.Path({str(released)!r}).touch(); lock.__exit__(None, None, None); "
-              "time.sleep(120)")
-    holder = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+def test_a_waiting_writer_takes_the_lock_when_the_holder_lets_go(tmp_path, capsys):
+    holder, acquired = hold_lock(tmp_path), threading.Event()
+
+    def take_lock() -> None:
+        with dataset_lock(tmp_path, wait=True):
+            acquired.set()
+
+    waiter = threading.Thread(target=take_lock)
     try:
-        assert holder.stdout.readline() == "locked\n"
-        with dataset_lock(dataset_copy, wait=True):
-            assert released.exists()
+        waiter.start()
+        said = ""
+        for _ in range(600):  # until it says whom it waits for (printed just before it blocks)
+            said += capsys.readouterr().err
+            if f"(pid {holder.pid} on " in said:
+                break
+            time.sleep(0.1)
+        assert "waiting for it to finish" in said and not acquired.is_set()
+        holder.stdin.write("release\n")
+        holder.stdin.flush()
+        waiter.join(60)
+        assert acquired.is_set()
     finally:
         holder.kill()
         holder.wait()
-    assert f"(pid {holder.pid} on " in capsys.readouterr().err
 
 
 def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
