@@ -1,4 +1,4 @@
-"""Where pick_place, stack and pick_into_bin episodes fail: each episode sorted by what happened to the objects.
+"""Where pick_place, stack, pick_into_bin and press_button episodes fail: each sorted by what happened to the objects.
 
 Why: the success rate says how often a policy fails, not where; the videos show one episode. The
 simulator's object positions (``observation.environment_state``: pick_place's target cube, distractor cube
@@ -27,6 +27,13 @@ distractor), then
   (on a wall, or still held);
 * ``dropped away from the bin``: lifted, and at the end outside that footprint.
 
+and press_button (the named button first, then the two others; the caps' depressions):
+
+* ``success``;
+* ``wrong button``: another button's cap went down more than 1 mm;
+* ``pressed partway``: the named cap went down more than 1 mm, never the task's 8 mm;
+* ``not pressed``: the named cap never went down more than 1 mm.
+
 ``--sheet PNG`` also draws, for the first episodes of each class, the cameras at four moments of the
 episode (its last step included), so the classes can be looked at, not only counted.
 
@@ -45,7 +52,7 @@ import matplotlib
 import torch
 from tensordict import TensorDictBase
 
-from dust_rl.envs.tasks import pick_into_bin, stack
+from dust_rl.envs.tasks import pick_into_bin, press_button, stack
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
 from dust_rl.evaluate import EvalConfig, evaluate_task, prepare
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
@@ -54,11 +61,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 MOVED = 0.01  # m
+PUSHED = 0.001  # m: a cap pushed in this far was touched (it rests at -0.2 mm against its preload)
 LIFTED = CUBE_HALF + 0.02  # m: the task's own "lifted" height of the cube's centre
 FIRST_MODES = ("success", "wrong object", "untouched", "not lifted", "held at the end")
 MODES = {"pick_place": (*FIRST_MODES, "dropped off the plate", "on the plate, not released"),
          "stack": (*FIRST_MODES, "set down beside it", "set down elsewhere", "on the lower cube, not released"),
-         "pick_into_bin": (*FIRST_MODES, "at the bin, not in it", "dropped away from the bin")}
+         "pick_into_bin": (*FIRST_MODES, "at the bin, not in it", "dropped away from the bin"),
+         "press_button": ("success", "wrong button", "pressed partway", "not pressed")}
 MOMENTS = (0.25, 0.5, 0.75, 1.0)  # fractions of an episode drawn on the sheet
 
 
@@ -112,7 +121,18 @@ def pick_into_bin_mode(env_state: torch.Tensor, success: bool) -> str:
     return "dropped away from the bin"
 
 
-CLASSIFIERS = {"pick_place": pick_place_mode, "stack": stack_mode, "pick_into_bin": pick_into_bin_mode}
+def press_button_mode(env_state: torch.Tensor, success: bool) -> str:
+    """The class of one press_button episode from its buttons [T, 4 * 3] (base xyz, cap depression; named first)."""
+    depression = env_state.view(env_state.shape[0], press_button.N_BUTTONS, 4)[..., 3].amax(0)
+    if success:
+        return "success"
+    if (depression[1:] > PUSHED).any():
+        return "wrong button"
+    return "pressed partway" if depression[0] > PUSHED else "not pressed"
+
+
+CLASSIFIERS = {"pick_place": pick_place_mode, "stack": stack_mode, "pick_into_bin": pick_into_bin_mode,
+               "press_button": press_button_mode}
 
 
 def contact_sheet(trajectories: dict[int, TensorDictBase], modes: dict[int, str], order: tuple[str, ...],
