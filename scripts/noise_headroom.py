@@ -10,6 +10,9 @@ the draws against the share of layouts won by at least one draw: the best any no
 first C chunks (so it reaches the same state, bit for bit) and its own stream from chunk C on. Draw 0 is the plain
 evaluation at every C.
 
+``--noise-scale S`` draws every chunk's initial noise S times larger (a sampling temperature; 1: as trained), so
+the headroom of hotter samples is measured the same way.
+
 ``--spread K`` asks what a noise chooser controls: along the plain evaluation, each chunk is also sampled from K
 other noises (the episode's own noise stream untouched), and the script prints how far apart the draws put the
 gripper at the end of the chunk's executed actions (RMS distance from their mean, mm, in delta control) and how
@@ -17,12 +20,13 @@ often some draw commands the gripper otherwise than the chunk executed. A noise 
 can only pick among chunks this far apart.
 
     .venv/bin/python scripts/noise_headroom.py --policy runs/train/T/policy.pt [--draws 4] [--branch-at 0 4 8] \
-        [--spread K] [--seed 5000] [--episodes 50]
+        [--spread K] [--noise-scale S] [--seed 5000] [--episodes 50]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import torch
 from in_process_eval import NOISE_OFFSET, PlanHook, add_eval_arguments, prepare_in_process
@@ -107,10 +111,13 @@ def main() -> None:
                         help="chunks every draw shares with the policy's own noise before its stream starts")
     parser.add_argument("--spread", type=int, default=0, metavar="K",
                         help="instead: the spread of K other noises' chunks along the plain evaluation (module doc)")
+    parser.add_argument("--noise-scale", type=float, default=1.0, metavar="S",
+                        help="scale of the initial action noise, a sampling temperature (1: as trained)")
     args = parser.parse_args()
-    if args.draws < 1 or min(args.branch_at) < 0 or args.spread < 0:
-        parser.error("--draws needs K >= 1, --branch-at chunk counts >= 0, --spread K >= 0")
+    if args.draws < 1 or min(args.branch_at) < 0 or args.spread < 0 or not args.noise_scale >= 0:
+        parser.error("--draws needs K >= 1, --branch-at chunk counts >= 0, --spread K >= 0, --noise-scale S >= 0")
     policy, setup, config = prepare_in_process(args)
+    policy.set_sampler(dataclasses.replace(policy.config.sampler_settings, noise_scale=args.noise_scale))
     if args.spread:
         print_spread(policy, setup, config, args.spread)
         return
@@ -127,8 +134,9 @@ def main() -> None:
         n = wins[0].numel()
         low, high = wilson_interval(best, n)
         print(f"{args.policy}, seeds {args.seed}..{args.seed + args.episodes - 1}, {args.draws} noise draws per "
-              f"layout from chunk {branch_at} on: mean success {mean / (args.draws * n):.0%}; layouts won by at least "
-              f"one draw {best}/{n} ({best / n:.0%}, 95% CI {low:.0%}-{high:.0%}); won by every draw "
+              f"layout (initial noise x{args.noise_scale:g}) from chunk {branch_at} on: mean success "
+              f"{mean / (args.draws * n):.0%}; layouts won by at least one draw {best}/{n} ({best / n:.0%}, "
+              f"95% CI {low:.0%}-{high:.0%}); won by every draw "
               f"{int(wins.all(0).sum())}/{n}", flush=True)
 
 
