@@ -34,6 +34,10 @@ and press_button (the named button first, then the two others; the caps' depress
 * ``pressed partway``: the named cap went down more than 1 mm, never the task's 8 mm;
 * ``not pressed``: the named cap never went down more than 1 mm.
 
+Beside each class's count, how far the end effector's orientation has turned from its start by the end of the
+episode (median and range, degrees; from ``observation.state``): a policy pushing on against a rim or the table
+tilts the wrist.
+
 ``--sheet PNG`` also draws, for the first episodes of each class, the cameras at four moments of the
 episode (its last step included), so the classes can be looked at, not only counted.
 
@@ -44,9 +48,10 @@ episode (its last step included), so the classes can be looked at, not only coun
 from __future__ import annotations
 
 import argparse
-import collections
 import json
+import math
 import pathlib
+import statistics
 
 import matplotlib
 import torch
@@ -55,7 +60,8 @@ from tensordict import TensorDictBase
 from dust_rl.envs.tasks import pick_into_bin, press_button, stack
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
 from dust_rl.evaluate import EvalConfig, evaluate_task, prepare
-from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, STATE_KEY
+from dust_rl.readout_error import EE_BLOCK
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -135,6 +141,14 @@ CLASSIFIERS = {"pick_place": pick_place_mode, "stack": stack_mode, "pick_into_bi
                "press_button": press_button_mode}
 
 
+def end_tilt(trajectory: TensorDictBase) -> float:
+    """Degrees between the end effector's orientation after the episode's last step and at its start."""
+    quaternion = slice(-EE_BLOCK + 3, -1)  # wxyz, after the position, before the opening
+    start = trajectory.get(STATE_KEY)[0, quaternion].double()
+    end = trajectory.get(("next", *STATE_KEY))[-1, quaternion].double()
+    return math.degrees(2 * math.acos(min(1.0, abs(float(start @ end)))))
+
+
 def contact_sheet(trajectories: dict[int, TensorDictBase], modes: dict[int, str], order: tuple[str, ...],
                   cameras: tuple[str, ...], per_mode: int, path: pathlib.Path) -> None:
     """One row per episode (the first ``per_mode`` of each class, classes in ``order``), the cameras side by side
@@ -177,10 +191,13 @@ def main() -> None:
     episodes, trajectories, _, _ = evaluate_task(setup, task, policy, config)
     modes = {e.seed: CLASSIFIERS[task](trajectories[e.seed].get(("next", *ENV_STATE_KEY)), e.success)
              for e in episodes}
-    counts = collections.Counter(modes.values())
-    print(f"{args.policy}, seeds {args.seed}..{args.seed + args.episodes - 1}:")
+    tilts = {seed: end_tilt(trajectory) for seed, trajectory in trajectories.items()}
+    print(f"{args.policy}, seeds {args.seed}..{args.seed + args.episodes - 1} (count; end effector turned by the end, "
+          "degrees: median, range):")
     for mode in MODES[task]:
-        print(f"  {mode}: {counts[mode]}")
+        turned = sorted(tilts[seed] for seed, m in modes.items() if m == mode)
+        tilt = f"; {statistics.median(turned):.1f}, {turned[0]:.1f}-{turned[-1]:.1f}" if turned else ""
+        print(f"  {mode}: {len(turned)}{tilt}")
     print(json.dumps(modes))
     if args.sheet:
         contact_sheet(trajectories, modes, MODES[task], policy.cameras, args.per_class, args.sheet)
