@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 
 import torch
 from in_process_eval import NOISE_OFFSET, PlanHook, add_eval_arguments, prepare_in_process
@@ -114,8 +115,10 @@ def main() -> None:
     parser.add_argument("--noise-scale", type=float, default=1.0, metavar="S",
                         help="scale of the initial action noise, a sampling temperature (1: as trained)")
     args = parser.parse_args()
-    if args.draws < 1 or min(args.branch_at) < 0 or args.spread < 0 or not args.noise_scale >= 0:
-        parser.error("--draws needs K >= 1, --branch-at chunk counts >= 0, --spread K >= 0, --noise-scale S >= 0")
+    finite_scale = math.isfinite(args.noise_scale) and args.noise_scale >= 0
+    if args.draws < 1 or min(args.branch_at) < 0 or args.spread < 0 or not finite_scale:
+        parser.error("--draws needs K >= 1, --branch-at chunk counts >= 0, --spread K >= 0, "
+                     "--noise-scale a finite S >= 0")
     policy, setup, config = prepare_in_process(args)
     policy.set_sampler(dataclasses.replace(policy.config.sampler_settings, noise_scale=args.noise_scale))
     if args.spread:
