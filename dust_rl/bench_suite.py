@@ -266,15 +266,21 @@ def markdown(results: dict, command: str | None) -> str:
     return "\n".join(lines)
 
 
+def percent_with_errors(rows: list[dict]) -> tuple[list[float], list[list[float]]]:
+    """Rows' success in percent and their 95% intervals as matplotlib's ``yerr`` (below, above)."""
+    rates = [100 * r["success_rate"] for r in rows]
+    errors = [[rate - 100 * r["ci95_low"] for rate, r in zip(rates, rows)],
+              [100 * r["ci95_high"] - rate for rate, r in zip(rates, rows)]]
+    return rates, errors
+
+
 def plot(results: dict, out_png: pathlib.Path) -> pathlib.Path:
     """Bars of success (with 95% intervals) for every row."""
     rows = results["rows"]
     fig = Figure(figsize=(max(6.0, 0.45 * len(rows)), 4.0), layout="constrained")
     ax = fig.add_subplot()
     x = range(len(rows))
-    rates = [100 * r["success_rate"] for r in rows]
-    errors = [[rate - 100 * r["ci95_low"] for rate, r in zip(rates, rows)],
-              [100 * r["ci95_high"] - rate for rate, r in zip(rates, rows)]]
+    rates, errors = percent_with_errors(rows)
     ax.bar(x, rates, yerr=errors, capsize=3)
     ax.set_xticks(list(x), [f"{r['variant']} ({r['demos']})\n{r['sampler']}" for r in rows], rotation=60,
                   ha="right", fontsize=7)

@@ -19,18 +19,22 @@ import pathlib
 
 from matplotlib.figure import Figure
 
-from dust_rl.bench_suite import AS_TRAINED
+from dust_rl.bench_suite import AS_TRAINED, percent_with_errors
 from dust_rl.report import save_png
 
 
-def series(folders: list[pathlib.Path], variants: list[str]) -> dict[str, list[dict]]:
+def load(folder: pathlib.Path) -> dict:
+    """A study folder's ``results.json``."""
+    path = folder / "results.json"
+    if not path.is_file():
+        raise SystemExit(f"{folder}: no results.json; run `dust-rl bench suite --out {folder}` first")
+    return json.loads(path.read_text())
+
+
+def series(studies: dict[pathlib.Path, dict], variants: list[str]) -> dict[str, list[dict]]:
     """Rows of ``variants`` sampled as trained, by line name, sorted by demonstrations; one row per (line, demos)."""
     lines: dict[str, dict[int, dict]] = collections.defaultdict(dict)
-    for folder in folders:
-        path = folder / "results.json"
-        if not path.is_file():
-            raise SystemExit(f"{folder}: no results.json; run `dust-rl bench suite --out {folder}` first")
-        results = json.loads(path.read_text())
+    for folder, results in studies.items():
         no_world_model = results["train"]["policy"]["lambda_wm"] == 0
         for row in results["rows"]:
             if row["sampler"] != AS_TRAINED or row["variant"] not in variants:
@@ -48,9 +52,7 @@ def plot(lines: dict[str, list[dict]], task: str, out_png: pathlib.Path) -> None
     ax = fig.add_subplot()
     for name, rows in lines.items():
         demos = [r["demos"] for r in rows]
-        rates = [100 * r["success_rate"] for r in rows]
-        errors = [[rate - 100 * r["ci95_low"] for rate, r in zip(rates, rows)],
-                  [100 * r["ci95_high"] - rate for rate, r in zip(rates, rows)]]
+        rates, errors = percent_with_errors(rows)
         seeds = max(len(r["seeds"]) for r in rows)
         ax.errorbar(demos, rates, yerr=errors, capsize=3, marker="o", label=f"{name} (up to {seeds} seeds)")
     ax.set_xscale("log")
@@ -71,11 +73,11 @@ def main() -> None:
     parser.add_argument("--out", type=pathlib.Path, required=True, help="PNG to write")
     parser.add_argument("--variants", nargs="+", default=["dust", "action_only"], help="variants to draw")
     args = parser.parse_args()
-    tasks = {json.loads((f / "results.json").read_text())["task"] for f in args.folders
-             if (f / "results.json").is_file()}
+    studies = {folder: load(folder) for folder in args.folders}
+    tasks = {results["task"] for results in studies.values()}
     if len(tasks) > 1:
         raise SystemExit(f"folders of different tasks {sorted(tasks)}: plot one task at a time")
-    lines = series(args.folders, args.variants)
+    lines = series(studies, args.variants)
     plot(lines, tasks.pop(), args.out)
     for name, rows in lines.items():
         print(name + ": " + ", ".join(f"{r['demos']}: {100 * r['success_rate']:.0f}% ({r['successes']}/"
