@@ -48,6 +48,7 @@ from dust_rl.agents.checkpoint_io import save_checkpoint
 from dust_rl.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.config_json import config_json
 from dust_rl.critic_limits import LayerNormReLU, bound_critic
+from dust_rl.critic_warmup import CriticWarmup
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
@@ -131,6 +132,17 @@ class FinetuneConfig:
     learnt, uniformly random warm-up)."""
     batch_size: int = 256
     """SAC/PPO minibatch size."""
+    learning_rate: float = 3e-4
+    """SAC/PPO optimiser step size (SB3's default)."""
+    n_epochs: int = 10
+    """PPO: passes over each rollout (SB3's default)."""
+    target_kl: float | None = None
+    """PPO: end a rollout's epochs early once the policy's approximate KL from the rollout's exceeds 1.5 times
+    this (SB3's ``target_kl``): SB3 normalises advantages, so each update is full-sized however weak the signal;
+    this bounds how far one rollout moves the policy. None: no limit."""
+    critic_warmup: int = 0
+    """PPO: env steps (whole rollouts) during which only the critic learns and the actor stays at the base policy,
+    so the first actor updates follow advantages from a fitted value function instead of a random one."""
     net_arch: tuple[int, ...] = (256, 256)
     """Hidden layers of the RL actor and critic."""
     layer_norm: bool = False
@@ -202,20 +214,26 @@ class FinetuneConfig:
         if self.method == "wm_select" and self.rollouts < VALIDATION_EVERY:
             raise ConfigError(f"wm_select needs rollouts >= {VALIDATION_EVERY}: every {VALIDATION_EVERY}th episode "
                               "validates the scorer")
-        check_finite(self, "noise_bound", "residual_scale", positive=True)
+        check_finite(self, "noise_bound", "residual_scale", "learning_rate", positive=True)
         if not 0 < self.gamma <= 1:
             raise ConfigError(f"gamma must be a discount factor in (0, 1], got {self.gamma}")
         if self.world_model_obs and self.method != "residual":
             raise ConfigError(f"world_model_obs applies to --method residual, not {self.method}")
         if self.initial_std is not None:
             check_finite(self, "initial_std", positive=True)
-        check_at_least(self, 1, "gradient_steps")
+        check_at_least(self, 1, "gradient_steps", "n_epochs")
+        check_at_least(self, 0, "critic_warmup")
+        if self.target_kl is not None:
+            check_finite(self, "target_kl", positive=True)
         check_finite(self, "initial_alpha", positive=True)
         if self.target_entropy is not None and not math.isfinite(self.target_entropy):
             raise ConfigError(f"target_entropy must be a finite number, got {self.target_entropy}")
         if self.algorithm != "sac" and (self.gradient_steps != 1 or self.target_entropy is not None
                                         or self.q_bounds is not None):
             raise ConfigError(f"gradient_steps, target_entropy and q_bounds are SAC settings; --algorithm is "
+                              f"{self.algorithm}")
+        if self.algorithm != "ppo" and (self.n_epochs != 10 or self.target_kl is not None or self.critic_warmup):
+            raise ConfigError(f"n_epochs, target_kl and critic_warmup are PPO settings; --algorithm is "
                               f"{self.algorithm}")
         if self.q_bounds is not None and not (len(self.q_bounds) == 2 and all(map(math.isfinite, self.q_bounds))
                                               and self.q_bounds[0] < self.q_bounds[1]):
@@ -278,9 +296,10 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
                       **summary_row("base policy", _run_episodes(make, lambda obs, env: env.step_base(),
                                                                  curve_seeds, config.progress))})
     sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
+    warmup = CriticWarmup(config.critic_warmup) if config.critic_warmup else None
     while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every (or eval_every) steps
         agent.learn(total_timesteps=min(sitting, config.steps - agent.num_timesteps), reset_num_timesteps=False,
-                    progress_bar=config.progress)
+                    progress_bar=config.progress, callback=warmup)
         last_eval = curve[-1]["rl_steps"] if curve else 0
         if config.eval_every and (agent.num_timesteps >= last_eval + config.eval_every
                                   or agent.num_timesteps >= config.steps):
@@ -311,7 +330,7 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
 def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
     """The SB3 agent ``config`` asks for, on ``env`` (the same settings rebuild it to resume)."""
     algorithm = ALGORITHMS[config.algorithm]
-    kwargs: dict = {"gamma": config.gamma}
+    kwargs: dict = {"gamma": config.gamma, "learning_rate": config.learning_rate}
     if algorithm is SAC:  # a replay buffer no larger than the run
         kwargs |= {"learning_starts": config.learning_starts, "batch_size": config.batch_size,
                    "buffer_size": config.steps, "gradient_steps": config.gradient_steps}
@@ -323,7 +342,8 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
                 kwargs["target_entropy"] = config.target_entropy
     else:  # a rollout no longer than the run, minibatches no larger than a rollout
         n_steps = min(2048, config.steps)
-        kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps)}
+        kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps), "n_epochs": config.n_epochs,
+                   "target_kl": config.target_kl}
     if algorithm is SAC and config.initial_std is not None:
         algorithm = WarmStartSAC
     policy_kwargs = {"net_arch": list(config.net_arch)}

@@ -27,6 +27,14 @@ distractor), then
   (on a wall, or still held);
 * ``dropped away from the bin``: lifted, and at the end outside that footprint.
 
+and push (the named puck as the target; the goal square's centre):
+
+* ``success``, ``wrong object`` and ``untouched`` as above;
+* ``passed through the square``: the puck's centre came within the square's half-width of its centre at some step,
+  yet ended outside the square (pushed on past it, or pulled back out);
+* ``pushed short``: it never came that close and ended nearer the goal than it started;
+* ``pushed astray``: it never came that close and ended no nearer the goal than it started.
+
 and press_button (the named button first, then the two others; the caps' depressions):
 
 * ``success``;
@@ -57,7 +65,7 @@ import matplotlib
 import torch
 from tensordict import TensorDictBase
 
-from dust_rl.envs.tasks import pick_into_bin, press_button, stack
+from dust_rl.envs.tasks import pick_into_bin, press_button, push, stack
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
 from dust_rl.evaluate import EvalConfig, evaluate_task, prepare
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, STATE_KEY
@@ -73,18 +81,27 @@ FIRST_MODES = ("success", "wrong object", "untouched", "not lifted", "held at th
 MODES = {"pick_place": (*FIRST_MODES, "dropped off the plate", "on the plate, not released"),
          "stack": (*FIRST_MODES, "set down beside it", "set down elsewhere", "on the lower cube, not released"),
          "pick_into_bin": (*FIRST_MODES, "at the bin, not in it", "dropped away from the bin"),
+         "push": ("success", "wrong object", "untouched", "passed through the square", "pushed short", "pushed astray"),
          "press_button": ("success", "wrong button", "pressed partway", "not pressed")}
 MOMENTS = (0.25, 0.5, 0.75, 1.0)  # fractions of an episode drawn on the sheet
 
 
-def first_mode(target: torch.Tensor, distractor: torch.Tensor, success: bool) -> str | None:
-    """The class shared by both tasks from the target's and the distractor's positions [T, 3], if one applies."""
+def contact_mode(target: torch.Tensor, distractor: torch.Tensor, success: bool) -> str | None:
+    """Success, or which object the policy failed to move right, from both objects' positions [T, 3], if either."""
     if success:
         return "success"
     if (distractor[:, :2] - distractor[0, :2]).norm(dim=-1).max() > MOVED:
         return "wrong object"
     if (target - target[0]).norm(dim=-1).max() <= MOVED:
         return "untouched"
+    return None
+
+
+def first_mode(target: torch.Tensor, distractor: torch.Tensor, success: bool) -> str | None:
+    """The class shared by the grasping tasks from the target's and the distractor's positions [T, 3], if one
+    applies."""
+    if mode := contact_mode(target, distractor, success):
+        return mode
     if target[:, 2].max() <= LIFTED:
         return "not lifted"
     if target[-1, 2] > LIFTED:
@@ -127,6 +144,17 @@ def pick_into_bin_mode(env_state: torch.Tensor, success: bool) -> str:
     return "dropped away from the bin"
 
 
+def push_mode(env_state: torch.Tensor, success: bool) -> str:
+    """The class of one push episode from its positions [T, 9] (target puck, distractor puck, goal square)."""
+    target, distractor, goal = env_state[:, 0:3], env_state[:, 3:6], env_state[:, 6:9]
+    if mode := contact_mode(target, distractor, success):
+        return mode
+    to_goal = (target[:, :2] - goal[:, :2]).norm(dim=-1)
+    if to_goal.min() < push.GOAL_HALF:
+        return "passed through the square"
+    return "pushed short" if to_goal[-1] < to_goal[0] else "pushed astray"
+
+
 def press_button_mode(env_state: torch.Tensor, success: bool) -> str:
     """The class of one press_button episode from its buttons [T, 4 * 3] (base xyz, cap depression; named first)."""
     depression = env_state.view(env_state.shape[0], press_button.N_BUTTONS, 4)[..., 3].amax(0)
@@ -138,7 +166,7 @@ def press_button_mode(env_state: torch.Tensor, success: bool) -> str:
 
 
 CLASSIFIERS = {"pick_place": pick_place_mode, "stack": stack_mode, "pick_into_bin": pick_into_bin_mode,
-               "press_button": press_button_mode}
+               "push": push_mode, "press_button": press_button_mode}
 
 
 def end_tilt(trajectory: TensorDictBase) -> float:

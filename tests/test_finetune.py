@@ -14,6 +14,7 @@ from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import load_checkpoint
 from dust_rl.critic_limits import LayerNormReLU
+from dust_rl.critic_warmup import CriticWarmup
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.errors import ConfigError
@@ -108,6 +109,29 @@ def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path)
     env.close()
 
 
+def test_critic_warmup_holds_the_actor_at_the_base_policy_while_the_critic_learns(policy_path):
+    config = FinetuneConfig(policy=policy_path, method="residual", algorithm="ppo", steps=8, batch_size=4,
+                            net_arch=(16,), max_steps=EPISODE_STEPS, initial_std=0.05, learning_rate=1e-3,
+                            n_epochs=2, target_kl=0.5, critic_warmup=8, progress=False)
+    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    agent = build_agent(config, env)
+    assert (agent.learning_rate, agent.n_epochs, agent.target_kl) == (1e-3, 2, 0.5)
+
+    def weights(module: torch.nn.Module) -> list[torch.Tensor]:
+        return [p.detach().clone() for p in module.parameters()]
+
+    actor, critic = (torch.nn.ModuleList([agent.policy.mlp_extractor.policy_net, agent.policy.action_net]),
+                     torch.nn.ModuleList([agent.policy.mlp_extractor.value_net, agent.policy.value_net]))
+    actor_start, critic_start = weights(actor), weights(critic)
+    warmup = CriticWarmup(config.critic_warmup)
+    agent.learn(total_timesteps=8, callback=warmup)  # one rollout of 8 steps, inside the warm-up
+    assert all(torch.equal(a, b) for a, b in zip(weights(actor), actor_start))
+    assert not all(torch.equal(a, b) for a, b in zip(weights(critic), critic_start))
+    agent.learn(total_timesteps=8, callback=warmup, reset_num_timesteps=False)  # the next one is past it
+    assert not all(torch.equal(a, b) for a, b in zip(weights(actor), actor_start))
+    env.close()
+
+
 def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_path):
     config = FinetuneConfig(policy=policy_path, method="steer", steps=12, learning_starts=4, batch_size=4,
                             net_arch=(16,), max_steps=EPISODE_STEPS, initial_std=0.5, target_entropy=0.0,
@@ -180,6 +204,12 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         FinetuneConfig(policy=policy_path, target_entropy=float("nan"))
     with pytest.raises(ConfigError, match="gradient_steps"):
         FinetuneConfig(policy=policy_path, gradient_steps=0)
+    with pytest.raises(ConfigError, match="n_epochs, target_kl and critic_warmup are PPO settings; --algorithm is sac"):
+        FinetuneConfig(policy=policy_path, critic_warmup=2048)
+    with pytest.raises(ConfigError, match="target_kl must be a finite number > 0"):
+        FinetuneConfig(policy=policy_path, algorithm="ppo", target_kl=0.0)
+    with pytest.raises(ConfigError, match="learning_rate must be a finite number > 0"):
+        FinetuneConfig(policy=policy_path, learning_rate=float("nan"))
     with pytest.raises(ConfigError, match="net_arch"):
         FinetuneConfig(policy=policy_path, net_arch=())
     with pytest.raises(ConfigError, match="world_model_obs applies to --method residual, not steer"):
