@@ -16,7 +16,7 @@ trunk does: the pooled instruction is added to every image token and a
 residual MLP (hidden width ``FUSION_HIDDEN``) mixes the two per token, the
 structure of the attention probe (:mod:`dust_rl.agents.attention_pooling`) that reads
 the expert's first move off the frozen stride-8 tokens to 1.2 cm. In the
-policy it did not help the trunk learn that move (README, pick_place).
+policy it did not help the trunk learn that move (docs/franka_results.md, pick_place).
 """
 
 from __future__ import annotations

@@ -117,8 +117,8 @@ class ModelConfig:
     future_target: FutureTarget = "frame"
     """What the vision stream predicts: ``frame`` (the paper's: the standardised tokens at t+H) or ``change``
     (those minus the present frame's, in units of their RMS over the dataset). The front camera's coarse grid
-    barely changes in H steps, so a frame target is mostly the present scene again (README "The variant
-    comparison"); a change target asks for the motion alone. Acting and :meth:`plan` return frames either way."""
+    barely changes in H steps, so a frame target is mostly the present scene again (docs/variant_comparison.md); a
+    change target asks for the motion alone. Acting and :meth:`plan` return frames either way."""
     cond_grid: tuple[int, int] | None = None
     """Condition tokens per camera (rows, cols); the paper conditions on many more backbone tokens than it
     predicts, and the future target is this grid pooled to ``vision_grid`` (a multiple of it). None: the image
@@ -151,7 +151,7 @@ class ModelConfig:
     is added to each token, which then passes a residual MLP, so "is this the named object?" is answered per token,
     as by the paper's VLM, whose vision tokens have seen the instruction. Without it the trunk's cross-attention
     must first read the colour from the text tokens and then search the image tokens for it. Measured on
-    pick_place (README): no gain in the first move or in success."""
+    pick_place (docs/franka_results.md): no gain in the first move or in success."""
     aux_state_input: bool = False
     """Also feed that read-out's estimate of the object state to the trunk beside the robot state (as the
     privileged-state oracle's true one); needs ``lambda_aux``."""
@@ -253,7 +253,7 @@ class PolicyConfig(ModelConfig):
     """Actions executed per chunk before re-planning (receding horizon, 1..H); None: H // 2."""
     future_camera: str | None = None
     """The camera whose frame at t+H is the world-model target (one of the dataset's); None: its first. The
-    front camera's 4x4 grid barely changes in H steps (README "The variant comparison"); the wrist camera moves
+    front camera's 4x4 grid barely changes in H steps (docs/variant_comparison.md); the wrist camera moves
     with the arm."""
 
     def __post_init__(self) -> None:

@@ -5,7 +5,7 @@ rows of ten, so a read-out of the objects' state fitted on demonstrations
 learns "the target is where the gripper is": on 40 validation episodes it
 is 15 cm from the target cube at step 0 (where the gripper is 17 cm away),
 no better than guessing, with pixel keypoints and frozen features alike
-(``scripts/readout_error.py``, README). These frames break that shortcut:
+(``scripts/readout_error.py``, docs/franka_results.md). These frames break that shortcut:
 each is a random reset of a training task followed by 0..39 uniformly random
 actions, so the cubes lie anywhere relative to the arm. ``--aux-frames N``
 renders N of them once at the start of training and adds their read-out
@@ -13,7 +13,7 @@ error to every step's loss beside the demonstrations'.
 
 Random motions never lift a cube, so a read-out trained on them alone is
 3 cm off before the grasp but 12-15 cm off once the cube is carried
-(README). With ``--aux-expert-fraction p`` that share of the frames is
+(docs/franka_results.md). With ``--aux-expert-fraction p`` that share of the frames is
 instead taken 0..79 steps into a scripted-expert episode on a fresh
 layout: objects reached, held, carried and placed, in layouts no
 demonstration shows, so they teach the carried phase without the 200
@@ -21,13 +21,13 @@ training layouts to learn by heart.
 
 Neither kind shows the gripper right beside the object, where a grasp is
 won or lost: in closed loop the pick_place policy closed its fingers 1-2 cm
-beside the cube it had reached (README). With ``--aux-approach-fraction q``
+beside the cube it had reached (docs/franka_results.md). With ``--aux-approach-fraction q``
 that share follows the expert until just before its gripper command first
 changes (the grasp; never, for a task without one) and then takes 0..9
 random arm motions that keep that command: the gripper near its target at
 random offsets, nothing held. Measured on pick_place, half of 8,000 frames of
 this kind made the read-out worse, not better (9.5 cm from the named cube at
-the first step of unseen demonstrations instead of 2.3 cm; README).
+the first step of unseen demonstrations instead of 2.3 cm; docs/franka_results.md).
 
 Those frames bring the shortcut back (the target is where the gripper is).
 ``--aux-approach-displacement r`` breaks it again: after the approach every
@@ -38,7 +38,7 @@ gripper has to be read from the image. Measured on pick_place (a quarter of
 8,000 frames, r = 5 cm, the read-out fitted alone): still worse than random
 motions only, 6.1 cm from the named cube at the first step of unseen
 demonstrations and 8.9 cm over steps 10-29 (the grasp) instead of 2.4 and
-3.5 cm (README).
+3.5 cm (docs/franka_results.md).
 
 Expert frames have the same shortcut where it matters for stacking: while
 the cube is carried over the one below, that one sits under the gripper in
@@ -47,7 +47,7 @@ gripper does not hold (farther than :data:`HELD_WITHIN` from it) by up to
 r metres after an expert frame's motion. Measured on stack (a quarter of
 8,000 frames, r = 5 cm, the read-out fitted alone), it did not help: the
 cube to stack on 4.8-7.1 cm off on unseen demonstrations against 2.9-3.9 cm
-with random motions only, as far off as expert frames without it (README).
+with random motions only, as far off as expert frames without it (docs/franka_results.md).
 
 Seeds start at :data:`FIRST_SEED`, away from the demonstration (0..),
 validation (5000..) and held-out (10000..) seeds, so the frames never show a

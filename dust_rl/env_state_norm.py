@@ -9,11 +9,11 @@ the pooled statistics, a normalised squared error of 2.01 in that column against
 first multi-task run's read-out error on held-out aux frames stayed at 0.22-0.35 (normalised) against 0.004 on
 pick_place alone. Here each task is normalised by its own rows over its own columns and its padding stays 0. Fitted
 alone (``scripts/token_readout_probe.py --heads 4 --frames 8000 --steps 4000``), the read-out's held-out xy error on
-the first object fell from 7.2 to 4.4 cm (README, "The Franka suite, one policy"). A one-task dataset gets exactly
-the statistics in its ``meta.json``: single-task training is unchanged. The policy itself never needs the statistics
-(the read-out's estimate stays in normalised units inside it); diagnostics that turn it back into metres do, and a
-policy's ``info`` says which normalisation it was trained with (multi-task policies trained before this module used
-the pooled statistics).
+the first object fell from 7.2 to 4.4 cm (docs/franka_results.md, "The Franka suite, one policy"). A one-task
+dataset gets exactly the statistics in its ``meta.json``: single-task training is unchanged. The policy itself
+never needs the statistics (the read-out's estimate stays in normalised units inside it); diagnostics that turn it
+back into metres do, and a policy's ``info`` says which normalisation it was trained with (multi-task policies
+trained before this module used the pooled statistics).
 """
 
 from __future__ import annotations

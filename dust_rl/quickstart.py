@@ -34,8 +34,8 @@ def vision_recipe() -> TrainSettings:
     instruction names one) solved in minutes. Frozen EfficientNet-Lite0 tokens at stride 8 (16x16 per camera,
     pooled to 8x8 for the trunk), text fused into them, a token read-out of the objects' state fitted first on
     8,000 rendered frames and fed to the trunk, three quarters of each batch from an episode's first 4 rows
-    (README, "The token read-out"). 2,000 steps: 96% / 84% on 50 validation / held-out seeds and 14.3 minutes
-    in all on 2 idle cores, where 3,000 steps gave 90% / 86% in 18.0 minutes (README). lr 3e-4, higher than
+    (docs/franka_results.md, "The token read-out"). 2,000 steps: 96% / 84% on 50 validation / held-out seeds and
+    14.3 minutes in all on 2 idle cores, where 3,000 steps gave 90% / 86% in 18.0 minutes (README). lr 3e-4, higher than
     the paper's 1e-4: a small model trained for minutes."""
     return TrainSettings(policy=PolicyConfig(image_encoder="efficientnet-lite0-s8", cond_grid=(8, 8), text_fusion=True,
                                              readout="tokens", readout_grid=(16, 16), lambda_aux=1.0,

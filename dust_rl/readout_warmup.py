@@ -3,7 +3,7 @@
 Trained together with the action loss, the read-out does not localise the
 target cube well enough to grasp it: after 3,000 steps with 3,000 aux frames
 its estimate was still 12.8 cm from the target at step 0 of validation
-episodes (pick_place; README). The same network trained on nothing but the
+episodes (pick_place; docs/franka_results.md). The same network trained on nothing but the
 read-out error, at lr 1e-3, keeps improving for thousands of steps
 (``scripts/pixel_probe.py``: 12.2 cm after 500 steps, 4.1 cm after 3,000,
 still falling). So ``--readout-warmup N`` first fits the keypoint networks and
@@ -11,7 +11,7 @@ the read-out for N steps on aux frames (and, unless ``--no-readout-demos``,
 demonstration rows in half of each batch), then freezes them: a locator
 trained on the simulator's labels, as a pose-estimation stage would be, whose
 keypoints and estimate (``--policy.aux-state-input``) the policy reads but cannot
-move. Measured on pick_place validation episodes (README): with demonstration
+move. Measured on pick_place validation episodes (docs/franka_results.md): with demonstration
 rows the 200 training layouts are learnt by heart and the estimate is 8 cm
 off at step 0; on aux frames alone 3.1 cm, but 12-15 cm once the cube is
 lifted (random arm motions never lift it). Neither run's policy grasped
@@ -19,7 +19,7 @@ lifted (random arm motions never lift it). Neither run's policy grasped
 
 With held-out aux frames (``dust-rl train`` renders 256 from other seeds) the weights of the lowest
 held-out error are kept, not the last ones: with 5,000 frames the read-out learnt them by heart (4.9 cm on
-its frames, 11.7 cm on fresh ones; README).
+its frames, 11.7 cm on fresh ones; docs/franka_results.md).
 
 A resumed run skips the warm-up (its checkpoint holds the warmed weights); a
 run stopped during the warm-up repeats it from the start, which gives the same

@@ -1,8 +1,8 @@
 """Success-filtered self-imitation: ``dust-rl finetune --method self_imitation``.
 
 Why: an imitation policy trained on 200 demonstrations has seen 200 layouts, and most of its failures are
-layouts it has not learnt to read (README, "The token read-out"); noise steering and a residual could not
-move it (BENCHMARKS.md, "RL fine-tuning"): its samples hardly differ, and a sparse reward gives a critic
+layouts it has not learnt to read (docs/franka_results.md, "The token read-out"); noise steering and a residual could
+not move it (BENCHMARKS.md, "RL fine-tuning"): its samples hardly differ, and a sparse reward gives a critic
 little to fit. Its own successes on fresh layouts are demonstrations it can reproduce, labelled by the
 reward alone. Each round rolls the current policy out on fresh seeds until it has ``rollout_successes``
 successes (``dust-rl collect --policy``: the episodes ``dust-rl eval`` would run on those seeds), then

@@ -3,9 +3,9 @@
 Residual RL and noise steering leave the base policy recoverable at the RL action 0 (no residual; the noise at the
 centre of the base policy's own). SB3 starts far from it: a randomly initialised mean, a pre-tanh standard
 deviation near 1, and for SAC ``learning_starts`` steps of uniformly random actions. On pick_place that is fatal:
-the residual SAC run on a policy that solves 32-54% of episodes (README "The recipe at 50 episodes per seed set")
-succeeded in none of its first 24 training episodes, so a sparse reward never arrived. Residual-RL work on
-manipulation starts the residual at zero with small exploration for this reason (ResiP, Ankile et al. 2024;
+the residual SAC run on a policy that solves 32-54% of episodes (docs/franka_results.md, "The recipe at 50 episodes
+per seed set") succeeded in none of its first 24 training episodes, so a sparse reward never arrived. Residual-RL work
+on manipulation starts the residual at zero with small exploration for this reason (ResiP, Ankile et al. 2024;
 Policy Decorator, Yuan et al. 2024).
 
 :func:`start_at_base` zeroes the layer that outputs the mean action and fixes the exploration standard deviation;

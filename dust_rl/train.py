@@ -122,7 +122,7 @@ class TrainSettings:
     """Learning rate of that warm-up (constant unless ``readout_lr_decay``)."""
     readout_lr_decay: bool = False
     """Lower the warm-up's rate along a cosine to 0 at its last step: its held-out error was still falling at the
-    end of 4,000 and 8,000 constant-rate steps (README)."""
+    end of 4,000 and 8,000 constant-rate steps (docs/franka_results.md)."""
     readout_demos: bool = True
     """Also fit the warm-up on demonstration rows (half of each batch); without them it sees aux frames only."""
     video_dataset: pathlib.Path | None = None

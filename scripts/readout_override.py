@@ -6,7 +6,7 @@ two apart without training anything. ``--truth`` writes the simulator's object s
 was trained) into the columns at every re-plan; ``--hold K`` writes the estimate's mean over the episode's first K
 re-plans (an object that stays put until touched is seen best before the gripper covers it). Caveat: the policy
 was trained on the read-out's estimates, errors included, so a better estimate is still a shift from what it saw
-(on stack, all nine columns true gave 5/50 against the unchanged policy's 17/50; README "stack").
+(on stack, all nine columns true gave 5/50 against the unchanged policy's 17/50; docs/franka_results.md "stack").
 
     .venv/bin/python scripts/readout_override.py --policy runs/train/T/policy.pt --columns 3:6 --truth \
         [--hold K] [--seed 5000] [--episodes 50]

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# The recipe that solves pick_place from 2,000 demonstrations (README "The recipe at 50 episodes per seed set"):
+# The recipe that solves pick_place from 2,000 demonstrations (docs/franka_results.md, "The recipe at 50 episodes per seed set"):
 # stride-8 EfficientNet-Lite0 tokens pooled to 8x8 per camera, text fusion, the action-only trunk, 75% of the
 # batches from the first 4 rows of an episode, 20,000 steps; then 50 validation and 50 held-out episodes.
 # STEPS=N trains N steps instead; flags after RUN are added to `dust-rl train` (e.g. the token read-out's,
-# README "The token read-out"). Every stage resumes: rerun the same command after an interruption.
+# docs/franka_results.md, "The token read-out"). Every stage resumes: rerun the same command after an interruption.
 # usage: [STEPS=N] bash scripts/recipe.sh TASK DEMOS [RUN [TRAIN FLAGS...]]
 #   (RUN default: TASK_DEMOS_ao75_STEPS; 20,000 steps take ~2 h on 2 cores)
 set -euo pipefail

@@ -27,7 +27,7 @@ uniformly, an 80-step episode's first row is 1 window in 80: on pick_place with
 head on the same frozen tokens fitted the first move to 1.2 cm
 (``scripts/first_move_error.py``, ``scripts/first_move_probe.py``). Measured:
 a quarter of each batch from the first 4 rows lowered that 15 cm to 13 cm
-only (README), so rarity was not the main cause.
+only (docs/franka_results.md), so rarity was not the main cause.
 
 A note on ``SliceSampler``: in torchrl 0.14.1, ``SliceSampler(pad_output=True,
 span=(False, True))`` returns some slices with no real step at all (all-False
