@@ -1,9 +1,9 @@
-"""Where pick_place, stack, pick_into_bin and press_button episodes fail: each sorted by what happened to the objects.
+"""Where pick_place, stack, pick_into_bin, push and press_button episodes fail, sorted by what the objects did.
 
 Why: the success rate says how often a policy fails, not where; the videos show one episode. The
 simulator's object positions (``observation.environment_state``: pick_place's target cube, distractor cube
-and plate; stack's cube to move, cube to stack on and distractor; xyz each) are in every evaluated step, so
-each episode is sorted, from its trajectory alone, into the first of (pick_place)
+and plate; stack's cube to move, cube to stack on and distractor; push's two pucks and goal square; xyz each) are in
+every evaluated step, so each episode is sorted, from its trajectory alone, into the first of (pick_place)
 
 * ``success``;
 * ``wrong object``: the distractor moved more than 1 cm;
