@@ -134,6 +134,9 @@ class FinetuneConfig:
     """SAC/PPO minibatch size."""
     learning_rate: float = 3e-4
     """SAC/PPO optimiser step size (SB3's default)."""
+    n_steps: int = 2048
+    """PPO: RL steps per rollout, i.e. between updates (SB3's default; at most ``steps``). Steering takes one RL
+    step per chunk, so a rollout holds ``execute_steps`` times as many env steps."""
     n_epochs: int = 10
     """PPO: passes over each rollout (SB3's default)."""
     target_kl: float | None = None
@@ -192,7 +195,7 @@ class FinetuneConfig:
     """First seed of the periodic evaluations (validation seeds: the held-out ones stay for the report)."""
     checkpoint_every: int = 5000
     """RL steps between checkpoints of the whole learning state (one is always written at the end; PPO rounds
-    each sitting up to whole rollouts of up to 2048 steps)."""
+    each sitting up to whole rollouts of ``n_steps``)."""
     resume: bool = False
     """Continue the run in ``out`` from its newest checkpoint."""
     threads: int = 1
@@ -221,7 +224,7 @@ class FinetuneConfig:
             raise ConfigError(f"world_model_obs applies to --method residual, not {self.method}")
         if self.initial_std is not None:
             check_finite(self, "initial_std", positive=True)
-        check_at_least(self, 1, "gradient_steps", "n_epochs")
+        check_at_least(self, 1, "gradient_steps", "n_steps", "n_epochs")
         check_at_least(self, 0, "critic_warmup")
         if self.target_kl is not None:
             check_finite(self, "target_kl", positive=True)
@@ -232,8 +235,9 @@ class FinetuneConfig:
                                         or self.q_bounds is not None):
             raise ConfigError(f"gradient_steps, target_entropy and q_bounds are SAC settings; --algorithm is "
                               f"{self.algorithm}")
-        if self.algorithm != "ppo" and (self.n_epochs != 10 or self.target_kl is not None or self.critic_warmup):
-            raise ConfigError(f"n_epochs, target_kl and critic_warmup are PPO settings; --algorithm is "
+        if self.algorithm != "ppo" and (self.n_steps != 2048 or self.n_epochs != 10 or self.target_kl is not None
+                                        or self.critic_warmup):
+            raise ConfigError(f"n_steps, n_epochs, target_kl and critic_warmup are PPO settings; --algorithm is "
                               f"{self.algorithm}")
         if self.q_bounds is not None and not (len(self.q_bounds) == 2 and all(map(math.isfinite, self.q_bounds))
                                               and self.q_bounds[0] < self.q_bounds[1]):
@@ -341,7 +345,7 @@ def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
             if config.target_entropy is not None:
                 kwargs["target_entropy"] = config.target_entropy
     else:  # a rollout no longer than the run, minibatches no larger than a rollout
-        n_steps = min(2048, config.steps)
+        n_steps = min(config.n_steps, config.steps)
         kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps), "n_epochs": config.n_epochs,
                    "target_kl": config.target_kl}
     if algorithm is SAC and config.initial_std is not None:

@@ -110,12 +110,12 @@ def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path)
 
 
 def test_critic_warmup_holds_the_actor_at_the_base_policy_while_the_critic_learns(policy_path):
-    config = FinetuneConfig(policy=policy_path, method="residual", algorithm="ppo", steps=8, batch_size=4,
+    config = FinetuneConfig(policy=policy_path, method="residual", algorithm="ppo", steps=16, batch_size=4,
                             net_arch=(16,), max_steps=EPISODE_STEPS, initial_std=0.05, learning_rate=1e-3,
-                            n_epochs=2, target_kl=0.5, critic_warmup=8, progress=False)
+                            n_steps=8, n_epochs=2, target_kl=0.5, critic_warmup=8, progress=False)
     env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
     agent = build_agent(config, env)
-    assert (agent.learning_rate, agent.n_epochs, agent.target_kl) == (1e-3, 2, 0.5)
+    assert (agent.learning_rate, agent.n_steps, agent.n_epochs, agent.target_kl) == (1e-3, 8, 2, 0.5)
 
     def weights(module: torch.nn.Module) -> list[torch.Tensor]:
         return [p.detach().clone() for p in module.parameters()]
@@ -204,7 +204,7 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         FinetuneConfig(policy=policy_path, target_entropy=float("nan"))
     with pytest.raises(ConfigError, match="gradient_steps"):
         FinetuneConfig(policy=policy_path, gradient_steps=0)
-    with pytest.raises(ConfigError, match="n_epochs, target_kl and critic_warmup are PPO settings; --algorithm is sac"):
+    with pytest.raises(ConfigError, match="critic_warmup are PPO settings; --algorithm is sac"):
         FinetuneConfig(policy=policy_path, critic_warmup=2048)
     with pytest.raises(ConfigError, match="target_kl must be a finite number > 0"):
         FinetuneConfig(policy=policy_path, algorithm="ppo", target_kl=0.0)
