@@ -321,14 +321,22 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
                     config.out / "rl_agent.pt", RL_AGENT_KIND)
 
-    # The base policy and the fine-tuned one on the same held-out seeds.
+    # The base policy and the fine-tuned one on the same held-out seeds; when steering, also the base policy with
+    # the centre of its noise (the RL action 0), which a deterministic steering agent starts from.
     seeds = range(config.eval_seed, config.eval_seed + config.eval_episodes)
-    base = _run_episodes(make, lambda obs, env: env.step_base(), seeds, config.progress)
-    tuned = _run_episodes(make, _tuned_step(agent), seeds, config.progress)
-    for name, episodes in (("base", base), ("fine_tuned", tuned)):
-        agent.logger.record(f"eval/success_rate_{name}", summary_row(name, episodes)["success_rate"])
+    steps = {"base": lambda obs, env: env.step_base()}
+    if config.method == "steer":
+        centre = np.zeros(env.action_space.shape, np.float32)
+        steps["centre"] = lambda obs, env: env.step(centre)
+    steps["fine_tuned"] = _tuned_step(agent)
+    names = {"base": "base policy", "centre": "base policy, noise at its centre",
+             "fine_tuned": f"fine-tuned ({config.method}, {config.algorithm})"}
+    rows = {}
+    for key, step in steps.items():
+        rows[names[key]] = episodes = _run_episodes(make, step, seeds, config.progress)
+        agent.logger.record(f"eval/success_rate_{key}", summary_row(key, episodes)["success_rate"])
     agent.logger.dump(agent.num_timesteps)
-    return {"base policy": base, f"fine-tuned ({config.method}, {config.algorithm})": tuned}, trained_s
+    return rows, trained_s
 
 
 def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
