@@ -324,15 +324,15 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     # The base policy and the fine-tuned one on the same held-out seeds; when steering, also the base policy with
     # the centre of its noise (the RL action 0), which a deterministic steering agent starts from.
     seeds = range(config.eval_seed, config.eval_seed + config.eval_episodes)
-    steps = {"base": lambda obs, env: env.step_base()}
+    step_functions = {"base": lambda obs, env: env.step_base()}
     if config.method == "steer":
         centre = np.zeros(env.action_space.shape, np.float32)
-        steps["centre"] = lambda obs, env: env.step(centre)
-    steps["fine_tuned"] = _tuned_step(agent)
+        step_functions["centre"] = lambda obs, env: env.step(centre)
+    step_functions["fine_tuned"] = _tuned_step(agent)
     names = {"base": "base policy", "centre": "base policy, noise at its centre",
              "fine_tuned": f"fine-tuned ({config.method}, {config.algorithm})"}
     rows = {}
-    for key, step in steps.items():
+    for key, step in step_functions.items():
         rows[names[key]] = episodes = _run_episodes(make, step, seeds, config.progress)
         agent.logger.record(f"eval/success_rate_{key}", summary_row(key, episodes)["success_rate"])
     agent.logger.dump(agent.num_timesteps)
