@@ -69,6 +69,8 @@ from dust_rl.wm_select import VALIDATION_EVERY, wm_select
 RL_AGENT_KIND = "dust-rl rl agent"
 # rounds: a finished self_imitation run resumed with more rounds goes on from its last round.
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "rounds")
+# PPO keeps no replay buffer sized by the run, so a resumed PPO run may also be given a larger budget.
+PPO_RESUMABLE_FIELDS = (*RESUMABLE_FIELDS, "steps")
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
 
 
@@ -197,7 +199,8 @@ class FinetuneConfig:
     """RL steps between checkpoints of the whole learning state (one is always written at the end; PPO rounds
     each sitting up to whole rollouts of ``n_steps``)."""
     resume: bool = False
-    """Continue the run in ``out`` from its newest checkpoint."""
+    """Continue the run in ``out`` from its newest checkpoint (a PPO run, also with a larger ``steps``: a finished
+    run goes on to the new budget; SAC's replay buffer is sized by the original one)."""
     threads: int = 1
     """torch threads."""
     device: str = "auto"
@@ -250,7 +253,7 @@ class FinetuneConfig:
 def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     """Fine-tune, save the result, compare with the base policy; returns the report."""
     with torch_threads(config.threads):
-        check_run_folder(config, RESUMABLE_FIELDS)
+        check_run_folder(config, PPO_RESUMABLE_FIELDS if config.algorithm == "ppo" else RESUMABLE_FIELDS)
         policy = unwrap(load_policy(config.policy))
         env_id, env_kwargs, task = policy_env(config, policy)
         demos = config.demos or pathlib.Path(policy.info.get("dataset") or "")

@@ -222,6 +222,23 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         finetune(FinetuneConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
 
 
+def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_path, tmp_path):
+    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ppo", method="residual", algorithm="ppo", steps=8,
+                            n_steps=8, batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
+                            checkpoint_every=8, progress=False)
+    finetune(config)
+    report = finetune(dataclasses.replace(config, steps=16, resume=True))
+    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    state = SB3LearningState(build_agent(config, env))
+    restore(Checkpoint(agent=state, rng=GlobalRNGState()), CheckpointRotation(config.out / "checkpoints", keep_last=2))
+    env.close()
+    assert state.agent.num_timesteps == 16 and report["steps"] == 16
+    sac = dataclasses.replace(config, out=tmp_path / "sac", algorithm="sac", n_steps=2048, learning_starts=4)
+    finetune(sac)
+    with pytest.raises(ConfigError, match=r"other settings \(steps\)"):
+        finetune(dataclasses.replace(sac, steps=16, resume=True))
+
+
 def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path):
     settings = {"steps": 120, "checkpoint_every": 8, "learning_starts": 4, "batch_size": 4, "net_arch": (16,),
                 "eval_episodes": 1, "max_steps": EPISODE_STEPS}
