@@ -72,6 +72,9 @@ RESUMABLE_FIELDS = ("resume", "progress", "threads", "rounds")
 # PPO keeps no replay buffer sized by the run, so a resumed PPO run may also be given a larger budget.
 PPO_RESUMABLE_FIELDS = (*RESUMABLE_FIELDS, "steps")
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
+# Settings only one algorithm reads: set away from their defaults with the other, they are refused.
+ALGORITHM_SETTINGS = {"sac": ("gradient_steps", "target_entropy", "q_bounds"),
+                      "ppo": ("n_steps", "n_epochs", "target_kl", "critic_warmup")}
 
 
 @dataclass
@@ -234,14 +237,11 @@ class FinetuneConfig:
         check_finite(self, "initial_alpha", positive=True)
         if self.target_entropy is not None and not math.isfinite(self.target_entropy):
             raise ConfigError(f"target_entropy must be a finite number, got {self.target_entropy}")
-        if self.algorithm != "sac" and (self.gradient_steps != 1 or self.target_entropy is not None
-                                        or self.q_bounds is not None):
-            raise ConfigError(f"gradient_steps, target_entropy and q_bounds are SAC settings; --algorithm is "
-                              f"{self.algorithm}")
-        if self.algorithm != "ppo" and (self.n_steps != 2048 or self.n_epochs != 10 or self.target_kl is not None
-                                        or self.critic_warmup):
-            raise ConfigError(f"n_steps, n_epochs, target_kl and critic_warmup are PPO settings; --algorithm is "
-                              f"{self.algorithm}")
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        for algorithm, names in ALGORITHM_SETTINGS.items():
+            if self.algorithm != algorithm and any(getattr(self, name) != defaults[name] for name in names):
+                raise ConfigError(f"{', '.join(names[:-1])} and {names[-1]} are {algorithm.upper()} settings; "
+                                  f"--algorithm is {self.algorithm}")
         if self.q_bounds is not None and not (len(self.q_bounds) == 2 and all(map(math.isfinite, self.q_bounds))
                                               and self.q_bounds[0] < self.q_bounds[1]):
             raise ConfigError(f"q_bounds must be two finite numbers LO < HI, got {self.q_bounds}")
