@@ -294,7 +294,9 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     agent.set_logger(configure_logger(str(config.out / "logs"), ["csv", "tensorboard"]))
     checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=GlobalRNGState())
     rotation = CheckpointRotation(config.out / "checkpoints", keep_last=2)
-    env.env_steps = int(restore(checkpoint, rotation).get("env_steps", 0))
+    restored = restore(checkpoint, rotation)
+    env.env_steps = int(restored.get("env_steps", 0))
+    seconds_before = float(restored.get("train_seconds", 0.0))  # earlier processes' share of a resumed run
     curve_path = config.out / "learning_curve.json"
     curve = [p for p in _read_curve(curve_path) if p["rl_steps"] <= agent.num_timesteps]  # none past the checkpoint
     curve_seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
@@ -318,9 +320,10 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
             title = f"{config.method} + {config.algorithm}, seeds {curve_seeds.start}..{curve_seeds.stop - 1}"
             plot_learning_curve(curve, config.out / "learning_curve.png", title)
         rotation.save(checkpoint, step=agent.num_timesteps,
-                      metadata={"step": agent.num_timesteps, "env_steps": env.env_steps})
+                      metadata={"step": agent.num_timesteps, "env_steps": env.env_steps,
+                                "train_seconds": seconds_before + time.perf_counter() - began})
     env.close()
-    trained_s = time.perf_counter() - began
+    trained_s = seconds_before + time.perf_counter() - began
     save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
                     config.out / "rl_agent.pt", RL_AGENT_KIND)
 

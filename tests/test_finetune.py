@@ -226,8 +226,10 @@ def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_pa
     config = FinetuneConfig(policy=policy_path, out=tmp_path / "ppo", method="residual", algorithm="ppo", steps=8,
                             n_steps=8, batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
                             checkpoint_every=8, progress=False)
-    finetune(config)
+    first = finetune(config)
     report = finetune(dataclasses.replace(config, steps=16, resume=True))
+    # the first process's seconds count too (saved with its checkpoint), not only the resumed one's
+    assert report["train_seconds"] > first["train_seconds"]
     env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
     state = SB3LearningState(build_agent(config, env))
     restore(Checkpoint(agent=state, rng=GlobalRNGState()), CheckpointRotation(config.out / "checkpoints", keep_last=2))
