@@ -33,6 +33,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     from dust_rl.evaluate import EvalConfig, evaluate_command
     from dust_rl.finetune import FinetuneConfig, finetune_command
     from dust_rl.quickstart import QuickstartConfig, quickstart
+    from dust_rl.suite_average import AverageConfig, average_command
     from dust_rl.train import TrainConfig, train_command
 
     return {
@@ -47,6 +48,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "eval": (EvalConfig, evaluate_command),
         "finetune": (FinetuneConfig, finetune_command),
         "bench suite": (SuiteConfig, suite_command),
+        "bench average": (AverageConfig, average_command),
     }
 
 

@@ -1,0 +1,77 @@
+"""``dust-rl bench average``: single-task studies (real, on a tiny budget) pooled into one suite table."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+from test_train import TINY_POLICY
+
+from dust_rl.agents import PolicyConfig, save_image_encoder
+from dust_rl.bench_suite import AS_TRAINED, SuiteConfig, run_suite
+from dust_rl.errors import ConfigError
+from dust_rl.suite_average import AverageConfig, average, average_command
+from dust_rl.train import TrainSettings
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture
+def two_studies(tiny_encoder, tmp_path):
+    """press_button with training seeds 0 and 1, close_drawer with seed 0 only: two real tiny studies."""
+    encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
+    train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)), steps=2, batch_size=8,
+                          log_every=1, checkpoint_every=2, threads=1, progress=False)
+    configs = [SuiteConfig(out=tmp_path / task, task=task, demos=(1,), variants=("dust", "action_only"), seeds=seeds,
+                           train=train, vision_steps=(), episodes=2, image_size=32, max_steps=6, progress=False)
+               for task, seeds in (("press_button", (0, 1)), ("close_drawer", (0,)))]
+    return [(config, run_suite(config)) for config in configs]
+
+
+def test_average_pools_the_shared_seeds_and_refuses_unlike_studies(two_studies, tmp_path, capsys):
+    (press, press_results), (drawer, drawer_results) = two_studies
+    out = tmp_path / "average"
+    result = average_command(AverageConfig(studies=(press.out, drawer.out), out=out), "dust-rl bench average ...")
+    assert result["tasks"] == ["close_drawer", "press_button"]
+    for variant in ("dust", "action_only"):
+        column = result["variants"][variant]
+        assert column["seeds"] == [0] and column["left_out_seeds"] == {"press_button": [1]}
+        expected = 0
+        for results in (press_results, drawer_results):
+            row = next(r for r in results["rows"] if r["variant"] == variant and r["sampler"] == AS_TRAINED)
+            seed0 = round(row["per_seed"][row["seeds"].index(0)] * 2)
+            assert column["per_task"][results["task"]]["successes"] == seed0
+            expected += seed0
+        assert (column["successes"], column["episodes"]) == (expected, 4)
+        assert 0 <= column["ci95"][0] <= column["success_rate"] <= column["ci95"][1] <= 1
+    table = (out / "average.md").read_text()
+    assert "| **suite average** |" in table and "left out training seeds 1" in table
+    assert table in capsys.readouterr().out
+    assert json.loads((out / "average.json").read_text()) == result
+    assert (out / "average.png").read_bytes()[:4] == b"\x89PNG"
+
+    # Unlike studies are refused: a task twice, another recipe, other evaluation seeds, a folder without results.
+    with pytest.raises(ConfigError, match="more than one study"):
+        average(AverageConfig(studies=(press.out, drawer.out, press.out)))
+    other = tmp_path / "other_recipe"
+    shutil.copytree(drawer.out, other)
+    results = json.loads((other / "results.json").read_text())
+    results["train"]["policy"]["lambda_wm"] = 0.1
+    (other / "results.json").write_text(json.dumps(results))
+    with pytest.raises(ConfigError, match=r"other settings \(policy.lambda_wm\)"):
+        average(AverageConfig(studies=(press.out, other)))
+    results["train"]["policy"]["lambda_wm"] = drawer.train.policy.lambda_wm
+    results["eval_seeds"] = [5000, 5001]
+    (other / "results.json").write_text(json.dumps(results))
+    with pytest.raises(ConfigError, match="eval_seeds"):
+        average(AverageConfig(studies=(press.out, other)))
+    with pytest.raises(ConfigError, match="holds no results.json"):
+        average(AverageConfig(studies=(press.out, tmp_path / "nothing")))
+    with pytest.raises(ConfigError, match="at least two"):
+        AverageConfig(studies=(press.out,))
+
+    # How a run was carried out (threads, device, logging) is not the recipe: such a study averages.
+    results = {**drawer_results, "train": {**drawer_results["train"], "threads": 2, "log_every": 7}}
+    (other / "results.json").write_text(json.dumps(results))
+    assert average(AverageConfig(studies=(press.out, other)))["variants"] == result["variants"]
