@@ -126,13 +126,15 @@ class DustPolicy(VLAWrapperBase):
                                             backbone.text_dim, config.cond_dim, config.keypoints,
                                             config.keypoint_source, config.text_fusion)
         self.config = config  # the policy's own: set_sampler replaces it; the model reads only its model fields
-        self.model = DustModel(config)
+        # The read-out is built before the trunk, so its initial weights do not depend on the variant: runs of one
+        # seed then warm up the same read-out (dust_rl.readout_cache).
         if config.aux_state_dim and config.readout == "tokens":
             self.state_readout = TokenReadout(len(cameras), config.token_grid, backbone.image_dim, backbone.text_dim,
                                               config.aux_state_dim, config.readout_heads, config.readout_coords)
         elif config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
                                               config.aux_state_dim)
+        self.model = DustModel(config)
         if config.scorer_hidden:
             self.future_scorer = FutureScorer(config.n_vision_tokens, config.vision_dim, config.scorer_hidden)
         self.normalizer = Normalizer(config.state_dim, config.action_dim, config.vision_dim)

@@ -32,6 +32,7 @@ import math
 import os
 import pathlib
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Literal, get_args
 
@@ -59,8 +60,9 @@ from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.env_state_norm import PER_TASK, EnvStateNorm
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
-from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_width
+from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_width, feature_key
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
+from dust_rl.readout_cache import readout_cache_path, warm_up_or_load
 from dust_rl.readout_warmup import warm_up_readout
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
 
@@ -357,13 +359,8 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         policy.readout_modules().requires_grad_(False)
     elif config.readout_warmup:
         if not (config.resume and rotation.latest() is not None):
-            demos = (lambda: features.batch(windows.sample())) if config.readout_demos else None
-            heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.aux_frames),
-                                         HELDOUT_FIRST_SEED)
-            warm_up_readout(policy, demos, _aux_frame_batches(config, dataset, policy), config.readout_warmup,
-                            config.readout_lr, lambda scalars, step: _log(loggers, scalars, step),
-                            config.batch_size, decay=config.readout_lr_decay, heldout=heldout,
-                            progress=config.progress)
+            _warm_up_readout(config, dataset, policy, lambda: features.batch(windows.sample()),
+                             lambda scalars, step: _log(loggers, scalars, step))
         policy.readout_modules().requires_grad_(False)
     elif config.aux_frames:
         aux = _aux_frame_batches(config, dataset, policy)
@@ -504,6 +501,24 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset, env: gym.Env) -> Du
                                   **dataset_policy_kwargs(dataset)))
     except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)
         raise ConfigError(f"invalid model settings: {err}") from err
+
+
+def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy,
+                     demo_batch: Callable[[], TensorDictBase], log: Callable[[dict[str, float], int], None]) -> None:
+    """Fit the read-out alone (:mod:`dust_rl.readout_warmup`), or load the same fit cached in the dataset folder
+    by an earlier run (:mod:`dust_rl.readout_cache`; not with ``readout_demos``, whose batches depend on more)."""
+    path = None if config.readout_demos else readout_cache_path(dataset.root / "readout_cache", policy, config,
+                                                                feature_key(dataset, policy))
+
+    def warm_up(log_fit: Callable[[dict[str, float], int], None]) -> None:
+        heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.aux_frames),
+                                     HELDOUT_FIRST_SEED)
+        warm_up_readout(policy, demo_batch if config.readout_demos else None,
+                        _aux_frame_batches(config, dataset, policy), config.readout_warmup, config.readout_lr, log_fit,
+                        config.batch_size, decay=config.readout_lr_decay, heldout=heldout, progress=config.progress)
+
+    if warm_up_or_load(path, policy.readout_modules(), config.seed, warm_up, log):
+        print(f"read-out warm-up: the fit cached by an earlier run of the same read-out settings ({path})")
 
 
 def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, count: int | None = None,

@@ -182,6 +182,32 @@ def test_readout_warmup_freezes_the_readout_and_resumes(run_inputs, tmp_path):
                     readout_warmup=3)
 
 
+def test_a_warmed_readout_is_cached_shared_by_the_variants_and_changes_nothing_else(run_inputs, tmp_path):
+    readout = {"readout": "tokens", "lambda_aux": 1.0, "aux_state_input": True, "aux_frames": 3, "readout_warmup": 3,
+               "readout_demos": False, "steps": 2}
+    cache = run_inputs[0] / "readout_cache"
+    dust = trained_weights(train(tiny_config(run_inputs, tmp_path / "dust", **readout)).policy)
+    assert len(list(cache.glob("*.pt"))) == 1
+    action_only = trained_weights(train(tiny_config(run_inputs, tmp_path / "ao", variant="action_only",
+                                                    **readout)).policy)
+    assert len(list(cache.glob("*.pt"))) == 1  # the second variant loaded the first one's fit
+    fitted = [k for k in dust if k.startswith("state_readout.")]
+    assert fitted and all(torch.equal(dust[k], action_only[k]) for k in fitted)
+    logs = [tmp_path / run / "logs" / "train" / "scalars" / "warmup" / "loss_aux_frames_heldout.csv"
+            for run in ("dust", "ao")]
+    assert logs[0].read_text() == logs[1].read_text() != ""  # the cached fit's scalars are replayed
+
+    # Training after a cached warm-up is the run that fitted it, bit for bit; a corrupt cache file is refitted.
+    again = trained_weights(train(tiny_config(run_inputs, tmp_path / "again", **readout)).policy)
+    assert all(torch.equal(dust[k], again[k]) for k in dust)
+    next(cache.glob("*.pt")).write_bytes(b"not a checkpoint")
+    refitted = trained_weights(train(tiny_config(run_inputs, tmp_path / "refit", **readout)).policy)
+    assert all(torch.equal(dust[k], refitted[k]) for k in dust)
+    # Another warm-up setting is another fit.
+    train(tiny_config(run_inputs, tmp_path / "lr", **{**readout, "readout_lr": 3e-3}))
+    assert len(list(cache.glob("*.pt"))) == 2
+
+
 def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
     steps = 600
     reference = train(tiny_config(run_inputs, tmp_path / "ref", steps=steps, checkpoint_every=50))
