@@ -12,9 +12,10 @@ cell's training time (pick_place, 100 demonstrations, the quickstart's recipe: 4
 then 2,000 policy steps in ~45, beside two other jobs), and the variants now share one read-out, so a comparison
 no longer mixes the trunk's effect with the read-out's.
 
-The key hashes the read-out's initial weights, the normalisation its inputs pass through, the dataset's frozen features
-and every setting the fit reads (:data:`WARMUP_SETTINGS`); a hit loads the fitted weights and replays the warm-up's logged
-scalars into the new run's logs. A file that does not load (corrupt, another format) is fitted again and replaced.
+The key hashes the read-out's initial weights, the normalisation its inputs pass through, the dataset's frozen
+features and every setting the fit reads (:data:`WARMUP_SETTINGS`); a hit loads the fitted weights and replays the
+warm-up's logged scalars into the new run's logs. A file that does not load (corrupt, another format) is fitted
+again and replaced.
 """
 
 from __future__ import annotations
