@@ -168,6 +168,6 @@ def feature_key(dataset: DemoDataset, policy: DustPolicy, views: int = 1, batch_
     }, sort_keys=True).encode())
     for name, tensor in sorted(policy.backbone.image.state_dict().items()):
         digest.update(name.encode())
-        digest.update(tensor.detach().contiguous().numpy().tobytes())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())  # a GPU run hashes the same bytes
     return digest.hexdigest()[:16]
 

@@ -54,7 +54,7 @@ def readout_cache_path(folder: pathlib.Path, policy: DustPolicy, settings: objec
     for module in (policy.readout_modules(), policy.normalizer):
         for name, tensor in sorted(module.state_dict().items()):
             digest.update(name.encode())
-            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+            digest.update(tensor.detach().cpu().contiguous().flatten().view(torch.uint8).numpy().tobytes())
     return folder / f"{digest.hexdigest()[:24]}.pt"
 
 
