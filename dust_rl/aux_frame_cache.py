@@ -52,6 +52,7 @@ from dust_rl.agents import DustPolicy
 from dust_rl.atomic_files import atomic_write
 from dust_rl.aux_frames import encode_frames, render_aux_frames
 from dust_rl.data import DatasetError
+from dust_rl.features import hash_weights
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, TASK_INDEX_KEY
 
 FORMAT = 1  # raise when what render_aux_frames draws changes, so older files are not read as current
@@ -104,9 +105,7 @@ def cached_frame_tokens(frames_file: pathlib.Path, policy: DustPolicy, frames: t
     encoder = policy.backbone.image
     digest = hashlib.sha256(json.dumps({"format": TOKEN_FORMAT, "grid": list(policy.config.token_grid),
                                         "encoder": encoder.reference()}, sort_keys=True).encode())
-    for name, tensor in sorted(encoder.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().flatten().view(torch.uint8).numpy().tobytes())
+    hash_weights(digest, encoder)
     path = frames_file.with_name(f"{frames_file.stem}.tokens-{digest.hexdigest()[:16]}.npy")
     if not path.is_file():
         tokens = encode_frames(policy, frames)

@@ -166,8 +166,14 @@ def feature_key(dataset: DemoDataset, policy: DustPolicy, views: int = 1, batch_
         "data": dataset.meta["data"], "rows": len(dataset), "cameras": policy.cameras, **augmentation,
         "grid": list(policy.config.token_grid), "dtype": "float16", "encoder": policy.backbone.reference()["image"],
     }, sort_keys=True).encode())
-    for name, tensor in sorted(policy.backbone.image.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())  # a GPU run hashes the same bytes
+    hash_weights(digest, policy.backbone.image)
     return digest.hexdigest()[:16]
+
+
+def hash_weights(digest: hashlib._Hash, module: torch.nn.Module) -> None:
+    """Add every tensor of ``module``'s state, by name, to ``digest``: the key of a cache derived from those weights
+    (any dtype, any device: the bytes are read on the CPU)."""
+    for name, tensor in sorted(module.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().flatten().view(torch.uint8).numpy().tobytes())
 

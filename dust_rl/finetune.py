@@ -297,6 +297,10 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     restored = restore(checkpoint, rotation)
     env.env_steps = int(restored.get("env_steps", 0))
     seconds_before = float(restored.get("train_seconds", 0.0))  # earlier processes' share of a resumed run
+
+    def trained_seconds() -> float:
+        return seconds_before + time.perf_counter() - began
+
     curve_path = config.out / "learning_curve.json"
     curve = [p for p in _read_curve(curve_path) if p["rl_steps"] <= agent.num_timesteps]  # none past the checkpoint
     curve_seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
@@ -321,9 +325,9 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
             plot_learning_curve(curve, config.out / "learning_curve.png", title)
         rotation.save(checkpoint, step=agent.num_timesteps,
                       metadata={"step": agent.num_timesteps, "env_steps": env.env_steps,
-                                "train_seconds": seconds_before + time.perf_counter() - began})
+                                "train_seconds": trained_seconds()})
     env.close()
-    trained_s = seconds_before + time.perf_counter() - began
+    trained_s = trained_seconds()
     save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
                     config.out / "rl_agent.pt", RL_AGENT_KIND)
 

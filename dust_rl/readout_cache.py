@@ -30,6 +30,7 @@ from torch import nn
 
 from dust_rl.agents import DustPolicy
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
+from dust_rl.features import hash_weights
 
 READOUT_KIND = "dust-rl/readout-warmup"
 # What the warm-up reads from the training config (dust_rl.train.TrainConfig) and the policy config.
@@ -51,10 +52,8 @@ def readout_cache_path(folder: pathlib.Path, policy: DustPolicy, settings: objec
                  "policy": {k: getattr(policy.config, k) for k in READOUT_POLICY_SETTINGS},
                  "cameras": policy.cameras, "device": policy.weights_device.type, "torch": torch.__version__}
     digest.update(json.dumps(described, sort_keys=True, default=str).encode())
-    for module in (policy.readout_modules(), policy.normalizer):
-        for name, tensor in sorted(module.state_dict().items()):
-            digest.update(name.encode())
-            digest.update(tensor.detach().cpu().contiguous().flatten().view(torch.uint8).numpy().tobytes())
+    hash_weights(digest, policy.readout_modules())
+    hash_weights(digest, policy.normalizer)
     return folder / f"{digest.hexdigest()[:24]}.pt"
 
 

@@ -359,7 +359,8 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         policy.readout_modules().requires_grad_(False)
     elif config.readout_warmup:
         if not (config.resume and rotation.latest() is not None):
-            _warm_up_readout(config, dataset, policy, lambda: features.batch(windows.sample()),
+            _warm_up_readout(config, dataset, policy,
+                             (lambda: features.batch(windows.sample())) if config.readout_demos else None,
                              lambda scalars, step: _log(loggers, scalars, step))
         policy.readout_modules().requires_grad_(False)
     elif config.aux_frames:
@@ -504,18 +505,20 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset, env: gym.Env) -> Du
 
 
 def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy,
-                     demo_batch: Callable[[], TensorDictBase], log: Callable[[dict[str, float], int], None]) -> None:
+                     demo_batch: Callable[[], TensorDictBase] | None,
+                     log: Callable[[dict[str, float], int], None]) -> None:
     """Fit the read-out alone (:mod:`dust_rl.readout_warmup`), or load the same fit cached in the dataset folder
-    by an earlier run (:mod:`dust_rl.readout_cache`; not with ``readout_demos``, whose batches depend on more)."""
-    path = None if config.readout_demos else readout_cache_path(dataset.root / "readout_cache", policy, config,
+    by an earlier run (:mod:`dust_rl.readout_cache`; not with demonstration batches, ``demo_batch``, whose draws
+    depend on more)."""
+    path = None if demo_batch is not None else readout_cache_path(dataset.root / "readout_cache", policy, config,
                                                                 feature_key(dataset, policy))
 
     def warm_up(log_fit: Callable[[dict[str, float], int], None]) -> None:
         heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.aux_frames),
                                      HELDOUT_FIRST_SEED)
-        warm_up_readout(policy, demo_batch if config.readout_demos else None,
-                        _aux_frame_batches(config, dataset, policy), config.readout_warmup, config.readout_lr, log_fit,
-                        config.batch_size, decay=config.readout_lr_decay, heldout=heldout, progress=config.progress)
+        warm_up_readout(policy, demo_batch, _aux_frame_batches(config, dataset, policy), config.readout_warmup,
+                        config.readout_lr, log_fit, config.batch_size, decay=config.readout_lr_decay, heldout=heldout,
+                        progress=config.progress)
 
     if warm_up_or_load(path, policy.readout_modules(), config.seed, warm_up, log):
         print(f"read-out warm-up: the fit cached by an earlier run of the same read-out settings ({path})")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import time
 
 import numpy as np
 import pytest
@@ -227,9 +228,14 @@ def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_pa
                             n_steps=8, batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
                             checkpoint_every=8, progress=False)
     first = finetune(config)
+    saved = Checkpoint.manifest(CheckpointRotation(config.out / "checkpoints", keep_last=2).latest())["metadata"]
+    began = time.perf_counter()
     report = finetune(dataclasses.replace(config, steps=16, resume=True))
+    resumed_wall = time.perf_counter() - began
     # the first process's seconds count too (saved with its checkpoint), not only the resumed one's
     assert report["train_seconds"] > first["train_seconds"]
+    assert 0 < saved["train_seconds"] <= first["train_seconds"]
+    assert saved["train_seconds"] < report["train_seconds"] < saved["train_seconds"] + resumed_wall
     env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
     state = SB3LearningState(build_agent(config, env))
     restore(Checkpoint(agent=state, rng=GlobalRNGState()), CheckpointRotation(config.out / "checkpoints", keep_last=2))
