@@ -5,7 +5,8 @@ The paper compares its variants on a suite's average success (RoboCasa, 24 tasks
 multi-task policy per cell; the single-task studies (``dust-rl bench suite --task T --out runs/bench/T_100``, one
 folder per task, each resumable on its own) give the same average from policies each task can learn in the
 quickstart's minutes. This command reads their ``results.json`` and writes one table: a row per task, a column
-per variant, and the suite average with its 95% interval.
+per variant, and the suite average with its 95% interval. A study can also be given as its ``results.json`` alone
+(copied out of its folder, e.g. into ``docs/results/``), so an average outlives the machine its cells ran on.
 
 Only like with like: every study must share the env, the demonstration count, the evaluation seeds and the
 training recipe (up to settings that do not change what is trained: threads, device, logging), and each task
@@ -39,7 +40,7 @@ class AverageConfig:
     """Pool single-task variant comparisons (``dust-rl bench suite`` folders) into a suite average."""
 
     studies: tuple[pathlib.Path, ...]
-    """Folders of ``dust-rl bench suite`` runs, one task each (their ``results.json``)."""
+    """Folders of ``dust-rl bench suite`` runs, one task each, or their ``results.json`` files."""
     out: pathlib.Path = pathlib.Path("runs/bench/suite_average")
     """Folder of ``average.md``, ``average.json`` and ``average.png``."""
 
@@ -48,15 +49,15 @@ class AverageConfig:
             raise ConfigError(f"--studies needs at least two study folders, got {len(self.studies)}")
 
 
-def load_study(folder: pathlib.Path) -> dict:
-    """A study's ``results.json``.
+def load_study(study: pathlib.Path) -> dict:
+    """A study's ``results.json``, given its folder or the file itself.
 
     Raises:
         ConfigError: the folder holds no finished study.
     """
-    path = folder / "results.json"
+    path = study if study.is_file() else study / "results.json"
     if not path.is_file():
-        raise ConfigError(f"{folder} holds no results.json: run (or finish) `dust-rl bench suite --out {folder}`")
+        raise ConfigError(f"{study} holds no results.json: run (or finish) `dust-rl bench suite --out {study}`")
     return json.loads(path.read_text())
 
 

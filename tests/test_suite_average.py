@@ -50,6 +50,10 @@ def test_average_pools_the_shared_seeds_and_refuses_unlike_studies(two_studies, 
     assert table in capsys.readouterr().out
     assert json.loads((out / "average.json").read_text()) == result
     assert (out / "average.png").read_bytes()[:4] == b"\x89PNG"
+    kept = tmp_path / "kept" / "close_drawer.json"  # a study's results.json kept apart from its folder
+    kept.parent.mkdir()
+    shutil.copy(drawer.out / "results.json", kept)
+    assert average(AverageConfig(studies=(press.out, kept)))["variants"] == result["variants"]
 
     # Unlike studies are refused: a task twice, another recipe, other evaluation seeds, a folder without results.
     with pytest.raises(ConfigError, match="more than one study"):
