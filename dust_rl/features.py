@@ -176,4 +176,3 @@ def hash_weights(digest: hashlib._Hash, module: torch.nn.Module) -> None:
     for name, tensor in sorted(module.state_dict().items()):
         digest.update(name.encode())
         digest.update(tensor.detach().cpu().contiguous().flatten().view(torch.uint8).numpy().tobytes())
-

@@ -53,8 +53,10 @@ def load_study(study: pathlib.Path) -> dict:
     """A study's ``results.json``, given its folder or the file itself.
 
     Raises:
-        ConfigError: the folder holds no finished study.
+        ConfigError: the folder holds no finished study, or the file given does not exist.
     """
+    if study.suffix == ".json" and not study.is_file():
+        raise ConfigError(f"{study}: no such results file (give a study folder or its results.json)")
     path = study if study.is_file() else study / "results.json"
     if not path.is_file():
         raise ConfigError(f"{study} holds no results.json: run (or finish) `dust-rl bench suite --out {study}`")

@@ -72,6 +72,8 @@ def test_average_pools_the_shared_seeds_and_refuses_unlike_studies(two_studies, 
         average(AverageConfig(studies=(press.out, other)))
     with pytest.raises(ConfigError, match="holds no results.json"):
         average(AverageConfig(studies=(press.out, tmp_path / "nothing")))
+    with pytest.raises(ConfigError, match="no such results file"):
+        average(AverageConfig(studies=(press.out, tmp_path / "kept" / "nothing.json")))
     with pytest.raises(ConfigError, match="at least two"):
         AverageConfig(studies=(press.out,))
 
