@@ -60,6 +60,7 @@ from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
+from dust_rl.search_expert import SearchSettings
 from dust_rl.self_imitation import is_dagger, self_imitation
 from dust_rl.start_at_base import WarmStartSAC, start_at_base
 from dust_rl.steering import NoiseSteeringEnv
@@ -187,6 +188,10 @@ class FinetuneConfig:
     """self_imitation: how each round fine-tunes (``--train.steps``, ``--train.lr``, ``--train.extra-fraction``,
     ``--train.start-rows`` ...; ``--train.extra-action-key expert_action``: DAgger); the starting policy, the
     rollouts, threads and device are the round's."""
+    search: SearchSettings = field(default_factory=SearchSettings)
+    """self_imitation: roll out with a simulator search over the policy's chunks (``--search.candidates K``,
+    ``--search.lookahead``, ``--search.noise-scale``; :mod:`dust_rl.search_expert`) and distil its successes:
+    expert iteration. One candidate (the default): the policy's own rollouts."""
     scorer_hidden: int = 128
     """wm_select: hidden width of the scorer."""
     scorer_steps: int = 2000
@@ -226,6 +231,9 @@ class FinetuneConfig:
         check_finite(self, "noise_bound", "residual_scale", "learning_rate", positive=True)
         if not 0 < self.gamma <= 1:
             raise ConfigError(f"gamma must be a discount factor in (0, 1], got {self.gamma}")
+        if self.search.active and (self.method != "self_imitation" or is_dagger(self.train.extra_action_key)):
+            raise ConfigError("--search.candidates applies to --method self_imitation, whose rollouts it chooses "
+                              "(not with DAgger's expert labels)")
         if self.world_model_obs and self.method != "residual":
             raise ConfigError(f"world_model_obs applies to --method residual, not {self.method}")
         if self.initial_std is not None:

@@ -53,13 +53,13 @@ def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: d
     returns the report's parts."""
     began = time.perf_counter()
     dagger = is_dagger(config.train.extra_action_key)
-    name = "DAgger" if dagger else "self_imitation"
+    name = "DAgger" if dagger else "search distillation" if config.search.active else "self_imitation"
     policy, curve, rounds = config.policy, [_curve_point(config, config.policy, "round-0", 0)], []
     for r in range(config.rounds):
         rollouts = config.out / f"round-{r + 1}" / "rollouts"
         collect_demos(rollouts, env_id, [task], config.rollout_successes, env_kwargs=env_kwargs,
                       start_seed=config.rollout_seed + r * ROUND_SEEDS, keep_failed=dagger, policy=policy,
-                      progress=config.progress)
+                      search=config.search, progress=config.progress)
         records = scan_episodes(rollouts)[task].values()
         policy = _fine_tune(config, policy, rollouts, config.out / f"round-{r + 1}" / "train")
         rounds.append({"policy": str(policy), "rollouts": len(records), "successes": sum(r.success for r in records),

@@ -13,6 +13,7 @@ libraries key torch modules by observation name and torch rejects dots there.
 
 from __future__ import annotations
 
+import dataclasses
 import string
 from collections.abc import Sequence
 
@@ -53,6 +54,15 @@ CLOSURE = 6  # index of the closure within an end effector's numbers
 _TARGET_BELOW_WORKSPACE = np.array([0.0, 0.0, 0.05])
 _INSTABILITY_WARNINGS = np.array([mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
                                   mujoco.mjtWarning.mjWARN_BADQACC], dtype=int)
+
+
+@dataclasses.dataclass(frozen=True)
+class SimSnapshot:
+    """A copy of what :meth:`DustEnv.step` changes (:meth:`DustEnv.snapshot`)."""
+
+    data: mujoco.MjData
+    elapsed: int
+    progress: float
 
 
 class DustEnv(gym.Env):
@@ -250,6 +260,19 @@ class DustEnv(gym.Env):
         else:
             reward = float(success)
         return self.observe(), float(reward), success, bool(reason), self._info(success, reason)
+
+    def snapshot(self) -> SimSnapshot:
+        """The state a step changes (the simulator's data, the step count, the shaping's progress), for
+        :meth:`restore`: lookahead search (``dust_rl.search_expert``) tries motions and comes back. The controller
+        and the task keep no state between steps (both read the simulator's)."""
+        data = mujoco.MjData(self.model)
+        mujoco.mj_copyData(data, self.model, self.data)
+        return SimSnapshot(data, self._elapsed, self._progress)
+
+    def restore(self, snapshot: SimSnapshot) -> None:
+        """Back to ``snapshot``: the next steps are those that would have followed it, bit for bit."""
+        mujoco.mj_copyData(self.data, self.model, snapshot.data)
+        self._elapsed, self._progress = snapshot.elapsed, snapshot.progress
 
     def progress(self) -> float:
         """The task's staged progress toward success, in [0, 1): the potential of the dense reward."""

@@ -6,14 +6,30 @@ state in its own process, so any torchrl policy only has to read the
 ``"expert_action"`` key. The expert is rebuilt at every reset and queried
 once per step, exactly as a direct expert rollout would query it, so with
 the expert's action executed the trajectory is the expert's own.
+
+Another expert can stand in for the scripted one (``make_expert``): anything with ``act()``, built at each
+reset from the env and the reset seed, e.g. the search expert of ``dust_rl.search_expert``.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
 
 import gymnasium as gym
 import numpy as np
 
 from dust_rl.keys import EXPERT_ACTION_KEY
+
+
+class Expert(Protocol):
+    def act(self) -> np.ndarray:
+        """The action for the env's current state."""
+
+
+def scripted_expert(env: gym.Env, seed: int | None) -> Expert:
+    """The task's scripted waypoint expert (``DustEnv.make_expert``); it draws nothing, so ignores the seed."""
+    return env.make_expert()
 
 
 class ExpertActionWrapper(gym.Wrapper):
@@ -22,9 +38,13 @@ class ExpertActionWrapper(gym.Wrapper):
     Works on any env whose ``unwrapped`` has ``make_expert()``
     (``DustEnv``), e.g. ``ExpertActionWrapper(gym.make("DustFranka-v0", task="press_button"))``
     or, for torchrl, ``GymEnv(ExpertActionWrapper(...))`` / ``GymWrapper``.
+
+    Args:
+        env: the env.
+        make_expert: builds the expert at every reset from ``env.unwrapped`` and the reset seed.
     """
 
-    def __init__(self, env: gym.Env) -> None:
+    def __init__(self, env: gym.Env, make_expert: Callable[[gym.Env, int | None], Expert] = scripted_expert) -> None:
         super().__init__(env)
         if not isinstance(env.observation_space, gym.spaces.Dict):
             raise TypeError(f"ExpertActionWrapper needs a Dict observation space, got {env.observation_space}")
@@ -35,11 +55,12 @@ class ExpertActionWrapper(gym.Wrapper):
             **env.observation_space.spaces,
             EXPERT_ACTION_KEY: gym.spaces.Box(-1.0, 1.0, action_space.shape, np.float32),
         })
-        self._expert = None
+        self._make_expert = make_expert
+        self._expert: Expert | None = None
 
     def reset(self, **kwargs) -> tuple[dict, dict]:
         obs, info = self.env.reset(**kwargs)
-        self._expert = self.env.unwrapped.make_expert()
+        self._expert = self._make_expert(self.env.unwrapped, kwargs.get("seed"))
         return self._with_expert_action(obs), info
 
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:

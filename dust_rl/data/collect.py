@@ -23,6 +23,7 @@ to honour it).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import hashlib
 import json
@@ -38,6 +39,7 @@ from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.episode_collector import episode_collector, torch_threads
 from dust_rl.errors import ConfigError
+from dust_rl.search_expert import SearchExpertFactory, SearchSettings
 from dust_rl.workers import Workers, ray_runtime
 
 from .collection_env import collection_env_fns
@@ -57,8 +59,8 @@ MAX_SEEDS_PER_EPISODE = {"expert": 3, "policy": 20}
 def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks: Sequence[str] = ("pick_place",),
                   episodes: int = 100, *, env_kwargs: dict | None = None, workers: int | Workers = 1,
                   start_seed: int = 0, noise_std: float = 0.0, keep_failed: bool = False,
-                  policy: str | pathlib.Path | None = None, progress: bool = True,
-                  wait_for_writer: bool = False) -> dict:
+                  policy: str | pathlib.Path | None = None, search: SearchSettings | None = None,
+                  progress: bool = True, wait_for_writer: bool = False) -> dict:
     """Collect (or resume collecting) ``episodes`` successful expert demos (or policy rollouts) per task into
     ``root``.
 
@@ -73,6 +75,8 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         noise_std: DART perturbation of the executed action (the stored label stays the expert's).
         keep_failed: also store failed episodes (flagged ``success=False``).
         policy: a trained policy file (``policy.pt``) to roll out instead of the expert; it must fit the env.
+        search: with ``policy``, roll it out with a simulator search over its chunks
+            (:mod:`dust_rl.search_expert`); the default (one candidate) is the policy alone.
         wait_for_writer: when another process is collecting into ``root``, wait for it (then resume or find the
             data complete) instead of raising.
 
@@ -95,6 +99,9 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
                           f"got {start_seed!r} and {noise_std!r}")
     if policy is not None and noise_std:
         raise ConfigError("noise_std perturbs the scripted expert's actions; a policy's rollouts take none")
+    search = search if search is not None and search.active else None
+    if search is not None and policy is None:
+        raise ConfigError("a search chooses among a policy's chunks: pass the policy to search with")
     try:
         env_kwargs = json.loads(json.dumps(env_kwargs or {}))  # as it will read back from meta.json
     except (TypeError, ValueError) as err:
@@ -109,9 +116,11 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         policy = pathlib.Path(policy)
         load_policy(policy, env=make_torchrl_env(probe))  # raises before anything is written
     probe.close()
+    actor = None if policy is None else {"file": policy.name, "sha256": _file_digest(policy)}
+    if search is not None:
+        actor["search"] = dataclasses.asdict(search)
     config = {"env_id": env_id, "env_kwargs": env_kwargs, "start_seed": start_seed,
-              "noise_std": float(noise_std), "keep_failed": keep_failed,
-              "policy": None if policy is None else {"file": policy.name, "sha256": _file_digest(policy)}}
+              "noise_std": float(noise_std), "keep_failed": keep_failed, "policy": actor}
     root = pathlib.Path(root)
     root.mkdir(parents=True, exist_ok=True)
     with dataset_lock(root, wait=wait_for_writer), ray_runtime(workers), torch_threads(workers.threads):
@@ -123,7 +132,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
                 print(f"{root}: {task} already holds {target} episodes, more than the {episodes} asked; "
                       "keeping them all, nothing new to collect")
             _collect_task(root, env_id, {**env_kwargs, "task": task}, task, target, workers, start_seed,
-                          noise_std, keep_failed, policy, progress)
+                          noise_std, keep_failed, policy, search, progress)
         meta = finalize_dataset(root, progress)
         clear_staging(root)
     return meta
@@ -131,10 +140,16 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
 
 def demo_collector(env_id: str, env_kwargs: dict, workers: Workers, start_seed: int = 0,
                    known_seeds: frozenset[int] = frozenset(), noise_std: float = 0.0,
-                   policy: pathlib.Path | None = None) -> contextlib.AbstractContextManager[BaseCollector]:
+                   policy: pathlib.Path | None = None, search: SearchSettings | None = None,
+                   ) -> contextlib.AbstractContextManager[BaseCollector]:
     """A torchrl collector yielding one whole episode ``[T]`` at a time, of the expert or of the trained
     ``policy`` (each remote worker loads its own copy), seeds from ``start_seed`` on, ``known_seeds`` skipped
-    (a context)."""
+    (a context). With an active ``search`` the policy's search expert acts, inside each env (it rewinds the
+    simulator), and the collector executes its actions as the scripted expert's."""
+    if search is not None and search.active:
+        env_fns = collection_env_fns(env_id, env_kwargs, start_seed, known_seeds, workers.count,
+                                     SearchExpertFactory(policy, search))
+        return episode_collector(env_fns, workers, policy=make_expert_policy())
     env_fns = collection_env_fns(env_id, env_kwargs, start_seed, known_seeds, workers.count)
     if policy is None:
         return episode_collector(env_fns, workers, policy=make_expert_policy(noise_std))
@@ -145,13 +160,13 @@ def demo_collector(env_id: str, env_kwargs: dict, workers: Workers, start_seed: 
 
 def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, episodes: int, workers: Workers,
                   start_seed: int, noise_std: float, keep_failed: bool, policy: pathlib.Path | None,
-                  progress: bool) -> None:
+                  search: SearchSettings | None, progress: bool) -> None:
     records = scan_episodes(root).get(task, {})
     if select_episodes(records, start_seed, episodes, keep_failed) is not None:
         return
     actor = "expert" if policy is None else "policy"
     with (demo_collector(env_id, env_kwargs, workers, start_seed, frozenset(records), noise_std,
-                         policy) as collector,
+                         policy, search) as collector,
           tqdm(total=episodes, initial=_successes(records), desc=f"collecting {task}", disable=not progress) as bar):
         for trajectory in collector:
             rows, record = trajectory_to_episode(trajectory, task)

@@ -1,0 +1,136 @@
+"""A search expert: the base policy's own chunks, chosen by looking ahead in the simulator.
+
+Why: the methods that choose among the chunks a policy samples (steering, ``wm_select``) are bounded by what a
+perfect chooser could win, and on push that bound is far above what they learnt (BENCHMARKS.md, "Lookahead
+headroom"). The simulator can be that chooser while collecting data: at every plan the expert draws
+``candidates`` chunks from the policy (at ``noise_scale`` times its trained noise), plays each one's executed part
+and then ``lookahead - 1`` more of the policy's chunks from a snapshot of the simulator, scores where each lands by
+the task's staged progress (the dense reward's potential; success above everything) and executes the best.
+Distilling its episodes back into the policy's weights (``dust-rl finetune --method self_imitation
+--search.candidates K``) is expert iteration (Anthony et al. 2017, Silver et al. 2017): policy improvement by
+search, with the reward and the simulator as the model. The policy that results acts alone; the search runs only
+while collecting, where the simulator can be rewound (a real robot cannot).
+
+It plugs into the demonstration collector as the expert of
+:class:`~dust_rl.envs.expert_wrapper.ExpertActionWrapper` (``dust-rl collect`` stores its actions like the scripted
+expert's), so rollouts are written, resumed and finalised as any dataset. Each episode's sampling noise restarts
+from its reset seed: the same seed gives the same episode.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+
+import numpy as np
+import torch
+
+from dust_rl.agents import DustPolicy, load_policy, unwrap
+from dust_rl.agents.execution import episode_generator
+from dust_rl.envs.env import DustEnv
+from dust_rl.errors import ConfigError
+from dust_rl.frozen_policy_env import observation_td
+
+SUCCESS_SCORE = 2.0  # above any progress (in [0, 1))
+FAILURE_SCORE = -1.0  # an infeasible IK problem or diverging physics
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchSettings:
+    """How the search expert chooses (module doc); ``candidates = 1`` is the policy alone, no search."""
+
+    candidates: int = 1
+    """Chunks the policy samples per plan, each tried in the simulator."""
+    lookahead: int = 3
+    """Chunks played per try before scoring: the candidate's, then the policy's own."""
+    noise_scale: float = 2.0
+    """The policy's initial noise while searching, in multiples of its trained noise (hotter samples differ more)."""
+
+    def __post_init__(self) -> None:
+        for name in ("candidates", "lookahead"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ConfigError(f"search {name} must be an int >= 1, got {value!r}")
+        if not (isinstance(self.noise_scale, (int, float)) and math.isfinite(self.noise_scale)
+                and self.noise_scale > 0):
+            raise ConfigError(f"search noise_scale must be a positive number, got {self.noise_scale!r}")
+
+    @property
+    def active(self) -> bool:
+        return self.candidates > 1
+
+
+class SearchExpert:
+    """Acts for one episode of ``sim`` (built at its reset, :class:`ExpertActionWrapper`'s ``make_expert``).
+
+    Args:
+        sim: the unwrapped env (snapshots, motions without rendering, progress).
+        policy: the base policy, sampling at the search's temperature.
+        settings: candidates and lookahead.
+        seed: the episode's reset seed; its sampling noise starts from it.
+    """
+
+    def __init__(self, sim: DustEnv, policy: DustPolicy, settings: SearchSettings, seed: int | None) -> None:
+        self.sim, self.policy, self.settings = sim, policy, settings
+        self.generator = episode_generator(0 if seed is None else seed)
+        self.queue: list[np.ndarray] = []
+
+    def act(self) -> np.ndarray:
+        if not self.queue:
+            self.queue = list(self.choose()[:self.policy.execute_steps].numpy())
+        return self.queue.pop(0)
+
+    def plan(self) -> torch.Tensor:
+        """A chunk [H, Da] of the policy for the simulator's current state."""
+        features = self.policy.observation_features(observation_td(self.sim.observe()))
+        return self.policy.plan_features(features, self.generator).get("action_chunk")[0].cpu()
+
+    def choose(self) -> torch.Tensor:
+        """The best-scoring of ``candidates`` chunks; the simulator is left where it was."""
+        chunks = [self.plan() for _ in range(self.settings.candidates)]
+        if len(chunks) == 1:
+            return chunks[0]
+        start = self.sim.snapshot()
+        scores = []
+        for chunk in chunks:
+            scores.append(self.score(chunk))
+            self.sim.restore(start)
+        return chunks[int(np.argmax(scores))]
+
+    def score(self, chunk: torch.Tensor) -> float:
+        """Play ``chunk``'s executed part and the policy's next ``lookahead - 1`` chunks; score where they land."""
+        for played in range(self.settings.lookahead):
+            if played:
+                chunk = self.plan()
+            for action in chunk[:self.policy.execute_steps].numpy():
+                success, reason = self.sim.advance(action)
+                if success:
+                    return SUCCESS_SCORE
+                if reason == "time_limit":
+                    return self.sim.progress()
+                if reason:
+                    return FAILURE_SCORE
+        return self.sim.progress()
+
+
+class SearchExpertFactory:
+    """``make_expert`` for :class:`~dust_rl.envs.expert_wrapper.ExpertActionWrapper`: picklable, and each collector
+    worker loads its own copy of the policy, once.
+
+    Args:
+        policy_path: the base policy's file.
+        settings: the search.
+    """
+
+    def __init__(self, policy_path: pathlib.Path, settings: SearchSettings) -> None:
+        self.policy_path, self.settings = pathlib.Path(policy_path), settings
+        self._policy: DustPolicy | None = None
+
+    def __call__(self, sim: DustEnv, seed: int | None) -> SearchExpert:
+        if self._policy is None:
+            policy = unwrap(load_policy(self.policy_path)).eval()
+            policy.config = dataclasses.replace(policy.config,
+                                                noise_scale=policy.config.noise_scale * self.settings.noise_scale)
+            self._policy = policy
+        return SearchExpert(sim, self._policy, self.settings, seed)
