@@ -75,6 +75,7 @@ class SearchExpert:
         self.sim, self.policy, self.settings = sim, policy, settings
         self.generator = episode_generator(0 if seed is None else seed)
         self.queue: list[np.ndarray] = []
+        self.simulated = 0  # env steps tried from snapshots (not executed): the search's share of the sim budget
 
     def act(self) -> np.ndarray:
         if not self.queue:
@@ -105,6 +106,7 @@ class SearchExpert:
                 chunk = self.plan()
             for action in chunk[:self.policy.execute_steps].numpy():
                 success, reason = self.sim.advance(action)
+                self.simulated += 1
                 if success:
                     return SUCCESS_SCORE
                 if reason == "time_limit":

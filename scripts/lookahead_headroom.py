@@ -23,20 +23,22 @@ from dust_rl.evaluate import wilson_interval
 from dust_rl.search_expert import SearchExpertFactory, SearchSettings
 
 
-def run(policy: pathlib.Path, settings: SearchSettings, seeds: range) -> list[bool]:
-    """Success of the search expert's episode on each seed."""
-    info = unwrap(load_policy(policy)).info
-    env = make_env(info["env_id"], {**info.get("env_kwargs", {}), "task": info["tasks"][0]})
-    factory, wins = SearchExpertFactory(policy, settings), []
+def run(policy: pathlib.Path, settings: SearchSettings, seeds: range) -> tuple[list[bool], int, int]:
+    """Success of the search expert's episode on each seed; env steps executed and tried by the search."""
+    trained = unwrap(load_policy(policy)).info
+    env = make_env(trained["env_id"], {**trained.get("env_kwargs", {}), "task": trained["tasks"][0]})
+    factory, wins, executed, simulated = SearchExpertFactory(policy, settings), [], 0, 0
     for seed in seeds:
         env.reset(seed=seed)
         expert = factory(env.unwrapped, seed)
         terminated = truncated = False
         while not (terminated or truncated):
             _, _, terminated, truncated, info = env.step(expert.act())
+            executed += 1
         wins.append(bool(info["is_success"]))
+        simulated += expert.simulated
     env.close()
-    return wins
+    return wins, executed, simulated
 
 
 def main() -> None:
@@ -53,10 +55,11 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     seeds = range(args.seed, args.seed + args.episodes)
     for k in args.candidates:
-        wins = run(args.policy, SearchSettings(k, args.lookahead, args.noise_scale), seeds)
+        wins, executed, simulated = run(args.policy, SearchSettings(k, args.lookahead, args.noise_scale), seeds)
         low, high = wilson_interval(sum(wins), len(wins))
         print(f"K={k} lookahead={args.lookahead} noise x{args.noise_scale:g}: {sum(wins)}/{len(wins)} "
-              f"({100 * sum(wins) / len(wins):.0f}%, CI {100 * low:.0f}-{100 * high:.0f}%); won: "
+              f"({100 * sum(wins) / len(wins):.0f}%, CI {100 * low:.0f}-{100 * high:.0f}%); env steps executed "
+              f"{executed}, tried by the search {simulated}; won: "
               f"{[seed for seed, won in zip(seeds, wins) if won]}", flush=True)
 
 
