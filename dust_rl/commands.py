@@ -9,7 +9,7 @@ Training, evaluation, fine-tuning and the quickstart keep their configs beside t
 from __future__ import annotations
 
 import pathlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
 import tyro
@@ -17,6 +17,7 @@ import tyro
 from dust_rl.device import resolve_device
 from dust_rl.env_factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
+from dust_rl.search_settings import SearchSettings
 from dust_rl.workers import Backend, Workers
 
 
@@ -128,6 +129,9 @@ class CollectCommand:
     """A trained ``policy.pt`` to roll out instead of the scripted expert, as ``dust-rl eval`` runs it (its env
     settings must match ``--image-size``...): rows keep its actions as ``action`` and the expert's as
     ``expert_action``; ``--episodes`` counts its successes."""
+    search: SearchSettings = field(default_factory=SearchSettings)
+    """With ``--policy``: roll it out with a simulator search over its chunks (``--search.candidates K``;
+    :mod:`dust_rl.search_expert`); both ``action`` and ``expert_action`` then hold the search's actions."""
     threads: int = 1
     """Torch threads of each worker's policy (with ``--policy``)."""
     privileged_state: bool = False
@@ -149,7 +153,8 @@ def run_collect(config: CollectCommand, command_line: str) -> None:
     workers = Workers(config.workers, config.backend, config.threads, config.ray_address)
     collect_demos(config.out, config.env, env_tasks(config.env, config.task), config.episodes,
                   env_kwargs=env_kwargs, workers=workers, start_seed=config.seed, noise_std=config.noise_std,
-                  keep_failed=config.keep_failed, policy=config.policy, progress=config.progress)
+                  keep_failed=config.keep_failed, policy=config.policy, search=config.search,
+                  progress=config.progress)
     print(dataset_summary(DemoDataset(config.out)))
 
 

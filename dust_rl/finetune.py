@@ -60,7 +60,7 @@ from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import check_run_folder, restore, write_run_config
-from dust_rl.search_expert import SearchSettings
+from dust_rl.search_settings import SearchSettings
 from dust_rl.self_imitation import is_dagger, self_imitation
 from dust_rl.start_at_base import WarmStartSAC, start_at_base
 from dust_rl.steering import NoiseSteeringEnv
@@ -470,6 +470,10 @@ def _markdown(report: dict) -> str:
         config = report["config"]
         taught = ("and the failures between them, taught the expert" if is_dagger(config["train"]["extra_action_key"])
                   else "taught their actions")
+        search = config.get("search", {})
+        if search.get("candidates", 1) > 1:
+            taught += (f", each rollout a search over {search['candidates']} of the policy's chunks per plan "
+                       f"({search['lookahead']} chunks of lookahead, noise x{search['noise_scale']:g})")
         how = (f"{config['rounds']} round(s) of {config['rollout_successes']} successful rollouts {taught} "
                f"({', '.join(str(r['rollouts']) for r in report['rounds'])} episodes; {report['rollout_env_steps']} "
                f"env steps), each followed by {config['train']['steps']} fine-tuning steps "

@@ -20,7 +20,6 @@ from its reset seed: the same seed gives the same episode.
 from __future__ import annotations
 
 import dataclasses
-import math
 import pathlib
 
 import numpy as np
@@ -29,36 +28,11 @@ import torch
 from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.agents.execution import episode_generator
 from dust_rl.envs.env import DustEnv
-from dust_rl.errors import ConfigError
 from dust_rl.frozen_policy_env import observation_td
+from dust_rl.search_settings import SearchSettings
 
 SUCCESS_SCORE = 2.0  # above any progress (in [0, 1))
 FAILURE_SCORE = -1.0  # an infeasible IK problem or diverging physics
-
-
-@dataclasses.dataclass(frozen=True)
-class SearchSettings:
-    """How the search expert chooses (module doc); ``candidates = 1`` is the policy alone, no search."""
-
-    candidates: int = 1
-    """Chunks the policy samples per plan, each tried in the simulator."""
-    lookahead: int = 3
-    """Chunks played per try before scoring: the candidate's, then the policy's own."""
-    noise_scale: float = 2.0
-    """The policy's initial noise while searching, in multiples of its trained noise (hotter samples differ more)."""
-
-    def __post_init__(self) -> None:
-        for name in ("candidates", "lookahead"):
-            value = getattr(self, name)
-            if not (isinstance(value, int) and value >= 1):
-                raise ConfigError(f"search {name} must be an int >= 1, got {value!r}")
-        if not (isinstance(self.noise_scale, (int, float)) and math.isfinite(self.noise_scale)
-                and self.noise_scale > 0):
-            raise ConfigError(f"search noise_scale must be a positive number, got {self.noise_scale!r}")
-
-    @property
-    def active(self) -> bool:
-        return self.candidates > 1
 
 
 class SearchExpert:

@@ -20,7 +20,8 @@ import torch
 from dust_rl.agents import load_policy, unwrap
 from dust_rl.env_factory import make_env
 from dust_rl.evaluate import wilson_interval
-from dust_rl.search_expert import SearchExpertFactory, SearchSettings
+from dust_rl.search_expert import SearchExpertFactory
+from dust_rl.search_settings import SearchSettings
 
 
 def run(policy: pathlib.Path, settings: SearchSettings, seeds: range) -> tuple[list[bool], int, int]:

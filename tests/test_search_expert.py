@@ -19,7 +19,8 @@ from dust_rl.env_factory import make_env
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import make_eval_env
 from dust_rl.finetune import FinetuneConfig
-from dust_rl.search_expert import SearchExpertFactory, SearchSettings
+from dust_rl.search_expert import SearchExpertFactory
+from dust_rl.search_settings import SearchSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -39,7 +39,8 @@ from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.episode_collector import episode_collector, torch_threads
 from dust_rl.errors import ConfigError
-from dust_rl.search_expert import SearchExpertFactory, SearchSettings
+from dust_rl.search_expert import SearchExpertFactory
+from dust_rl.search_settings import SearchSettings
 from dust_rl.workers import Workers, ray_runtime
 
 from .collection_env import collection_env_fns
