@@ -50,6 +50,8 @@ class SearchExpert:
         self.generator = episode_generator(0 if seed is None else seed)
         self.queue: list[np.ndarray] = []
         self.simulated = 0  # env steps tried from snapshots (not executed): the search's share of the sim budget
+        self.future: torch.Tensor | None = None
+        self.choices: list[tuple[torch.Tensor, torch.Tensor]] | None = None
 
     def act(self) -> np.ndarray:
         if not self.queue:
@@ -57,13 +59,21 @@ class SearchExpert:
         return self.queue.pop(0)
 
     def plan(self) -> torch.Tensor:
-        """A chunk [H, Da] of the policy for the simulator's current state."""
+        """A chunk [H, Da] of the policy for the simulator's current state (its predicted future, normalised, in
+        :attr:`future`; None for a policy that predicts none)."""
         features = self.policy.observation_features(observation_td(self.sim.observe()))
-        return self.policy.plan_features(features, self.generator).get("action_chunk")[0].cpu()
+        out = self.policy.plan_features(features, self.generator)
+        future = out.get("future_tokens", None)
+        self.future = None if future is None else self.policy.normalizer.normalize_vision(future)[0].cpu()
+        return out.get("action_chunk")[0].cpu()
 
     def choose(self) -> torch.Tensor:
-        """The best-scoring of ``candidates`` chunks; the simulator is left where it was."""
-        chunks = [self.plan() for _ in range(self.settings.candidates)]
+        """The best-scoring of ``candidates`` chunks; the simulator is left where it was. With :attr:`choices` a
+        list, each plan's candidates' predicted futures [K, N_o, Dv] and scores [K] are appended to it."""
+        chunks, futures = [], []
+        for _ in range(self.settings.candidates):
+            chunks.append(self.plan())
+            futures.append(self.future)
         if len(chunks) == 1:
             return chunks[0]
         start = self.sim.snapshot()
@@ -71,6 +81,8 @@ class SearchExpert:
         for chunk in chunks:
             scores.append(self.score(chunk))
             self.sim.restore(start)
+        if self.choices is not None and futures[0] is not None:
+            self.choices.append((torch.stack(futures), torch.tensor(scores)))
         return chunks[int(np.argmax(scores))]
 
     def score(self, chunk: torch.Tensor) -> float:

@@ -13,6 +13,7 @@ learnt chooser of that kind will. ``--candidates 1`` is the plain evaluation, ep
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pathlib
 
 import torch
@@ -24,22 +25,48 @@ from dust_rl.search_expert import SearchExpertFactory
 from dust_rl.search_settings import SearchSettings
 
 
-def run(policy: pathlib.Path, settings: SearchSettings, seeds: range) -> tuple[list[bool], int, int]:
-    """Success of the search expert's episode on each seed; env steps executed and tried by the search."""
+@dataclasses.dataclass
+class SearchRun:
+    """The search expert's episodes: success per seed, env steps executed and tried, and with ``record`` each
+    plan's candidates' predicted futures and scores (:attr:`SearchExpert.choices`) and the episode index of each."""
+
+    wins: list[bool]
+    executed: int = 0
+    simulated: int = 0
+    choices: list[tuple[torch.Tensor, torch.Tensor]] = dataclasses.field(default_factory=list)
+    episode_of_choice: list[int] = dataclasses.field(default_factory=list)
+
+
+def run(policy: pathlib.Path, settings: SearchSettings, seeds: range, record: bool = False) -> SearchRun:
+    """The search expert's episode on each seed."""
     trained = unwrap(load_policy(policy)).info
     env = make_env(trained["env_id"], {**trained.get("env_kwargs", {}), "task": trained["tasks"][0]})
-    factory, wins, executed, simulated = SearchExpertFactory(policy, settings), [], 0, 0
-    for seed in seeds:
+    factory, result = SearchExpertFactory(policy, settings), SearchRun([])
+    for index, seed in enumerate(seeds):
         env.reset(seed=seed)
         expert = factory(env.unwrapped, seed)
+        expert.choices = [] if record else None
         terminated = truncated = False
         while not (terminated or truncated):
             _, _, terminated, truncated, info = env.step(expert.act())
-            executed += 1
-        wins.append(bool(info["is_success"]))
-        simulated += expert.simulated
+            result.executed += 1
+        result.wins.append(bool(info["is_success"]))
+        result.simulated += expert.simulated
+        if record:
+            result.choices += expert.choices
+            result.episode_of_choice += [index] * len(expert.choices)
     env.close()
-    return wins, executed, simulated
+    return result
+
+
+def describe(settings: SearchSettings, seeds: range, result: SearchRun) -> str:
+    """One line: success with its interval, env steps, the seeds won."""
+    wins = result.wins
+    low, high = wilson_interval(sum(wins), len(wins))
+    return (f"K={settings.candidates} lookahead={settings.lookahead} noise x{settings.noise_scale:g}: {sum(wins)}/"
+            f"{len(wins)} ({100 * sum(wins) / len(wins):.0f}%, CI {100 * low:.0f}-{100 * high:.0f}%); env steps "
+            f"executed {result.executed}, tried by the search {result.simulated}; won: "
+            f"{[seed for seed, won in zip(seeds, wins) if won]}")
 
 
 def main() -> None:
@@ -56,12 +83,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     seeds = range(args.seed, args.seed + args.episodes)
     for k in args.candidates:
-        wins, executed, simulated = run(args.policy, SearchSettings(k, args.lookahead, args.noise_scale), seeds)
-        low, high = wilson_interval(sum(wins), len(wins))
-        print(f"K={k} lookahead={args.lookahead} noise x{args.noise_scale:g}: {sum(wins)}/{len(wins)} "
-              f"({100 * sum(wins) / len(wins):.0f}%, CI {100 * low:.0f}-{100 * high:.0f}%); env steps executed "
-              f"{executed}, tried by the search {simulated}; won: "
-              f"{[seed for seed, won in zip(seeds, wins) if won]}", flush=True)
+        settings = SearchSettings(k, args.lookahead, args.noise_scale)
+        print(describe(settings, seeds, run(args.policy, settings, seeds)), flush=True)
 
 
 if __name__ == "__main__":

@@ -85,8 +85,12 @@ def test_the_best_scoring_candidate_is_executed_and_the_simulator_is_left_as_it_
     for chunk in candidates:
         scores.append(judge.score(chunk))
         env.unwrapped.restore(before)
-    chosen = SearchExpertFactory(policy_path, settings)(env.unwrapped, 5).choose()  # the same noise stream
+    expert = SearchExpertFactory(policy_path, settings)(env.unwrapped, 5)  # the same noise stream
+    expert.choices = []
+    chosen = expert.choose()
     assert torch.equal(chosen, candidates[int(np.argmax(scores))])
+    (futures, recorded), = expert.choices  # each candidate's predicted future and score, for fitting a ranker
+    assert torch.equal(recorded, torch.tensor(scores)) and futures.shape[0] == settings.candidates
     assert len({round(s, 12) for s in scores}) > 1  # the candidates differ, so the choice is a real one
     assert np.array_equal(env.unwrapped.data.qpos, before.data.qpos) and env.unwrapped._elapsed == before.elapsed
     env.close()
