@@ -121,7 +121,8 @@ class SearchExpertFactory:
     def __call__(self, sim: DustEnv, seed: int | None) -> SearchExpert:
         if self._policy is None:
             policy = unwrap(load_policy(self.policy_path)).eval()
-            policy.config = dataclasses.replace(policy.config,
-                                                noise_scale=policy.config.noise_scale * self.settings.noise_scale)
+            sampler = policy.config.sampler_settings
+            hotter = sampler.noise_scale * self.settings.noise_scale
+            policy.set_sampler(dataclasses.replace(sampler, noise_scale=hotter))
             self._policy = policy
         return SearchExpert(sim, self._policy, self.settings, seed)

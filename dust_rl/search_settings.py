@@ -17,8 +17,9 @@ class SearchSettings:
     """Chunks the policy samples per plan, each tried in the simulator."""
     lookahead: int = 3
     """Chunks played per try before scoring: the candidate's, then the policy's own."""
-    noise_scale: float = 2.0
-    """The policy's initial noise while searching, in multiples of its trained noise (hotter samples differ more)."""
+    noise_scale: float = 1.0
+    """The policy's initial noise while searching, in multiples of its trained noise (hotter samples differ more; on
+    push and pick_place they won no more often, BENCHMARKS.md)."""
 
     def __post_init__(self) -> None:
         for name in ("candidates", "lookahead"):

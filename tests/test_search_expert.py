@@ -67,7 +67,7 @@ def search_episode(policy_path, settings: SearchSettings, seed: int) -> np.ndarr
 
 
 def test_one_candidate_is_the_evaluated_policy(policy_path):
-    actions = search_episode(policy_path, SearchSettings(candidates=1, noise_scale=1.0), seed=4)
+    actions = search_episode(policy_path, SearchSettings(candidates=1), seed=4)
     env = make_eval_env("DustFranka-v0", {**ENV_KWARGS, "task": TASK}, SeedSchedule(4))
     evaluated = env.rollout(50, seeded_executor(unwrap(load_policy(policy_path))), break_when_any_done=True)
     env.close()
@@ -107,7 +107,7 @@ def test_search_rollouts_are_a_dataset_of_the_searchs_actions(policy_path, tmp_p
     searched = np.clip(search_episode(policy_path, settings, seed=0), -1.0, 1.0)  # as the env executes them
     np.testing.assert_array_equal(rows["action"].numpy(), searched)
     meta_policy = json.loads((tmp_path / "meta.json").read_text())["policy"]
-    assert meta_policy["search"] == {"candidates": 2, "lookahead": 1, "noise_scale": 2.0}
+    assert meta_policy["search"] == {"candidates": 2, "lookahead": 1, "noise_scale": 1.0}
 
 
 def test_bad_search_settings_are_refused(policy_path, tmp_path):
