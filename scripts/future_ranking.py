@@ -22,8 +22,8 @@ import torch
 from lookahead_headroom import describe, run
 
 from dust_rl.search_settings import SearchSettings
+from dust_rl.wm_select import VALIDATION_EVERY  # every 5th episode judges the fit, as wm_select's scorer
 
-VALIDATION_EVERY = 5  # every 5th episode judges the fit
 RIDGE = (1e-1, 1.0, 10.0, 100.0, 1000.0)
 
 
@@ -50,7 +50,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    seeds, settings = range(args.seed, args.seed + args.episodes), SearchSettings(args.candidates, args.lookahead, 1.0)
+    seeds, settings = range(args.seed, args.seed + args.episodes), SearchSettings(args.candidates, args.lookahead)
     result = run(args.policy, settings, seeds, record=True)
     print(describe(settings, seeds, result))
     if not result.choices:
