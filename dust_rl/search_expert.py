@@ -10,9 +10,8 @@ the task's staged progress (the dense reward's potential; success above everythi
 Distilling its episodes back into the policy's weights (``dust-rl finetune --method self_imitation
 --search.candidates K``) is expert iteration (Anthony et al. 2017, Silver et al. 2017): policy improvement by
 search, with the reward and the simulator as the model. The policy that results acts alone; the search runs only
-while collecting, where the simulator can be rewound (a real robot cannot). Measured on push: the distilled policy
-kept none of the search's gain (56% -> 52% held-out), as the policy cannot tell apart the situations the search
-tells apart.
+while collecting, where the simulator can be rewound (a real robot cannot). Measured on push and pick_place: the
+distilled policies kept none of the search's gain (push 56% -> 50%, pick_place 22% -> 24% held-out; BENCHMARKS.md).
 
 It plugs into the demonstration collector as the expert of
 :class:`~dust_rl.envs.expert_wrapper.ExpertActionWrapper` (``dust-rl collect`` stores its actions like the scripted
