@@ -33,6 +33,17 @@ from dust_rl.envs.env import DustEnv
 from dust_rl.frozen_policy_env import observation_td
 from dust_rl.search_settings import SearchSettings
 
+
+@dataclasses.dataclass(frozen=True)
+class Choice:
+    """One plan of the search: its candidates' chunks [K, H, Da], predicted futures [K, N_o, Dv] (None for a policy
+    that predicts none) and scores [K]; the one executed is ``scores.argmax()``."""
+
+    chunks: torch.Tensor
+    futures: torch.Tensor | None
+    scores: torch.Tensor
+
+
 SUCCESS_SCORE = 2.0  # above any progress (in [0, 1))
 FAILURE_SCORE = -1.0  # an infeasible IK problem or diverging physics
 
@@ -53,7 +64,7 @@ class SearchExpert:
         self.queue: list[np.ndarray] = []
         self.simulated = 0  # env steps tried from snapshots (not executed): the search's share of the sim budget
         self.future: torch.Tensor | None = None
-        self.choices: list[tuple[torch.Tensor, torch.Tensor]] | None = None
+        self.choices: list[Choice] | None = None
 
     def act(self) -> np.ndarray:
         if not self.queue:
@@ -71,7 +82,7 @@ class SearchExpert:
 
     def choose(self) -> torch.Tensor:
         """The best-scoring of ``candidates`` chunks; the simulator is left where it was. With :attr:`choices` a
-        list, each plan's candidates' predicted futures [K, N_o, Dv] and scores [K] are appended to it."""
+        list, each plan's :class:`Choice` is appended to it."""
         chunks, futures = [], []
         for _ in range(self.settings.candidates):
             chunks.append(self.plan())
@@ -83,8 +94,9 @@ class SearchExpert:
         for chunk in chunks:
             scores.append(self.score(chunk))
             self.sim.restore(start)
-        if self.choices is not None and futures[0] is not None:
-            self.choices.append((torch.stack(futures), torch.tensor(scores)))
+        if self.choices is not None:
+            self.choices.append(Choice(torch.stack(chunks), None if futures[0] is None else torch.stack(futures),
+                                       torch.tensor(scores)))
         return chunks[int(np.argmax(scores))]
 
     def score(self, chunk: torch.Tensor) -> float:
@@ -118,10 +130,15 @@ class SearchExpertFactory:
         self._policy: DustPolicy | None = None
 
     def __call__(self, sim: DustEnv, seed: int | None) -> SearchExpert:
+        return SearchExpert(sim, self.policy, self.settings, seed)
+
+    @property
+    def policy(self) -> DustPolicy:
+        """The policy the search samples from, at its temperature (loaded on first use)."""
         if self._policy is None:
             policy = unwrap(load_policy(self.policy_path)).eval()
             sampler = policy.config.sampler_settings
             hotter = sampler.noise_scale * self.settings.noise_scale
             policy.set_sampler(dataclasses.replace(sampler, noise_scale=hotter))
             self._policy = policy
-        return SearchExpert(sim, self._policy, self.settings, seed)
+        return self._policy

@@ -53,10 +53,10 @@ def main() -> None:
     seeds, settings = range(args.seed, args.seed + args.episodes), SearchSettings(args.candidates, args.lookahead)
     result = run(args.policy, settings, seeds, record=True)
     print(describe(settings, seeds, result))
-    if not result.choices:
+    if result.choices[0].futures is None:
         raise SystemExit(f"{args.policy} predicts no future: nothing to rank")
-    futures = torch.stack([f for f, _ in result.choices]).flatten(2).double()  # [M, K, N_o * Dv]
-    scores = torch.stack([s for _, s in result.choices]).double()  # [M, K]
+    futures = torch.stack([c.futures for c in result.choices]).flatten(2).double()  # [M, K, N_o * Dv]
+    scores = torch.stack([c.scores for c in result.choices]).double()  # [M, K]
     validation = torch.tensor(result.episode_of_choice) % VALIDATION_EVERY == VALIDATION_EVERY - 1
     centred = futures - futures.mean(1, keepdim=True)
     spread = futures.sub(futures.mean((0, 1))).pow(2).sum(-1).mean()

@@ -21,19 +21,19 @@ import torch
 from dust_rl.agents import load_policy, unwrap
 from dust_rl.env_factory import make_env
 from dust_rl.evaluate import wilson_interval
-from dust_rl.search_expert import SearchExpertFactory
+from dust_rl.search_expert import Choice, SearchExpertFactory
 from dust_rl.search_settings import SearchSettings
 
 
 @dataclasses.dataclass
 class SearchRun:
     """The search expert's episodes: success per seed, env steps executed and tried, and with ``record`` each
-    plan's candidates' predicted futures and scores (:attr:`SearchExpert.choices`) and the episode index of each."""
+    plan's :class:`~dust_rl.search_expert.Choice` and the episode index of each."""
 
     wins: list[bool]
     executed: int = 0
     simulated: int = 0
-    choices: list[tuple[torch.Tensor, torch.Tensor]] = dataclasses.field(default_factory=list)
+    choices: list[Choice] = dataclasses.field(default_factory=list)
     episode_of_choice: list[int] = dataclasses.field(default_factory=list)
 
 

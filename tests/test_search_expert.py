@@ -89,8 +89,9 @@ def test_the_best_scoring_candidate_is_executed_and_the_simulator_is_left_as_it_
     expert.choices = []
     chosen = expert.choose()
     assert torch.equal(chosen, candidates[int(np.argmax(scores))])
-    (futures, recorded), = expert.choices  # each candidate's predicted future and score, for fitting a ranker
-    assert torch.equal(recorded, torch.tensor(scores)) and futures.shape[0] == settings.candidates
+    choice, = expert.choices  # each candidate with its predicted future and score, for fitting a ranker
+    assert torch.equal(choice.scores, torch.tensor(scores)) and torch.equal(choice.chunks, torch.stack(candidates))
+    assert choice.futures.shape[0] == settings.candidates
     assert len({round(s, 12) for s in scores}) > 1  # the candidates differ, so the choice is a real one
     assert np.array_equal(env.unwrapped.data.qpos, before.data.qpos) and env.unwrapped._elapsed == before.elapsed
     env.close()
