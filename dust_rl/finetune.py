@@ -471,7 +471,7 @@ def _markdown(report: dict) -> str:
         taught = ("and the failures between them, taught the expert" if is_dagger(config["train"]["extra_action_key"])
                   else "taught their actions")
         search = config.get("search", {})
-        if search.get("candidates", 1) > 1:
+        if SearchSettings(**search).active:
             taught += (f", each rollout a search over {search['candidates']} of the policy's chunks per plan "
                        f"({search['lookahead']} chunks of lookahead, noise x{search['noise_scale']:g})")
         how = (f"{config['rounds']} round(s) of {config['rollout_successes']} successful rollouts {taught} "

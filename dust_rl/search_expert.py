@@ -63,7 +63,6 @@ class SearchExpert:
         self.generator = episode_generator(0 if seed is None else seed)
         self.queue: list[np.ndarray] = []
         self.simulated = 0  # env steps tried from snapshots (not executed): the search's share of the sim budget
-        self.future: torch.Tensor | None = None
         self.choices: list[Choice] | None = None
 
     def act(self) -> np.ndarray:
@@ -71,22 +70,19 @@ class SearchExpert:
             self.queue = list(self.choose()[:self.policy.execute_steps].numpy())
         return self.queue.pop(0)
 
-    def plan(self) -> torch.Tensor:
-        """A chunk [H, Da] of the policy for the simulator's current state (its predicted future, normalised, in
-        :attr:`future`; None for a policy that predicts none)."""
+    def plan(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """A chunk [H, Da] of the policy for the simulator's current state, and the future [N_o, Dv] it predicted
+        with it, normalised (None for a policy that predicts none)."""
         features = self.policy.observation_features(observation_td(self.sim.observe()))
         out = self.policy.plan_features(features, self.generator)
         future = out.get("future_tokens", None)
-        self.future = None if future is None else self.policy.normalizer.normalize_vision(future)[0].cpu()
-        return out.get("action_chunk")[0].cpu()
+        future = None if future is None else self.policy.normalizer.normalize_vision(future)[0].cpu()
+        return out.get("action_chunk")[0].cpu(), future
 
     def choose(self) -> torch.Tensor:
         """The best-scoring of ``candidates`` chunks; the simulator is left where it was. With :attr:`choices` a
         list, each plan's :class:`Choice` is appended to it."""
-        chunks, futures = [], []
-        for _ in range(self.settings.candidates):
-            chunks.append(self.plan())
-            futures.append(self.future)
+        chunks, futures = zip(*(self.plan() for _ in range(self.settings.candidates)))
         if len(chunks) == 1:
             return chunks[0]
         start = self.sim.snapshot()
@@ -103,7 +99,7 @@ class SearchExpert:
         """Play ``chunk``'s executed part and the policy's next ``lookahead - 1`` chunks; score where they land."""
         for played in range(self.settings.lookahead):
             if played:
-                chunk = self.plan()
+                chunk = self.plan()[0]
             for action in chunk[:self.policy.execute_steps].numpy():
                 success, reason = self.sim.advance(action)
                 self.simulated += 1

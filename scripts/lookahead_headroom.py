@@ -18,7 +18,6 @@ import pathlib
 
 import torch
 
-from dust_rl.agents import load_policy, unwrap
 from dust_rl.env_factory import make_env
 from dust_rl.evaluate import wilson_interval
 from dust_rl.search_expert import Choice, SearchExpertFactory
@@ -39,9 +38,9 @@ class SearchRun:
 
 def run(policy: pathlib.Path, settings: SearchSettings, seeds: range, record: bool = False) -> SearchRun:
     """The search expert's episode on each seed."""
-    trained = unwrap(load_policy(policy)).info
-    env = make_env(trained["env_id"], {**trained.get("env_kwargs", {}), "task": trained["tasks"][0]})
     factory, result = SearchExpertFactory(policy, settings), SearchRun([])
+    trained = factory.policy.info
+    env = make_env(trained["env_id"], {**trained.get("env_kwargs", {}), "task": trained["tasks"][0]})
     for index, seed in enumerate(seeds):
         env.reset(seed=seed)
         expert = factory(env.unwrapped, seed)

@@ -80,7 +80,7 @@ def test_the_best_scoring_candidate_is_executed_and_the_simulator_is_left_as_it_
     env.reset(seed=5)
     before = env.unwrapped.snapshot()
     judge = SearchExpertFactory(policy_path, settings)(env.unwrapped, 5)
-    candidates = [judge.plan() for _ in range(settings.candidates)]
+    candidates = [judge.plan()[0] for _ in range(settings.candidates)]
     scores = []
     for chunk in candidates:
         scores.append(judge.score(chunk))
