@@ -26,6 +26,7 @@ import pathlib
 
 import numpy as np
 import torch
+from tensordict import TensorDict
 
 from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.agents.execution import episode_generator
@@ -70,19 +71,25 @@ class SearchExpert:
             self.queue = list(self.choose()[:self.policy.execute_steps].numpy())
         return self.queue.pop(0)
 
-    def plan(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def plan(self, features: TensorDict | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """A chunk [H, Da] of the policy for the simulator's current state, and the future [N_o, Dv] it predicted
-        with it, normalised (None for a policy that predicts none)."""
-        features = self.policy.observation_features(observation_td(self.sim.observe()))
+        with it, normalised (None for a policy that predicts none). ``features`` (:meth:`observe`) lets the
+        candidates of one plan share one render and one encoder pass."""
+        features = self.observe() if features is None else features
         out = self.policy.plan_features(features, self.generator)
         future = out.get("future_tokens", None)
         future = None if future is None else self.policy.normalizer.normalize_vision(future)[0].cpu()
         return out.get("action_chunk")[0].cpu(), future
 
+    def observe(self) -> TensorDict:
+        """The policy's features of the simulator's current state."""
+        return self.policy.observation_features(observation_td(self.sim.observe()))
+
     def choose(self) -> torch.Tensor:
         """The best-scoring of ``candidates`` chunks; the simulator is left where it was. With :attr:`choices` a
         list, each plan's :class:`Choice` is appended to it."""
-        chunks, futures = zip(*(self.plan() for _ in range(self.settings.candidates)))
+        features = self.observe()
+        chunks, futures = zip(*(self.plan(features) for _ in range(self.settings.candidates)))
         if len(chunks) == 1:
             return chunks[0]
         start = self.sim.snapshot()

@@ -5,7 +5,9 @@ the env (rather than in the policy) lets the expert read the simulator
 state in its own process, so any torchrl policy only has to read the
 ``"expert_action"`` key. The expert is rebuilt at every reset and queried
 once per step, exactly as a direct expert rollout would query it, so with
-the expert's action executed the trajectory is the expert's own.
+the expert's action executed the trajectory is the expert's own. A terminal
+observation (terminated or truncated) carries a zero label instead: no action
+follows it, and an expert that plans (a search) would plan for nothing.
 
 Another expert can stand in for the scripted one (``make_expert``): anything with ``act()``, built at each
 reset from the env and the reset seed, e.g. the search expert of ``dust_rl.search_expert``.
@@ -65,8 +67,8 @@ class ExpertActionWrapper(gym.Wrapper):
 
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
         obs, reward, terminated, truncated, info = self.env.step(action)
-        return self._with_expert_action(obs), reward, terminated, truncated, info
+        return self._with_expert_action(obs, final=terminated or truncated), reward, terminated, truncated, info
 
-    def _with_expert_action(self, obs: dict) -> dict:
-        action = self._expert.act()
+    def _with_expert_action(self, obs: dict, final: bool = False) -> dict:
+        action = np.zeros(self.action_space.shape) if final else self._expert.act()
         return {**obs, EXPERT_ACTION_KEY: np.clip(action, -1.0, 1.0).astype(np.float32)}
