@@ -30,7 +30,7 @@ from tensordict import TensorDict
 
 from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.agents.execution import episode_generator
-from dust_rl.envs.env import DustEnv
+from dust_rl.envs.env import FLAT_ENV_STATE_KEY, FLAT_STATE_KEY, DustEnv
 from dust_rl.frozen_policy_env import observation_td
 from dust_rl.search_settings import SearchSettings
 
@@ -38,11 +38,14 @@ from dust_rl.search_settings import SearchSettings
 @dataclasses.dataclass(frozen=True)
 class Choice:
     """One plan of the search: its candidates' chunks [K, H, Da], predicted futures [K, N_o, Dv] (None for a policy
-    that predicts none) and scores [K]; the one executed is ``scores.argmax()``."""
+    that predicts none) and scores [K] (the one executed is ``scores.argmax()``), and the situation: the robot's
+    state [Ds] and the objects' true state [De] (privileged: for diagnostics, never for the policy)."""
 
     chunks: torch.Tensor
     futures: torch.Tensor | None
     scores: torch.Tensor
+    state: torch.Tensor
+    object_state: torch.Tensor
 
 
 SUCCESS_SCORE = 2.0  # above any progress (in [0, 1))
@@ -73,22 +76,24 @@ class SearchExpert:
 
     def plan(self, features: TensorDict | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """A chunk [H, Da] of the policy for the simulator's current state, and the future [N_o, Dv] it predicted
-        with it, normalised (None for a policy that predicts none). ``features`` (:meth:`observe`) lets the
+        with it, normalised (None for a policy that predicts none). ``features`` (:meth:`features`) lets the
         candidates of one plan share one render and one encoder pass."""
-        features = self.observe() if features is None else features
+        features = self.features() if features is None else features
         out = self.policy.plan_features(features, self.generator)
         future = out.get("future_tokens", None)
         future = None if future is None else self.policy.normalizer.normalize_vision(future)[0].cpu()
         return out.get("action_chunk")[0].cpu(), future
 
-    def observe(self) -> TensorDict:
-        """The policy's features of the simulator's current state."""
-        return self.policy.observation_features(observation_td(self.sim.observe()))
+    def features(self, observation: dict | None = None) -> TensorDict:
+        """The policy's features of ``observation`` (by default the simulator's current one)."""
+        observation = self.sim.observe() if observation is None else observation
+        return self.policy.observation_features(observation_td(observation))
 
     def choose(self) -> torch.Tensor:
         """The best-scoring of ``candidates`` chunks; the simulator is left where it was. With :attr:`choices` a
         list, each plan's :class:`Choice` is appended to it."""
-        features = self.observe()
+        observation = self.sim.observe()
+        features = self.features(observation)
         chunks, futures = zip(*(self.plan(features) for _ in range(self.settings.candidates)))
         if len(chunks) == 1:
             return chunks[0]
@@ -99,7 +104,8 @@ class SearchExpert:
             self.sim.restore(start)
         if self.choices is not None:
             self.choices.append(Choice(torch.stack(chunks), None if futures[0] is None else torch.stack(futures),
-                                       torch.tensor(scores)))
+                                       torch.tensor(scores), torch.from_numpy(observation[FLAT_STATE_KEY]),
+                                       torch.from_numpy(observation[FLAT_ENV_STATE_KEY])))
         return chunks[int(np.argmax(scores))]
 
     def score(self, chunk: torch.Tensor) -> float:
