@@ -34,7 +34,8 @@ from dust_rl.search_settings import SearchSettings
 from dust_rl.wm_select import VALIDATION_EVERY  # every 5th episode judges the fit, as wm_select's scorer
 
 RIDGE = (1e-1, 1.0, 10.0, 100.0, 1000.0)
-MLP_WIDTH, MLP_BATCH, MLP_STEPS = 256, 64, 3000
+MLP_WIDTH, MLP_BATCH, MLP_STEPS = 256, 64, 300  # more steps fit the fitted plans and rank unseen ones no better
+DIFFER = 0.01  # a plan ranks its candidates only where their scores differ by more than this (else: ties)
 
 
 def selection_gain(predicted: torch.Tensor, scores: torch.Tensor) -> float:
@@ -91,10 +92,13 @@ def fit_mlp(inputs: torch.Tensor, scores: torch.Tensor, fit: torch.Tensor, steps
         return net(x)[..., 0].double()
 
 
-def judge(name: str, predicted: torch.Tensor, scores: torch.Tensor, validation: torch.Tensor) -> None:
+def judge(name: str, predicted: torch.Tensor, scores: torch.Tensor, validation: torch.Tensor,
+          differ: torch.Tensor) -> None:
+    judged = validation & differ
     print(f"{name}: gain fitted {selection_gain(predicted[~validation], scores[~validation]):.4f}, judged "
           f"{selection_gain(predicted[validation], scores[validation]):.4f}; Spearman judged "
-          f"{spearman_within(predicted[validation], scores[validation]):.3f}")
+          f"{spearman_within(predicted[validation], scores[validation]):.3f}, on the judged plans whose scores differ "
+          f"{spearman_within(predicted[judged], scores[judged]):.3f}")
 
 
 def main() -> None:
@@ -112,9 +116,10 @@ def main() -> None:
     plans = recorded_plans(args)
     scores = plans["scores"].double()  # [M, K]
     validation = plans["episode"] % VALIDATION_EVERY == VALIDATION_EVERY - 1
+    differ = scores.max(1).values - scores.min(1).values > DIFFER
     oracle = selection_gain(scores[validation], scores[validation])
-    print(f"{len(scores)} plans ({int(validation.sum())} judged); scores differ by more than 0.01 in "
-          f"{(scores.max(1).values - scores.min(1).values > 0.01).double().mean():.0%} of the plans; gain of the pick "
+    print(f"{len(scores)} plans ({int(validation.sum())} judged); scores differ by more than {DIFFER} in "
+          f"{differ.double().mean():.0%} of the plans ({int((validation & differ).sum())} judged); gain of the pick "
           f"over the mean candidate (judged plans): oracle {oracle:.4f}")
     executed = unwrap(load_policy(args.policy)).execute_steps
     actions = plans["chunks"][:, :, :executed].flatten(2).double()  # [M, K, E * Da]
@@ -124,7 +129,7 @@ def main() -> None:
                         ("MLP on the actions and the robot's state", [actions, situation["state"]]),
                         ("MLP on the actions, the robot's state and the true object state",
                          [actions, situation["state"], situation["object_state"]])):
-        judge(name, fit_mlp(torch.cat(parts, -1), scores, ~validation), scores, validation)
+        judge(name, fit_mlp(torch.cat(parts, -1), scores, ~validation & differ), scores, validation, differ)
     if "futures" not in plans:
         return
     futures = plans["futures"].flatten(2).double()  # [M, K, N_o * Dv]
@@ -136,7 +141,7 @@ def main() -> None:
     for ridge in RIDGE:
         weights = torch.linalg.solve(fit_x.T @ fit_x + ridge * torch.eye(fit_x.shape[1], dtype=fit_x.dtype),
                                      fit_x.T @ fit_y)
-        judge(f"ridge {ridge:g} on the predicted futures", centred @ weights, scores, validation)
+        judge(f"ridge {ridge:g} on the predicted futures", centred @ weights, scores, validation, differ)
 
 
 if __name__ == "__main__":
