@@ -12,8 +12,8 @@ Distilling its episodes back into the policy's weights (``dust-rl finetune --met
 search, with the reward and the simulator as the model. The policy that results acts alone; the search runs only
 while collecting, where the simulator can be rewound (a real robot cannot). Measured on push and pick_place: the
 distilled policies kept none of the search's gain (push 56% -> 50%, or 62% trained longer where the demonstrations
-alone give 68%; pick_place 22% -> 24% held-out), and scorers fitted to its rankings rank unseen plans at chance even
-given the true object state (BENCHMARKS.md, "Search").
+alone give 68%; pick_place 22% -> 24% held-out), and scorers fitted to its rankings rank unseen plans at or near
+chance even given the true object state (BENCHMARKS.md, "Search").
 
 It plugs into the demonstration collector as the expert of
 :class:`~dust_rl.envs.expert_wrapper.ExpertActionWrapper` (``dust-rl collect`` stores its actions like the scripted
