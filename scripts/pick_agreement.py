@@ -19,6 +19,7 @@ import argparse
 import pathlib
 
 import torch
+from future_ranking import DIFFER
 
 from dust_rl.agents import load_policy, unwrap
 from dust_rl.agents.execution import episode_generator
@@ -26,8 +27,6 @@ from dust_rl.env_factory import make_env
 from dust_rl.frozen_policy_env import observation_td
 from dust_rl.search_expert import SearchExpert, SearchExpertFactory
 from dust_rl.search_settings import SearchSettings
-
-DIFFERENT = 0.01  # plans whose best and worst scores differ by more than this much progress
 
 
 class Examined(SearchExpert):
@@ -72,7 +71,7 @@ def main() -> None:
             _, _, terminated, truncated, _ = env.step(expert.act())
             done = terminated or truncated
         for choice, chunks in zip(expert.choices, expert.student_chunks):
-            if choice.scores.max() - choice.scores.min() <= DIFFERENT:
+            if choice.scores.max() - choice.scores.min() <= DIFFER:
                 continue
             best = int(choice.scores.argmax())
             others = [k for k in range(len(choice.scores)) if k != best]
