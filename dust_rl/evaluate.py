@@ -168,6 +168,29 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return max(0.0, center - half), min(1.0, center + half)
 
 
+BASE_ROW = "base policy"  # the row a fine-tuning report compares every other row with, on the same seeds
+
+
+def paired_comparison(base: Sequence[Episode], other: Sequence[Episode]) -> dict:
+    """How ``other`` differs from ``base`` on the same seeds: the episodes it wins that ``base`` loses (``gained``),
+    the reverse (``lost``), and the exact two-sided McNemar p-value of that split.
+
+    Why: two policies run on the same seeds share each layout's difficulty, so the discordant episodes alone carry
+    the difference; the test on them tells a gain from noise where two overlapping Wilson intervals cannot.
+
+    Raises:
+        ValueError: the two runs were not on the same seeds.
+    """
+    outcome = {e.seed: e.success for e in base}
+    if sorted(outcome) != sorted(e.seed for e in other):
+        raise ValueError("a paired comparison needs both runs on the same seeds")
+    gained = sum(e.success and not outcome[e.seed] for e in other)
+    lost = sum(outcome[e.seed] and not e.success for e in other)
+    n = gained + lost
+    tail = sum(math.comb(n, k) for k in range(min(gained, lost) + 1)) / 2 ** n
+    return {"gained": gained, "lost": lost, "p_value": min(1.0, 2 * tail)}
+
+
 def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> TransformedEnv:
     """A torchrl env (VLA keys) resetting from ``schedule``, with ``episode_seed``, ``is_success`` and ``is_init``."""
     env = make_torchrl_env(EpisodeSeedWrapper(make_env(env_id, env_kwargs), schedule))

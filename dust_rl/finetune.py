@@ -54,7 +54,7 @@ from dust_rl.device import resolve_device
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.episode_collector import torch_threads
 from dust_rl.errors import ConfigError, check_at_least, check_finite
-from dust_rl.evaluate import Episode, episode_digest, summary_row
+from dust_rl.evaluate import BASE_ROW, Episode, episode_digest, paired_comparison, summary_row
 from dust_rl.frozen_policy_env import FrozenPolicyEnv
 from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
@@ -284,7 +284,9 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
         "policy": str(config.policy), "method": config.method, "algorithm": config.algorithm, "task": task,
         "steps": config.steps, "command": command, "config": config_json(config),
         "seeds": [config.eval_seed, config.eval_seed + config.eval_episodes - 1], "train_seconds": trained_s,
-        "rows": [summary_row(name, rows) for name, rows in episodes.items()],
+        "rows": [summary_row(name, rows) | ({} if name == BASE_ROW else
+                                              {"vs_base": paired_comparison(episodes[BASE_ROW], rows)})
+                 for name, rows in episodes.items()],
         "per_episode": {name: [list(e) for e in rows] for name, rows in episodes.items()}, **extra,
     }
     write_json_atomic(config.out / "report.json", report, indent=2)
@@ -314,7 +316,7 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     curve_seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
     if config.eval_every and not curve:  # the curve starts at the base policy (the RL agent's "off" action)
         curve.append({"rl_steps": 0, "env_steps": 0,
-                      **summary_row("base policy", _run_episodes(make, lambda obs, env: env.step_base(),
+                      **summary_row(BASE_ROW, _run_episodes(make, lambda obs, env: env.step_base(),
                                                                  curve_seeds, config.progress))})
     sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
     warmup = CriticWarmup(config.critic_warmup) if config.critic_warmup else None
@@ -347,7 +349,7 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
         centre = np.zeros(env.action_space.shape, np.float32)
         step_functions["centre"] = lambda obs, env: env.step(centre)
     step_functions["fine_tuned"] = _tuned_step(agent)
-    names = {"base": "base policy", "centre": "base policy, noise at its centre",
+    names = {"base": BASE_ROW, "centre": f"{BASE_ROW}, noise at its centre",
              "fine_tuned": f"fine-tuned ({config.method}, {config.algorithm})"}
     rows = {}
     for key, step in step_functions.items():
@@ -460,6 +462,11 @@ def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, Fro
     return episodes
 
 
+def _versus_base(row: dict) -> str:
+    paired = row.get("vs_base")
+    return "" if paired is None else f"+{paired['gained']} / -{paired['lost']} (p = {paired['p_value']:.2f})"
+
+
 def _markdown(report: dict) -> str:
     if report["method"] == "wm_select":
         scorer = report["scorer"]
@@ -485,8 +492,10 @@ def _markdown(report: dict) -> str:
              f"- task `{report['task']}`, method `{report['method']}`: {how}",
              f"- seeds {report['seeds'][0]}..{report['seeds'][1]}; the imitation policy "
              f"{'is fine-tuned' if report['method'] == 'self_imitation' else 'stays frozen'}", "",
-             "| policy | episodes | success | 95% CI |", "|---|---|---|---|"]
+             "| policy | episodes | success | 95% CI | episodes won / lost against the base (McNemar p) |",
+             "|---|---|---|---|---|"]
     lines += [f"| {row['task']} | {row['episodes']} | {100 * row['success_rate']:.0f}% | "
-              f"{100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}% |" for row in report["rows"]]
+              f"{100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}% | {_versus_base(row)} |"
+              for row in report["rows"]]
     lines += ["", "Reproduce:", "", f"    {report['command']}", ""]
     return "\n".join(lines)

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 
 from dust_rl.data import collect_demos
 from dust_rl.data.episodes import scan_episodes
-from dust_rl.evaluate import EvalConfig, evaluate
+from dust_rl.evaluate import BASE_ROW, EvalConfig, evaluate
 from dust_rl.keys import EXPERT_ACTION_KEY
 from dust_rl.report import plot_learning_curve
 from dust_rl.train import TrainConfig, train
@@ -72,7 +72,7 @@ def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: d
     trained_s = time.perf_counter() - began
     base = _evaluate(config, config.policy, config.out / "eval" / "base")
     tuned = _evaluate(config, policy, config.out / "eval" / f"round-{config.rounds}")
-    rows = {"base policy": base, f"{name} ({config.rounds} rounds)": tuned}
+    rows = {BASE_ROW: base, f"{name} ({config.rounds} rounds)": tuned}
     return {"rows": rows, "train_seconds": trained_s, "rollout_env_steps": sum(r["env_steps"] for r in rounds),
             "rounds": rounds, "curve": curve, "policy_file": str(policy)}
 

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, SamplerConfig, save_policy
-from dust_rl.evaluate import EvalConfig, eval_collector, evaluate, prepare, run_task
+from dust_rl.evaluate import BASE_ROW, EvalConfig, eval_collector, evaluate, prepare, run_task
 from dust_rl.keys import PREDICTED_FUTURE_KEY
 
 if TYPE_CHECKING:
@@ -140,7 +140,7 @@ def wm_select(config: FinetuneConfig, task: str, base: DustPolicy) -> dict:
                                    progress=config.progress, device=config.device))["tasks"][0]
 
     sampling = base.config.sampler_settings
-    rows = {"base policy": run(config.policy, "base", sampling)}
+    rows = {BASE_ROW: run(config.policy, "base", sampling)}
     for k in config.candidates:
         rows[f"wm_select (K = {k})"] = run(path, f"k{k}", dataclasses.replace(sampling, candidates=k))
     return {"rows": rows, "train_seconds": trained_s, "rollout_env_steps": rollouts.env_steps, "scorer": scorer,

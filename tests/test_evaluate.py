@@ -20,7 +20,7 @@ from dust_rl.agents import (
 )
 from dust_rl.data.video import read_mp4
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate import EvalConfig, describe_sampler, evaluate, wilson_interval
+from dust_rl.evaluate import Episode, EvalConfig, describe_sampler, evaluate, paired_comparison, wilson_interval
 from dust_rl.report import plot_loss_curves, read_scalar_csv
 from dust_rl.rollout_video import LABEL_HEIGHT, future_decoder
 
@@ -65,6 +65,20 @@ def eval_config(policy_path, tmp_path_factory) -> EvalConfig:
 @pytest.fixture(scope="module")
 def report(eval_config) -> dict:
     return evaluate(eval_config, command="dust-rl eval --policy policy.pt")
+
+
+def test_paired_comparison_counts_discordant_episodes_and_tests_them_exactly():
+    def run(outcomes):
+        return [Episode(seed, bool(won), 10, "") for seed, won in enumerate(outcomes)]
+
+    base = run([0, 0, 0, 0, 0, 0, 1, 1])
+    assert paired_comparison(base, base) == {"gained": 0, "lost": 0, "p_value": 1.0}
+    six_gained = paired_comparison(base, run([1, 1, 1, 1, 1, 1, 1, 1]))
+    assert six_gained == {"gained": 6, "lost": 0, "p_value": pytest.approx(2 / 2 ** 6)}
+    # One each way: the binomial tail P(X <= 1 | n = 2) = 3/4, doubled and capped at 1.
+    assert paired_comparison(base, run([1, 0, 0, 0, 0, 0, 0, 1]))["p_value"] == 1.0
+    with pytest.raises(ValueError, match="same seeds"):
+        paired_comparison(base, run([1, 1]))
 
 
 def test_wilson_interval_known_values():

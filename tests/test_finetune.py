@@ -90,6 +90,12 @@ def test_wm_select_writes_a_policy_eval_loads_and_compares_on_the_same_seeds(pol
     again = evaluate(EvalConfig(policy=tmp_path / "ft" / "policy.pt", out=tmp_path / "eval_k2", episodes=2,
                                 workers=1, videos=0, max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
     assert again["tasks"][0]["per_episode"] == report["per_episode"]["wm_select (K = 2)"]
+    # Each row but the base's says which episodes it won and lost against the base, seed for seed.
+    outcome = {seed: success for seed, success, *_ in report["per_episode"]["base policy"]}
+    selected_row = report["rows"][1]["vs_base"]
+    assert "vs_base" not in report["rows"][0]
+    assert selected_row["gained"] == sum(s and not outcome[seed] for seed, s, *_ in again["tasks"][0]["per_episode"])
+    assert selected_row["lost"] == sum(outcome[seed] and not s for seed, s, *_ in again["tasks"][0]["per_episode"])
     assert "| wm_select (K = 2) | 2 |" in (tmp_path / "ft" / "report.md").read_text()
 
 
