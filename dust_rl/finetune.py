@@ -69,7 +69,7 @@ from dust_rl.wm_select import VALIDATION_EVERY, wm_select
 
 RL_AGENT_KIND = "dust-rl rl agent"
 # rounds: a finished self_imitation run resumed with more rounds goes on from its last round.
-RESUMABLE_FIELDS = ("resume", "progress", "threads", "rounds")
+RESUMABLE_FIELDS = ("resume", "progress", "threads", "rounds", "control")
 # PPO keeps no replay buffer sized by the run, so a resumed PPO run may also be given a larger budget.
 PPO_RESUMABLE_FIELDS = (*RESUMABLE_FIELDS, "steps")
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
@@ -188,6 +188,10 @@ class FinetuneConfig:
     """self_imitation: how each round fine-tunes (``--train.steps``, ``--train.lr``, ``--train.extra-fraction``,
     ``--train.start-rows`` ...; ``--train.extra-action-key expert_action``: DAgger); the starting policy, the
     rollouts, threads and device are the round's."""
+    control: bool = True
+    """self_imitation: also fine-tune the base policy on its demonstrations alone, for as many steps as all rounds
+    together, and report it as a row: the gain a method is credited with is the one above that control (on push the
+    demonstrations alone gave 68% held-out where the search distillation gave 62%: BENCHMARKS.md, "Search")."""
     search: SearchSettings = field(default_factory=SearchSettings)
     """self_imitation: roll out with a simulator search over the policy's chunks (``--search.candidates K``,
     ``--search.lookahead``, ``--search.noise-scale``; :mod:`dust_rl.search_expert`) and distil its successes:
@@ -484,7 +488,8 @@ def _markdown(report: dict) -> str:
         how = (f"{config['rounds']} round(s) of {config['rollout_successes']} successful rollouts {taught} "
                f"({', '.join(str(r['rollouts']) for r in report['rounds'])} episodes; {report['rollout_env_steps']} "
                f"env steps), each followed by {config['train']['steps']} fine-tuning steps "
-               f"({report['train_seconds']:.0f} s in all)")
+               f"({report['train_seconds']:.0f} s in all)"
+               + ("; the control: as many steps on the demonstrations alone" if config.get("control") else ""))
     else:
         how = (f"{report['algorithm']}, {report['steps']} RL steps ({report['train_seconds']:.0f} s), "
                f"{report['config']['reward']} reward")

@@ -49,8 +49,8 @@ def is_dagger(extra_action_key: str) -> bool:
 
 
 def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: dict) -> dict:
-    """Run (or resume) every round, then evaluate the base and the last round's policy on the held-out seeds;
-    returns the report's parts."""
+    """Run (or resume) every round, then evaluate the base, the control (``config.control``: the base fine-tuned as
+    long on its demonstrations alone) and the last round's policy on the held-out seeds; returns the report's parts."""
     began = time.perf_counter()
     dagger = is_dagger(config.train.extra_action_key)
     name = "DAgger" if dagger else "search distillation" if config.search.active else "self_imitation"
@@ -70,15 +70,29 @@ def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: d
         plot_learning_curve(curve, config.out / "learning_curve.png",
                             f"{name}, seeds {config.curve_seed}..{last_seed}")
     trained_s = time.perf_counter() - began
-    base = _evaluate(config, config.policy, config.out / "eval" / "base")
-    tuned = _evaluate(config, policy, config.out / "eval" / f"round-{config.rounds}")
-    rows = {BASE_ROW: base, f"{name} ({config.rounds} rounds)": tuned}
+    rows = {BASE_ROW: _evaluate(config, config.policy, config.out / "eval" / "base")}
+    if config.control:
+        rows.update([control_row(config)])
+    rows[f"{name} ({config.rounds} rounds)"] = _evaluate(config, policy, config.out / "eval" / f"round-{config.rounds}")
     return {"rows": rows, "train_seconds": trained_s, "rollout_env_steps": sum(r["env_steps"] for r in rounds),
             "rounds": rounds, "curve": curve, "policy_file": str(policy)}
 
 
-def _fine_tune(config: FinetuneConfig, policy: pathlib.Path, rollouts: pathlib.Path, out: pathlib.Path) -> pathlib.Path:
-    """``policy`` trained further on its demonstrations and ``rollouts`` (a finished run is not trained again)."""
+def control_row(config: FinetuneConfig) -> tuple[str, dict]:
+    """The base policy fine-tuned on its demonstrations alone, for as many steps as all rounds together, and its row
+    on the held-out seeds (both cached in the run folder, by step count: a run resumed with more rounds gets its own
+    control)."""
+    steps = config.rounds * config.train.steps
+    policy = _fine_tune(dataclasses.replace(config, train=dataclasses.replace(config.train, steps=steps)),
+                        config.policy, None, config.out / "control" / f"steps-{steps}")
+    row = _evaluate(config, policy, config.out / "eval" / f"control-steps-{steps}")
+    return f"demonstrations alone ({steps} steps, the control)", row
+
+
+def _fine_tune(config: FinetuneConfig, policy: pathlib.Path, rollouts: pathlib.Path | None,
+               out: pathlib.Path) -> pathlib.Path:
+    """``policy`` trained further on its demonstrations and ``rollouts`` (none: the demonstrations alone); a
+    finished run is not trained again."""
     if not (out / "policy.pt").is_file():
         settings = dataclasses.replace(config.train, init_policy=policy, extra_dataset=rollouts,
                                        threads=config.threads, device=config.device, progress=config.progress)

@@ -23,6 +23,8 @@ from dust_rl.evaluate import EvalConfig, evaluate
 from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import restore
+from dust_rl.self_imitation import control_row
+from dust_rl.train import TrainSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -311,3 +313,16 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
     assert len(kept) == tried and all(r.kept for r in kept)
     base_point = json.loads((tmp_path / "ft2" / "curve" / "round-0" / "report.json").read_text())
     assert base_point["seeds"] == [config.curve_seed, config.curve_seed] and base_point["policy"] == str(policy_path)
+
+
+def test_the_control_is_the_base_fine_tuned_as_long_on_its_demonstrations_alone(policy_path, demo_dir, tmp_path):
+    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method="self_imitation", demos=demo_dir, rounds=2,
+                            train=TrainSettings(steps=2, lr=1e-4, batch_size=4, log_every=1),
+                            eval_episodes=1, max_steps=EPISODE_STEPS, progress=False)
+    name, row = control_row(config)
+    assert name == "demonstrations alone (4 steps, the control)"  # two rounds of two steps
+    trained = json.loads((tmp_path / "ft" / "control" / "steps-4" / "config.json").read_text())["config"]
+    assert (trained["steps"], trained["init_policy"], trained["extra_dataset"]) == (4, str(policy_path), None)
+    assert trained["dataset"] == str(demo_dir)
+    assert row["episodes"] == 1 and row["seeds"] == [config.eval_seed]
+    assert control_row(config) == (name, row)  # cached: read back, not trained or evaluated again
