@@ -33,6 +33,7 @@ import pathlib
 import time
 from typing import TYPE_CHECKING
 
+from dust_rl.atomic_files import write_json_atomic
 from dust_rl.data import collect_demos
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.evaluate import BASE_ROW, EvalConfig, evaluate
@@ -45,6 +46,7 @@ if TYPE_CHECKING:
 
 # Round r rolls out from seed rollout_seed + r * ROUND_SEEDS: rounds never share a layout.
 ROUND_SEEDS = 10_000
+ROUND_SECONDS = "seconds.json"  # in each round's folder: its collecting and fine-tuning time
 
 
 def is_dagger(extra_action_key: str) -> bool:
@@ -55,11 +57,11 @@ def is_dagger(extra_action_key: str) -> bool:
 def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: dict) -> dict:
     """Run (or resume) every round, then evaluate the base, the control (``config.control``: the base fine-tuned as
     long on its demonstrations alone) and the last round's policy on the held-out seeds; returns the report's parts."""
-    began = time.perf_counter()
     dagger = is_dagger(config.train.extra_action_key)
     name = "DAgger" if dagger else "search distillation" if config.search.active else "self_imitation"
     policy, curve, rounds = config.policy, [_curve_point(config, config.policy, "round-0", 0)], []
     for r in range(config.rounds):
+        began = time.perf_counter()
         rollouts = config.out / f"round-{r + 1}" / "rollouts"
         collect_demos(rollouts, env_id, [task], config.rollout_successes, env_kwargs=env_kwargs,
                       start_seed=config.rollout_seed + r * ROUND_SEEDS, keep_failed=dagger, policy=policy,
@@ -67,19 +69,29 @@ def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: d
         records = scan_episodes(rollouts)[task].values()
         policy = _fine_tune(config, policy, rollouts, config.out / f"round-{r + 1}" / "train")
         rounds.append({"policy": str(policy), "rollouts": len(records), "successes": sum(r.success for r in records),
-                       "env_steps": sum(r.length for r in records)})
+                       "env_steps": sum(r.length for r in records),
+                       "seconds": _add_seconds(config.out / f"round-{r + 1}", time.perf_counter() - began)})
         env_steps = sum(row["env_steps"] for row in rounds)
         curve.append(_curve_point(config, policy, f"round-{r + 1}", env_steps))
         last_seed = config.curve_seed + config.curve_episodes - 1
         plot_learning_curve(curve, config.out / "learning_curve.png",
                             f"{name}, seeds {config.curve_seed}..{last_seed}")
-    trained_s = time.perf_counter() - began
+    trained_s = sum(row["seconds"] for row in rounds)
     rows = {BASE_ROW: _evaluate(config, config.policy, config.out / "eval" / "base")}
     if config.control:
         name_of_control, rows[name_of_control] = control_row(config)
     rows[f"{name} ({config.rounds} rounds)"] = _evaluate(config, policy, config.out / "eval" / f"round-{config.rounds}")
     return {"rows": rows, "train_seconds": trained_s, "rollout_env_steps": sum(r["env_steps"] for r in rounds),
             "rounds": rounds, "curve": curve, "policy_file": str(policy)}
+
+
+def _add_seconds(folder: pathlib.Path, seconds: float) -> float:
+    """The round's wall time collecting and fine-tuning, summed over every invocation that worked on it (so a
+    resumed run reports the whole, not the seconds it took to read the cached stages back)."""
+    path = folder / ROUND_SECONDS
+    total = (json.loads(path.read_text())["seconds"] if path.is_file() else 0.0) + seconds
+    write_json_atomic(path, {"seconds": total})
+    return total
 
 
 def control_row(config: FinetuneConfig) -> tuple[str, dict]:

@@ -23,7 +23,7 @@ from dust_rl.evaluate import EvalConfig, evaluate
 from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
 from dust_rl.rl_checkpoint import SB3LearningState
 from dust_rl.run_folder import restore
-from dust_rl.self_imitation import control_row
+from dust_rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
 from dust_rl.train import TrainSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -326,3 +326,9 @@ def test_the_control_is_the_base_fine_tuned_as_long_on_its_demonstrations_alone(
     assert trained["dataset"] == str(demo_dir)
     assert row["episodes"] == 1 and row["seeds"] == [config.eval_seed]
     assert control_row(config) == (name, row)  # cached: read back, not trained or evaluated again
+
+
+def test_a_rounds_time_adds_up_over_resumed_invocations(tmp_path):
+    assert _add_seconds(tmp_path, 100.0) == 100.0  # the invocation that collected and trained
+    assert _add_seconds(tmp_path, 0.5) == 100.5  # a resume that read the cached stages back
+    assert json.loads((tmp_path / ROUND_SECONDS).read_text()) == {"seconds": 100.5}
