@@ -61,16 +61,16 @@ def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: d
     name = "DAgger" if dagger else "search distillation" if config.search.active else "self_imitation"
     policy, curve, rounds = config.policy, [_curve_point(config, config.policy, "round-0", 0)], []
     for r in range(config.rounds):
-        began = time.perf_counter()
-        rollouts = config.out / f"round-{r + 1}" / "rollouts"
+        began, folder = time.perf_counter(), config.out / f"round-{r + 1}"
+        rollouts = folder / "rollouts"
         collect_demos(rollouts, env_id, [task], config.rollout_successes, env_kwargs=env_kwargs,
                       start_seed=config.rollout_seed + r * ROUND_SEEDS, keep_failed=dagger, policy=policy,
                       search=config.search, progress=config.progress)
         records = scan_episodes(rollouts)[task].values()
-        policy = _fine_tune(config, policy, rollouts, config.out / f"round-{r + 1}" / "train")
+        policy = _fine_tune(config, policy, rollouts, folder / "train")
         rounds.append({"policy": str(policy), "rollouts": len(records), "successes": sum(r.success for r in records),
                        "env_steps": sum(r.length for r in records),
-                       "seconds": _add_seconds(config.out / f"round-{r + 1}", time.perf_counter() - began)})
+                       "seconds": _add_seconds(folder, time.perf_counter() - began)})
         env_steps = sum(row["env_steps"] for row in rounds)
         curve.append(_curve_point(config, policy, f"round-{r + 1}", env_steps))
         last_seed = config.curve_seed + config.curve_episodes - 1

@@ -54,8 +54,13 @@ def spearman_within(predicted: torch.Tensor, scores: torch.Tensor) -> float:
 def recorded_plans(args: argparse.Namespace) -> dict[str, torch.Tensor]:
     """Every plan of the search on the seeds, stacked: chunks [M, K, H, Da], scores [M, K], state [M, Ds],
     object_state [M, De], futures [M, K, N_o, Dv] (for a policy that predicts them) and the episode index [M]."""
+    searched = torch.tensor([args.candidates, args.lookahead, args.seed, args.episodes])
     if args.cache is not None and args.cache.exists():
-        return torch.load(args.cache, weights_only=True)
+        plans = torch.load(args.cache, weights_only=True)
+        if not torch.equal(plans["searched"], searched):
+            raise SystemExit(f"{args.cache} holds the search with --candidates --lookahead --seed --episodes "
+                             f"{plans['searched'].tolist()}, not {searched.tolist()}: pass those or another --cache")
+        return plans
     seeds, settings = range(args.seed, args.seed + args.episodes), SearchSettings(args.candidates, args.lookahead)
     result = run(args.policy, settings, seeds, record=True)
     print(describe(settings, seeds, result))
@@ -63,7 +68,7 @@ def recorded_plans(args: argparse.Namespace) -> dict[str, torch.Tensor]:
              for name in ("chunks", "scores", "state", "object_state")}
     if result.choices[0].futures is not None:
         plans["futures"] = torch.stack([c.futures for c in result.choices])
-    plans["episode"] = torch.tensor(result.episode_of_choice)
+    plans["episode"], plans["searched"] = torch.tensor(result.episode_of_choice), searched
     if args.cache is not None:
         with atomic_write(args.cache, "wb") as file:
             torch.save(plans, file)

@@ -55,16 +55,16 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=20)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    base = unwrap(load_policy(args.base)).eval()
+    factory = SearchExpertFactory(args.base, SearchSettings(args.candidates, args.lookahead))
+    base = factory.policy  # searching at the trained temperature, so also the base student
     students = [base, *(unwrap(load_policy(path)).eval() for path in args.students)]
     env = make_env(base.info["env_id"], {**base.info.get("env_kwargs", {}), "task": base.info["tasks"][0]})
-    factory = SearchExpertFactory(args.base, SearchSettings(args.candidates, args.lookahead))
     nearer = torch.zeros(len(students))
     plans = 0
     steps = base.execute_steps
     for seed in range(args.seed, args.seed + args.episodes):
         env.reset(seed=seed)
-        expert = Examined(env.unwrapped, factory.policy, factory.settings, seed, students=students)
+        expert = Examined(env.unwrapped, base, factory.settings, seed, students=students)
         expert.choices = []
         done = False
         while not done:
