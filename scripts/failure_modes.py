@@ -1,4 +1,5 @@
-"""Where pick_place, stack, pick_into_bin, push and press_button episodes fail, sorted by what the objects did.
+"""Where pick_place, stack, pick_into_bin, peg_insert, push and press_button episodes fail, sorted by what the objects
+did.
 
 Why: the success rate says how often a policy fails, not where; the videos show one episode. The
 simulator's object positions (``observation.environment_state``: pick_place's target cube, distractor cube
@@ -26,6 +27,15 @@ distractor), then
 * ``at the bin, not in it``: lifted, and at the end within the bin's footprint (at any yaw) yet not resting inside
   (on a wall, or still held);
 * ``dropped away from the bin``: lifted, and at the end outside that footprint.
+
+and peg_insert (the peg and the fixture; no distractor):
+
+* ``success`` and ``untouched`` as above;
+* ``not lifted``: the peg moved but its centre never rose 2 cm above its resting height (the task's own "lifted");
+* ``at the block, not inserted``: lifted, and at the end within the fixture's footprint (at any yaw), held over it,
+  resting on its top or jammed in the hole short of the task's 2 cm;
+* ``held away from the block``: lifted, and at the end still lifted, outside that footprint;
+* ``dropped away from the block``: lifted, and at the end down again, outside that footprint.
 
 and push (the named puck as the target; the goal square's centre):
 
@@ -65,7 +75,7 @@ import matplotlib
 import torch
 from tensordict import TensorDictBase
 
-from dust_rl.envs.tasks import pick_into_bin, press_button, push, stack
+from dust_rl.envs.tasks import peg_insert, pick_into_bin, press_button, push, stack
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
 from dust_rl.evaluate import EvalConfig, evaluate_task, prepare
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, STATE_KEY
@@ -77,10 +87,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 MOVED = 0.01  # m
 PUSHED = 0.001  # m: a cap pushed in this far was touched (it rests at -0.2 mm against its preload)
 LIFTED = CUBE_HALF + 0.02  # m: the task's own "lifted" height of the cube's centre
+PEG_LIFTED = peg_insert.PEG_HALF[2] + 0.02  # m: peg_insert's own "lifted" height of the peg's centre
 FIRST_MODES = ("success", "wrong object", "untouched", "not lifted", "held at the end")
 MODES = {"pick_place": (*FIRST_MODES, "dropped off the plate", "on the plate, not released"),
          "stack": (*FIRST_MODES, "set down beside it", "set down elsewhere", "on the lower cube, not released"),
          "pick_into_bin": (*FIRST_MODES, "at the bin, not in it", "dropped away from the bin"),
+         "peg_insert": ("success", "untouched", "not lifted", "at the block, not inserted", "held away from the block",
+                        "dropped away from the block"),
          "push": ("success", "wrong object", "untouched", "passed through the square", "pushed short", "pushed astray"),
          "press_button": ("success", "wrong button", "pressed partway", "not pressed")}
 MOMENTS = (0.25, 0.5, 0.75, 1.0)  # fractions of an episode drawn on the sheet
@@ -144,6 +157,20 @@ def pick_into_bin_mode(env_state: torch.Tensor, success: bool) -> str:
     return "dropped away from the bin"
 
 
+def peg_insert_mode(env_state: torch.Tensor, success: bool) -> str:
+    """The class of one peg_insert episode from its positions [T, 6] (peg, fixture)."""
+    peg, fixture = env_state[:, 0:3], env_state[:, 3:6]
+    if success:
+        return "success"
+    if (peg - peg[0]).norm(dim=-1).max() <= MOVED:
+        return "untouched"
+    if peg[:, 2].max() <= PEG_LIFTED:
+        return "not lifted"
+    if (peg[-1, :2] - fixture[-1, :2]).norm() <= peg_insert.FIXTURE_HALF * 2 ** 0.5:
+        return "at the block, not inserted"
+    return "held away from the block" if peg[-1, 2] > PEG_LIFTED else "dropped away from the block"
+
+
 def push_mode(env_state: torch.Tensor, success: bool) -> str:
     """The class of one push episode from its positions [T, 9] (target puck, distractor puck, goal square)."""
     target, distractor, goal = env_state[:, 0:3], env_state[:, 3:6], env_state[:, 6:9]
@@ -166,7 +193,7 @@ def press_button_mode(env_state: torch.Tensor, success: bool) -> str:
 
 
 CLASSIFIERS = {"pick_place": pick_place_mode, "stack": stack_mode, "pick_into_bin": pick_into_bin_mode,
-               "push": push_mode, "press_button": press_button_mode}
+               "peg_insert": peg_insert_mode, "push": push_mode, "press_button": press_button_mode}
 
 
 def end_tilt(trajectory: TensorDictBase) -> float:
