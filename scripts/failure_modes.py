@@ -99,11 +99,12 @@ MODES = {"pick_place": (*FIRST_MODES, "dropped off the plate", "on the plate, no
 MOMENTS = (0.25, 0.5, 0.75, 1.0)  # fractions of an episode drawn on the sheet
 
 
-def contact_mode(target: torch.Tensor, distractor: torch.Tensor, success: bool) -> str | None:
-    """Success, or which object the policy failed to move right, from both objects' positions [T, 3], if either."""
+def contact_mode(target: torch.Tensor, distractor: torch.Tensor | None, success: bool) -> str | None:
+    """Success, or which object the policy failed to move right, from both objects' positions [T, 3] (a task
+    without a distractor passes None), if either."""
     if success:
         return "success"
-    if (distractor[:, :2] - distractor[0, :2]).norm(dim=-1).max() > MOVED:
+    if distractor is not None and (distractor[:, :2] - distractor[0, :2]).norm(dim=-1).max() > MOVED:
         return "wrong object"
     if (target - target[0]).norm(dim=-1).max() <= MOVED:
         return "untouched"
@@ -160,10 +161,8 @@ def pick_into_bin_mode(env_state: torch.Tensor, success: bool) -> str:
 def peg_insert_mode(env_state: torch.Tensor, success: bool) -> str:
     """The class of one peg_insert episode from its positions [T, 6] (peg, fixture)."""
     peg, fixture = env_state[:, 0:3], env_state[:, 3:6]
-    if success:
-        return "success"
-    if (peg - peg[0]).norm(dim=-1).max() <= MOVED:
-        return "untouched"
+    if mode := contact_mode(peg, None, success):
+        return mode
     if peg[:, 2].max() <= PEG_LIFTED:
         return "not lifted"
     if (peg[-1, :2] - fixture[-1, :2]).norm() <= peg_insert.FIXTURE_HALF * 2 ** 0.5:
