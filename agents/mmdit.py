@@ -45,6 +45,21 @@ def split_heads(x: Tensor, n_parts: int, n_heads: int) -> tuple[Tensor, ...]:
     return x.view(s, b, n, n_parts, n_heads, -1).permute(3, 0, 1, 4, 2, 5).unbind(0)
 
 
+# CUDA's attention kernels fail from a batch of 65,536 on (cuDNN: "mha_graph.execute ... is_good()", the others:
+# "invalid argument"; measured on an H200, torch 2.11, bf16; 65,535 runs): larger batches go in slices.
+MAX_CUDA_ATTENTION_BATCH = 65535
+
+
+def attention(q: Tensor, k: Tensor, v: Tensor, mask: Tensor | None) -> Tensor:
+    """``scaled_dot_product_attention`` over [B, h, N, e], in batch slices CUDA's kernels accept."""
+    if not (q.is_cuda and q.shape[0] > MAX_CUDA_ATTENTION_BATCH):
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+    slices = range(0, q.shape[0], MAX_CUDA_ATTENTION_BATCH)
+    rows = [slice(start, start + MAX_CUDA_ATTENTION_BATCH) for start in slices]
+    return torch.cat([F.scaled_dot_product_attention(q[r], k[r], v[r], attn_mask=mask if mask is None or
+                                                     mask.shape[0] == 1 else mask[r]) for r in rows])
+
+
 def attend(q: Tensor, k: Tensor, v: Tensor, mask: Tensor | None) -> Tensor:
     """Attention per stream: q [S, B, h, N, e], k/v [S, B, h, M, e], mask broadcastable to [S, B, 1, 1, M].
 
@@ -52,7 +67,7 @@ def attend(q: Tensor, k: Tensor, v: Tensor, mask: Tensor | None) -> Tensor:
     """
     s, b, h, n, e = q.shape
     flat_mask = None if mask is None else mask.expand(s, b, 1, 1, -1).flatten(0, 1)
-    out = F.scaled_dot_product_attention(q.flatten(0, 1), k.flatten(0, 1), v.flatten(0, 1), attn_mask=flat_mask)
+    out = attention(q.flatten(0, 1), k.flatten(0, 1), v.flatten(0, 1), flat_mask)
     return out.view(s, b, h, n, e).transpose(2, 3).reshape(s, b, n, h * e)
 
 
@@ -67,7 +82,7 @@ def attend_jointly(q: Tensor, k: Tensor, v: Tensor, key_valid: Tensor | None) ->
         return t.permute(1, 2, 0, 3, 4).reshape(b, h, s * n, e)
 
     mask = None if key_valid is None else key_valid.view(1, 1, 1, s * n)
-    out = F.scaled_dot_product_attention(concat(q), concat(k), concat(v), attn_mask=mask)
+    out = attention(concat(q), concat(k), concat(v), mask)
     return out.view(b, h, s, n, e).permute(2, 0, 3, 1, 4).reshape(s, b, n, h * e)
 
 

@@ -66,7 +66,7 @@ class Normalizer(nn.Module):
         n = tokens.numel() // tokens.shape[-1] if tokens.numel() else 0
         if tokens.shape[-1] != self.vision_mean.shape[0] or n < 2:
             raise ValueError(f"need >= 2 tokens of size {self.vision_mean.shape[0]}, got shape {tuple(tokens.shape)}")
-        mean = torch.zeros_like(self.vision_mean, dtype=torch.float64)
+        mean = torch.zeros(self.vision_mean.shape, dtype=torch.float64, device=tokens.device)  # where the tokens are
         square = torch.zeros_like(mean)
         rows = max(1, (1 << 16) * tokens.shape[0] // n)  # about 65,536 tokens per chunk
         for chunk in tokens.split(rows):  # float64 sums in chunks: the cache may be float16, large, memory-mapped

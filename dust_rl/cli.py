@@ -30,6 +30,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     """Every command: name (one or two words) -> (its dataclass of arguments, its runner(config, command line))."""
     from dust_rl import commands as data
     from dust_rl.bench_suite import SuiteConfig, suite_command
+    from dust_rl.benchmarks.gpu_check import GpuCheckConfig, gpu_check_command
     from dust_rl.evaluate import EvalConfig, evaluate_command
     from dust_rl.finetune import FinetuneConfig, finetune_command
     from dust_rl.quickstart import QuickstartConfig, quickstart
@@ -49,6 +50,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "finetune": (FinetuneConfig, finetune_command),
         "bench suite": (SuiteConfig, suite_command),
         "bench average": (AverageConfig, average_command),
+        "bench gpu": (GpuCheckConfig, gpu_check_command),
     }
 
 

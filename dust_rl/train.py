@@ -45,7 +45,7 @@ from torchrl.record.loggers import Logger, get_logger
 from tqdm.auto import tqdm
 
 from dust_rl.action_free import ActionFreeBatches, with_action_free
-from dust_rl.agents import DustPolicy, load_policy, make_policy, save_policy, unwrap
+from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.config import PolicyConfig
 from dust_rl.agents.flow_matching import Shard
 from dust_rl.agents.precision import Precision, autocast
@@ -496,7 +496,9 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset, env: gym.Env) -> Du
         return unwrap(load_policy(config.init_policy, env=make_torchrl_env(env)))
     try:
         settings = config.policy
+        text_encoder = TransformersTextEncoder(settings.text_encoder) if settings.text_encoder else None
         return unwrap(make_policy(**settings.model_settings(), image_encoder=settings.image_encoder,
+                                  text_encoder=text_encoder,
                                   execute_steps=settings.execute_steps, future_camera=settings.future_camera,
                                   aux_state_dim=env_state_width(dataset) if settings.lambda_aux else 0,
                                   **dataset_policy_kwargs(dataset)))

@@ -1,11 +1,14 @@
-"""H.264 MP4 streams through PyAV (FFmpeg's libraries, bundled in the wheel)."""
+"""H.264 MP4 streams through PyAV (FFmpeg's libraries, bundled in the wheel).
+
+PyAV is imported where a video is written or read: datasets and training need no video, so a machine
+without PyAV (``scripts/gpu_check.sh``'s offline GPU box) still collects, trains and evaluates (``--videos 0``).
+"""
 
 from __future__ import annotations
 
 import pathlib
 from collections.abc import Iterable, Iterator
 
-import av
 import numpy as np
 
 from .errors import DatasetError
@@ -23,6 +26,8 @@ def write_mp4(path: pathlib.Path, frames: Iterable[np.ndarray], fps: int, crf: i
     With ``pad_odd`` (videos to watch, not data) an odd height or width gets one more row or column,
     repeated from the edge.
     """
+    import av
+
     path.parent.mkdir(parents=True, exist_ok=True)
     count = 0
     with av.open(str(path), "w") as container:
@@ -57,6 +62,8 @@ def read_mp4(path: pathlib.Path, size: tuple[int, int] | None = None) -> Iterato
     Raises:
         DatasetError: an undecodable file, or a frame of another size.
     """
+    import av
+
     try:
         with av.open(str(path)) as container:
             for frame in container.decode(video=0):
