@@ -28,6 +28,7 @@ from dust_rl.keys import ENV_STATE_KEY, INSTRUCTION_KEY, STATE_KEY, flat_name
 from . import arguments
 from .controller import OperationalSpaceController
 from .experts import WaypointExpert
+from .instruction_space import InstructionText
 from .rendering import RENDER_QUALITIES, CameraRenderer
 from .robot import RobotConfig
 from .robots import ROBOT_BUILDERS
@@ -217,8 +218,7 @@ class DustEnv(gym.Env):
         spaces[FLAT_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
         spaces[FLAT_ENV_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (self.task.environment_state_dim,), np.float32)
         if self.obs_mode == "rgb":
-            spaces[INSTRUCTION_KEY] = gym.spaces.Text(MAX_INSTRUCTION_LENGTH, min_length=1,
-                                                             charset=INSTRUCTION_CHARSET)
+            spaces[INSTRUCTION_KEY] = InstructionText(MAX_INSTRUCTION_LENGTH, min_length=1, charset=INSTRUCTION_CHARSET)
         return gym.spaces.Dict(self._mode_keys(spaces))
 
     # -- gymnasium API ---------------------------------------------------------------------------

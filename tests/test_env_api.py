@@ -178,6 +178,25 @@ def test_make_vec_async():
     envs.close()
 
 
+@pytest.mark.parametrize("mode,vector_kwargs", [("sync", {}), ("async", {}), ("async", {"copy": False})])
+def test_every_vector_mode_returns_the_real_instruction_in_rgb_mode(mode, vector_kwargs):
+    seeds = [3, 4]
+    expected = []
+    for seed in seeds:
+        single = DustEnv(task="press_button", image_size=32)
+        expected.append(single.reset(seed=seed)[1]["language_instruction"])
+        single.close()
+    assert len(set(expected)) == 2  # two different instructions, so a mix-up shows too
+    envs = gym.make_vec("DustFranka-v0", num_envs=2, vectorization_mode=mode, vector_kwargs=vector_kwargs,
+                        task="press_button", image_size=32)
+    obs, info = envs.reset(seed=seeds)
+    assert list(obs["language_instruction"]) == expected == list(info["language_instruction"])
+    obs, *_ = envs.step(np.zeros((2, 7), np.float32))
+    assert list(obs["language_instruction"]) == expected
+    assert obs["observation.image.front"].shape == (2, 32, 32, 3)
+    envs.close()
+
+
 def test_absolute_control_reaches_commanded_pose():
     env = DustEnv(task="pick_place", obs_mode="state", control_mode="absolute")
     env.reset(seed=0)
