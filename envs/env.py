@@ -406,7 +406,8 @@ class DustEnv(gym.Env):
         return self._renderer.render(self.data, camera)
 
     def _info(self, success: bool, reason: str) -> dict:
-        return {"is_success": success, "task": self.task.name, "truncation_reason": reason,
+        """Step info; the flag a numpy bool, which torchrl's ``default_info_dict_reader`` needs (a ``dtype``)."""
+        return {"is_success": np.bool_(success), "task": self.task.name, "truncation_reason": reason,
                 INSTRUCTION_KEY: self._instruction}
 
     # -- helpers for scripted experts ------------------------------------------------------------

@@ -8,9 +8,11 @@ import sys
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from torchrl.envs import GymEnv
+from torchrl.envs.libs.gym import default_info_dict_reader
 from torchrl.envs.utils import check_env_specs
 
 from dust_rl.envs import DustEnv, list_tasks
@@ -195,6 +197,15 @@ def test_every_vector_mode_returns_the_real_instruction_in_rgb_mode(mode, vector
     assert list(obs["language_instruction"]) == expected
     assert obs["observation.image.front"].shape == (2, 32, 32, 3)
     envs.close()
+
+
+def test_torchrls_info_reader_reads_is_success():
+    env = GymEnv("DustFranka-v0", task="press_button", obs_mode="state")
+    env.set_info_dict_reader(default_info_dict_reader(["is_success"]))
+    rollout = env.rollout(3)
+    assert rollout["next", "is_success"].shape == (3,)
+    assert rollout["next", "is_success"].dtype == torch.bool and not rollout["next", "is_success"].any()
+    env.close()
 
 
 def test_absolute_control_reaches_commanded_pose():
