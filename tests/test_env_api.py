@@ -64,7 +64,7 @@ def test_spaces_and_observation_layout(rgb_env):
     assert obs["observation.state"].dtype == np.float32
     assert set(info) == {"is_success", "task", "truncation_reason", "language_instruction"}
     assert obs["language_instruction"] == info["language_instruction"]
-    assert info["task"] == "pick_place" and info["is_success"] is False
+    assert info["task"] == "pick_place" and isinstance(info["is_success"], np.bool_) and not info["is_success"]
     assert rgb_env.render().shape == (64, 64, 3)
 
 
