@@ -376,7 +376,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     schedule = warmup_cosine(optimizer, config.steps, config.warmup)
     ema = weight_average(trained, config.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
-    start = int(restore(checkpoint, rotation).get("step", 0)) if config.resume else 0
+    start = _resumed_step(restore(checkpoint, rotation), dataset) if config.resume else 0
     loss_of = data_parallel(_ShardLoss(policy, ranks.shard), ranks)
 
     # The loop.
@@ -410,7 +410,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
             bar.set_postfix(loss=f"{scalars['train/loss']:.4f}", samples_s=f"{speed:.0f}")
             tick, samples = time.perf_counter(), 0
         if ranks.is_main and (done % config.checkpoint_every == 0 or done == config.steps):
-            save_checkpoint_dir(checkpoint, rotation, done, {"step": done})
+            save_checkpoint_dir(checkpoint, rotation, done, {"step": done, "dataset": dataset.identity})
         if ranks.is_main and config.eval_every and (done % config.eval_every == 0 or done == config.steps):
             with averaged_weights(ema, trained):
                 _log(loggers, _periodic_eval(config, policy, done), done)
@@ -485,6 +485,21 @@ def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkp
     raise NonFiniteLossError(f"training diverged at step {step}: loss {loss.item()}, gradient norm {grad_norm.item()}; "
                              f"no policy.pt was written and {kept}; lower lr or check the dataset for "
                              "non-finite values")
+
+
+def _resumed_step(metadata: dict, dataset: DemoDataset) -> int:
+    """The step a restored checkpoint (its ``metadata``) was saved at, if it was saved on this version of the
+    dataset (a checkpoint that predates the record passes).
+
+    Raises:
+        DatasetError: the dataset changed since (episodes collected, tasks added, another import).
+    """
+    saved = metadata.get("dataset")
+    if saved is not None and saved != dataset.identity:
+        changed = ", ".join(k for k in dataset.identity if saved.get(k) != dataset.identity[k])
+        raise DatasetError(f"{dataset.root} changed since this run's checkpoint ({changed}); resume needs the "
+                           "dataset it was trained on, or start a new run with another --out")
+    return int(metadata.get("step", 0))
 
 
 def _share(batch_size: int, fraction: float) -> int:

@@ -18,7 +18,7 @@ from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.checkpoint_dirs import DIGESTS, file_sha256
 from dust_rl.cli import main
-from dust_rl.data import DatasetError, DemoDataset, DemoWindows
+from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.env_state_norm import PER_TASK
@@ -447,4 +447,15 @@ def test_a_damaged_checkpoint_is_refused_and_nothing_is_overwritten(damage, prob
             as error:
         main([*args, "--resume"])
     assert "\n" not in str(error.value)
+    assert (out / "policy.pt").read_bytes() == policy
+
+
+def test_resume_refuses_a_dataset_that_changed_since_the_checkpoint(run_inputs, tmp_path):
+    out = tmp_path / "run"
+    train(tiny_config(run_inputs, out, steps=4))
+    policy = (out / "policy.pt").read_bytes()
+    dataset, _ = run_inputs
+    collect_demos(dataset, tasks=["press_button"], episodes=4, env_kwargs={"image_size": 32}, progress=False)
+    with pytest.raises(DatasetError, match=r"changed since this run.s checkpoint \(data, num_rows, episodes_per"):
+        train(tiny_config(run_inputs, out, steps=4, resume=True))
     assert (out / "policy.pt").read_bytes() == policy
