@@ -5,7 +5,8 @@ The policy samples a chunk of H actions; the env executes the first
 newest observation (paper and GR00T: execute part of each chunk). The
 wrapper caches the chunk in the rollout's TensorDict and re-queries the
 policy when its step counter reaches ``execute_steps`` or the env was reset
-(``is_init``, from torchrl's ``InitTracker`` transform, which the env needs).
+(``is_init``, from torchrl's ``InitTracker`` transform, which the env needs; without it
+the executor raises a one-line error naming the transform).
 With a vision stream the predicted future is cached the same way, so every
 executed step carries ``("dust", "future_tokens")``: the future predicted at
 its latest re-plan.
@@ -22,6 +23,7 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from torchrl.modules import MultiStepActorWrapper
 
+from dust_rl.errors import UserError
 from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, FUTURE_CHUNK_KEY, PREDICTED_FUTURE_KEY, SEED_KEY
 
 from .policy import DustPolicy
@@ -63,6 +65,9 @@ class ChunkExecutor(MultiStepActorWrapper):
         return self.actor
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self.init_key not in tensordict.keys(include_nested=True):  # torchrl's own error names no fix
+            raise UserError(f"the env gives the policy no {self.init_key!r} entry, so it cannot tell when an episode "
+                            "starts; append torchrl's InitTracker to the env: TransformedEnv(env, InitTracker())")
         if self.seed_key is None:
             return self._execute(tensordict)
         if tensordict.get("is_init").any():

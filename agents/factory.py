@@ -71,7 +71,7 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
         variant: ``"dust"``, ``"action_only"``, ``"joint"``, ``"decoupled"`` or ``"mmdit_shared"``.
         env: a torchrl env with the canonical VLA keys or a plain ``GymEnv`` of a dust-rl env; only its
             specs are read (action size and bounds, state size, cameras). Needs torchrl's ``InitTracker``
-            transform to be run.
+            transform to be run (the policy raises a :class:`~dust_rl.errors.UserError` saying so otherwise).
         image_encoder: an encoder, a name of ``NAMED_IMAGE_ENCODERS`` (``"efficientnet-lite0"``: ImageNet
             EfficientNet-Lite0 to stride 16) or a file from ``dust-rl pretrain-encoder``; default:
             ``"conv-ae"``, the committed autoencoder pretrained on the Franka tasks.

@@ -46,6 +46,7 @@ from tqdm.auto import tqdm
 from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.agents.checkpoint_io import save_checkpoint
 from dust_rl.atomic_files import write_json_atomic, write_text_atomic
+from dust_rl.checkpoint_dirs import save_checkpoint_dir
 from dust_rl.config_json import config_json
 from dust_rl.critic_limits import LayerNormReLU, bound_critic
 from dust_rl.critic_warmup import CriticWarmup
@@ -337,9 +338,9 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
             write_json_atomic(curve_path, curve, indent=2)
             title = f"{config.method} + {config.algorithm}, seeds {curve_seeds.start}..{curve_seeds.stop - 1}"
             plot_learning_curve(curve, config.out / "learning_curve.png", title)
-        rotation.save(checkpoint, step=agent.num_timesteps,
-                      metadata={"step": agent.num_timesteps, "env_steps": env.env_steps,
-                                "train_seconds": trained_seconds()})
+        save_checkpoint_dir(checkpoint, rotation, agent.num_timesteps,
+                            {"step": agent.num_timesteps, "env_steps": env.env_steps,
+                             "train_seconds": trained_seconds()})
     env.close()
     trained_s = trained_seconds()
     save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},

@@ -18,6 +18,7 @@ from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 
 from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.atomic_files import write_json_atomic
+from dust_rl.checkpoint_dirs import check_checkpoint_dir, newest_checkpoint
 from dust_rl.config_json import config_json
 from dust_rl.data.metadata import package_versions
 from dust_rl.errors import ConfigError
@@ -76,11 +77,16 @@ def restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> dict:
     the run saved with it; empty: no checkpoint).
 
     Raises:
-        CheckpointError: the newest checkpoint does not load into these objects.
+        CheckpointError: the newest checkpoint is damaged, holds files this package does not write (which could
+            run code when loaded; nothing is loaded then) or does not load into these objects.
     """
-    latest = rotation.latest()
-    if latest is None:
-        return {}
+    try:
+        latest = newest_checkpoint(rotation)
+        if latest is None:
+            return {}
+        check_checkpoint_dir(latest)
+    except CheckpointError as err:
+        raise CheckpointError(f"cannot resume from this checkpoint ({err})") from err
     try:
         checkpoint.load(latest)
     except (TorchrlCheckpointError, KeyError, ValueError, RuntimeError) as err:

@@ -7,8 +7,10 @@ A run folder holds
 
 * ``config.json``: the full :class:`TrainConfig`, the command and package versions;
 * ``checkpoints/checkpoint-<step>/``: torchrl ``Checkpoint`` directories (trainable
-  weights, EMA, optimiser, schedule, global RNG state), published atomically, the
-  last two kept; ``--resume`` continues from the newest one, and a run killed at any
+  weights, EMA, optimiser, schedule, global RNG state), published atomically with the
+  size and SHA-256 of every file (:mod:`dust_rl.checkpoint_dirs`), the last two kept;
+  ``--resume`` continues from the newest one once it is checked (a damaged one, or one
+  holding anything that could run code when loaded, is refused), and a run killed at any
   point and resumed ends with the same weights as one never interrupted;
 * ``logs/``: scalars through torchrl's ``get_logger`` (``--loggers``; by default CSV files
   in ``logs/train/scalars/`` and TensorBoard events in ``logs/train/``);
@@ -51,6 +53,7 @@ from dust_rl.agents.flow_matching import Shard
 from dust_rl.agents.precision import Precision, autocast
 from dust_rl.aux_frame_cache import cached_aux_frames, cached_frame_tokens
 from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches
+from dust_rl.checkpoint_dirs import save_checkpoint_dir
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.device import resolve_device
@@ -373,7 +376,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     schedule = warmup_cosine(optimizer, config.steps, config.warmup)
     ema = weight_average(trained, config.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
-    start = int(restore(checkpoint, rotation).get("step", 0)) if config.resume else 0
+    start = _resumed_step(restore(checkpoint, rotation), dataset) if config.resume else 0
     loss_of = data_parallel(_ShardLoss(policy, ranks.shard), ranks)
 
     # The loop.
@@ -407,7 +410,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
             bar.set_postfix(loss=f"{scalars['train/loss']:.4f}", samples_s=f"{speed:.0f}")
             tick, samples = time.perf_counter(), 0
         if ranks.is_main and (done % config.checkpoint_every == 0 or done == config.steps):
-            rotation.save(checkpoint, step=done, metadata={"step": done})
+            save_checkpoint_dir(checkpoint, rotation, done, {"step": done, "dataset": dataset.identity})
         if ranks.is_main and config.eval_every and (done % config.eval_every == 0 or done == config.steps):
             with averaged_weights(ema, trained):
                 _log(loggers, _periodic_eval(config, policy, done), done)
@@ -482,6 +485,21 @@ def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkp
     raise NonFiniteLossError(f"training diverged at step {step}: loss {loss.item()}, gradient norm {grad_norm.item()}; "
                              f"no policy.pt was written and {kept}; lower lr or check the dataset for "
                              "non-finite values")
+
+
+def _resumed_step(metadata: dict, dataset: DemoDataset) -> int:
+    """The step a restored checkpoint (its ``metadata``) was saved at, if it was saved on this version of the
+    dataset (a checkpoint that predates the record passes).
+
+    Raises:
+        DatasetError: the dataset changed since (episodes collected, tasks added, another import).
+    """
+    saved = metadata.get("dataset")
+    if saved is not None and saved != dataset.identity:
+        changed = ", ".join(k for k in dataset.identity if saved.get(k) != dataset.identity[k])
+        raise DatasetError(f"{dataset.root} changed since this run's checkpoint ({changed}); resume needs the "
+                           "dataset it was trained on, or start a new run with another --out")
+    return int(metadata.get("step", 0))
 
 
 def _share(batch_size: int, fraction: float) -> int:

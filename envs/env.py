@@ -28,6 +28,7 @@ from dust_rl.keys import ENV_STATE_KEY, INSTRUCTION_KEY, STATE_KEY, flat_name
 from . import arguments
 from .controller import OperationalSpaceController
 from .experts import WaypointExpert
+from .instruction_space import InstructionText
 from .rendering import RENDER_QUALITIES, CameraRenderer
 from .robot import RobotConfig
 from .robots import ROBOT_BUILDERS
@@ -217,8 +218,7 @@ class DustEnv(gym.Env):
         spaces[FLAT_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
         spaces[FLAT_ENV_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (self.task.environment_state_dim,), np.float32)
         if self.obs_mode == "rgb":
-            spaces[INSTRUCTION_KEY] = gym.spaces.Text(MAX_INSTRUCTION_LENGTH, min_length=1,
-                                                             charset=INSTRUCTION_CHARSET)
+            spaces[INSTRUCTION_KEY] = InstructionText(MAX_INSTRUCTION_LENGTH, min_length=1, charset=INSTRUCTION_CHARSET)
         return gym.spaces.Dict(self._mode_keys(spaces))
 
     # -- gymnasium API ---------------------------------------------------------------------------
@@ -406,7 +406,8 @@ class DustEnv(gym.Env):
         return self._renderer.render(self.data, camera)
 
     def _info(self, success: bool, reason: str) -> dict:
-        return {"is_success": success, "task": self.task.name, "truncation_reason": reason,
+        """Step info; the flag a numpy bool, which torchrl's ``default_info_dict_reader`` needs (a ``dtype``)."""
+        return {"is_success": np.bool_(success), "task": self.task.name, "truncation_reason": reason,
                 INSTRUCTION_KEY: self._instruction}
 
     # -- helpers for scripted experts ------------------------------------------------------------

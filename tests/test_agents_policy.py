@@ -23,6 +23,7 @@ from dust_rl.agents import (
 from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.factory import POLICY_KIND
 from dust_rl.envs.torchrl_env import make_torchrl_env
+from dust_rl.errors import UserError
 from dust_rl.keys import ACTION_NOISE_KEY, PREDICTED_FUTURE_KEY
 from dust_rl.wm_select import with_scorer
 
@@ -209,6 +210,18 @@ def test_receding_horizon_in_a_collector(tiny_encoder, minilm):
     assert future.shape == (10, inner.config.n_vision_tokens, inner.config.vision_dim)
     assert all(torch.equal(future[i], future[i - 1]) == (counter[i] != 1) for i in range(1, 10))
     assert len(plans) <= 4  # 3 chunks for 10 steps (+ the collector's spec probe)
+
+
+def test_an_env_without_init_tracker_is_told_to_append_it(tiny_encoder, minilm):
+    env = GymEnv("DustFranka-v0", task="press_button", image_size=32)
+    try:
+        policy = make_policy("dust", env=env, image_encoder=tiny_encoder, text_encoder=minilm, **TINY)
+        with pytest.raises(UserError, match=r"no 'is_init' entry.*TransformedEnv\(env, InitTracker\(\)\)$") as error:
+            env.rollout(3, policy)
+        assert "\n" not in str(error.value)
+        assert TransformedEnv(env, InitTracker()).rollout(3, policy)["action"].shape == (3, 7)
+    finally:
+        env.close()
 
 
 def test_a_plain_gym_env_works_as_is(tiny_encoder, minilm):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -19,7 +20,7 @@ from test_train import TINY_ARGS
 from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
-from dust_rl.data.lock import dataset_lock
+from dust_rl.data.lock import folder_lock
 from dust_rl.env_factory import env_tasks
 from dust_rl.envs import list_tasks
 from dust_rl.errors import ConfigError
@@ -82,8 +83,8 @@ def test_bad_task_list_writes_nothing(dataset_copy, tmp_path):
 
 def hold_lock(folder) -> subprocess.Popen:
     """A process that holds ``folder``'s dataset lock until a line arrives on its stdin."""
-    script = ("import pathlib, sys, time; from dust_rl.data.lock import dataset_lock; "
-              f"lock = dataset_lock(pathlib.Path({str(folder)!r})); lock.__enter__(); "
+    script = ("import pathlib, sys, time; from dust_rl.data.lock import folder_lock; "
+              f"lock = folder_lock(pathlib.Path({str(folder)!r})); lock.__enter__(); "
               "print('locked', flush=True); sys.stdin.readline(); lock.__exit__(None, None, None); time.sleep(120)")
     holder = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline() == "locked\n"
@@ -94,18 +95,33 @@ def test_a_second_collector_is_refused_and_told_who_holds_the_folder(dataset_cop
     holder = hold_lock(dataset_copy)
     try:
         message = error_of(collect_args(dataset_copy))
-        assert f"is being written by another process (pid {holder.pid} on " in message and "dataset_lock" in message
+        assert f"is being written by another process (pid {holder.pid} on " in message and "folder_lock" in message
     finally:
         holder.kill()
         holder.wait()
     main(collect_args(dataset_copy))  # the kernel released the lock of the killed process
 
 
+def test_a_lock_file_that_is_a_symlink_is_refused_and_its_target_kept(dataset_copy, tmp_path):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    lock = dataset_copy / ".lock"
+    lock.unlink(missing_ok=True)
+    os.symlink(victim, lock)
+    message = error_of(collect_args(dataset_copy))
+    assert f"{lock}: cannot open the lock file" in message and "symlink" in message
+    assert victim.read_text() == "precious\n"
+    os.symlink(tmp_path / "no-such-file", tmp_path / "dangling")  # nor is a file created through a dangling link
+    os.replace(tmp_path / "dangling", lock)
+    error_of(collect_args(dataset_copy))
+    assert not (tmp_path / "no-such-file").exists()
+
+
 def test_a_waiting_writer_takes_the_lock_when_the_holder_lets_go(tmp_path, capsys):
     holder, acquired = hold_lock(tmp_path), threading.Event()
 
     def take_lock() -> None:
-        with dataset_lock(tmp_path, wait=True):
+        with folder_lock(tmp_path, wait=True):
             acquired.set()
 
     waiter = threading.Thread(target=take_lock)

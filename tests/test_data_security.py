@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import os
 import pathlib
-import pickle
 import re
 import shutil
 
@@ -19,6 +18,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import torch
+from crafted import CRAFTS, edit_json
 
 from dust_rl.agents import (
     VARIANTS,
@@ -39,18 +39,6 @@ from dust_rl.train import TrainConfig, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-NON_TENSOR_DATA = "<class 'tensordict.tensorclass.NonTensorData'>"
-
-
-class _TouchOnUnpickle:
-    """Unpickling this calls ``path.touch()``: the stand-in for arbitrary code."""
-
-    def __init__(self, path: pathlib.Path) -> None:
-        self.path = path
-
-    def __reduce__(self):
-        return pathlib.Path.touch, (self.path,)
-
 
 @pytest.fixture
 def copy(demo_dir, tmp_path):
@@ -64,42 +52,6 @@ def marker(tmp_path):
 
 def _data_dir(root: pathlib.Path) -> pathlib.Path:
     return root / json.loads((root / "meta.json").read_text())["data"]
-
-
-def _edit_json(path: pathlib.Path, **entries) -> None:
-    path.write_text(json.dumps({**json.loads(path.read_text()), **entries}))
-
-
-def _pickled_non_tensor(folder: pathlib.Path, marker: pathlib.Path) -> None:
-    """Make ``folder`` a memmap ``NonTensorData`` whose pickle touches ``marker`` (as tensordict lays it out)."""
-    folder.mkdir(exist_ok=True)
-    (folder / "meta.json").write_text(json.dumps({"_type": NON_TENSOR_DATA, "_is_non_tensor": True,
-                                                  "_metadata": None}))
-    (folder / "other.pickle").write_bytes(pickle.dumps({"data": _TouchOnUnpickle(marker)}))
-
-
-def _graft_entry(data: pathlib.Path, marker: pathlib.Path) -> pathlib.Path:
-    """A ``NonTensorData`` entry beside the tensors (what ``td["x"] = NonTensorData(obj); td.memmap_()`` writes)."""
-    _pickled_non_tensor(data / "evil", marker)
-    _edit_json(data / "meta.json", evil={"type": "NonTensorData"})
-    return data / "meta.json"
-
-
-def _disguise_subfolder(data: pathlib.Path, marker: pathlib.Path) -> pathlib.Path:
-    """An entry that claims to be a TensorDict folder, whose own meta.json names another class."""
-    _pickled_non_tensor(data / "evil", marker)
-    _edit_json(data / "meta.json", evil={"type": "TensorDict"})
-    return data / "evil" / "meta.json"
-
-
-def _replace_root(data: pathlib.Path, marker: pathlib.Path) -> pathlib.Path:
-    """The data folder itself declared a NonTensorData."""
-    (data / "other.pickle").write_bytes(pickle.dumps({"data": _TouchOnUnpickle(marker)}))
-    _edit_json(data / "meta.json", _type=NON_TENSOR_DATA)
-    return data / "meta.json"
-
-
-CRAFTS = {"entry": _graft_entry, "disguised-subfolder": _disguise_subfolder, "root-type": _replace_root}
 
 
 def _read_with(entry: str, root: pathlib.Path, tmp_path: pathlib.Path, encoder: pathlib.Path) -> None:
@@ -133,7 +85,7 @@ def test_a_pickle_in_a_dataset_never_runs(copy, marker, tmp_path, tiny_encoder, 
 
 def test_only_whole_tensors_of_known_dtypes_are_read(copy):
     data = _data_dir(copy)
-    _edit_json(data / "meta.json", action={"device": "cpu", "shape": [3], "dtype": "torch.load", "is_nested": False})
+    edit_json(data / "meta.json", action={"device": "cpu", "shape": [3], "dtype": "torch.load", "is_nested": False})
     with pytest.raises(DatasetError, match=r"entry 'action' is not a plain CPU tensor of a known dtype"):
         DemoDataset(copy)
 
@@ -144,7 +96,7 @@ def test_the_data_folder_named_in_meta_stays_inside_the_dataset(copy, tmp_path, 
     name = {"parent": "../elsewhere", "absolute": str(outside), "symlink": "data-link"}[where]
     if where == "symlink":
         os.symlink(outside, copy / "data-link")
-    _edit_json(copy / "meta.json", data=name)
+    edit_json(copy / "meta.json", data=name)
     with pytest.raises(DatasetError, match=r"meta\.json: path .* (leaves the dataset folder|is a symlink out)"):
         DemoDataset(copy)
 
@@ -162,7 +114,7 @@ def test_episode_folders_stay_inside_the_dataset_on_resume(copy, tmp_path):
     victim = shutil.copytree(copy / "episodes" / "press_button", tmp_path / "victim")
     victim_files = sorted(victim.rglob("*"))
     record = copy / "episodes" / "press_button" / "seed-000000" / "episode.json"
-    _edit_json(record, task="../../../victim")  # its rows would be read, then deleted, out of the dataset
+    edit_json(record, task="../../../victim")  # its rows would be read, then deleted, out of the dataset
     with pytest.raises(DatasetError, match=r"seed-000000: episode record names task '\.\./\.\./\.\./victim'"):
         collect_demos(copy, tasks=["press_button"], episodes=3, env_kwargs={"image_size": 32}, progress=False)
     shutil.rmtree(copy / "episodes" / "press_button")
@@ -192,7 +144,7 @@ def _edit_episodes(root: pathlib.Path, column: str, row: int, value) -> None:
 def _video_outside(root: pathlib.Path, tmp_path: pathlib.Path, template: str) -> None:
     """Move the videos out of the folder and point ``video_path`` at them (the old reader followed it)."""
     shutil.move(root / "videos", tmp_path / "videos")
-    _edit_json(root / "meta" / "info.json", video_path=template.format(outside=tmp_path))
+    edit_json(root / "meta" / "info.json", video_path=template.format(outside=tmp_path))
 
 
 def _video_of_another_size(root: pathlib.Path, tmp_path: pathlib.Path) -> None:
@@ -213,7 +165,7 @@ LEROBOT_CRAFTS = {
     "parent-video-path": (lambda root, tmp: _video_outside(
         root, tmp, "../videos/{{video_key}}/chunk-{{chunk_index:03d}}/file-{{file_index:03d}}.mp4"),
         r"path '\.\./videos/.*' leaves the dataset folder"),
-    "attribute-in-video-path": (lambda root, tmp: _edit_json(
+    "attribute-in-video-path": (lambda root, tmp: edit_json(
         root / "meta" / "info.json", video_path="videos/{video_key.__class__.__init__}/file.mp4"),
         r"uses \{video_key\.__class__\.__init__\}; only \{video_key\}"),
     "symlinked-video": (_symlinked_video, r"file-000\.mp4' is a symlink out"),
@@ -232,7 +184,7 @@ LEROBOT_CRAFTS = {
                        r"dust_rl\.json: expected a JSON object, got list"),
     "dust-json-without-keys": (lambda root, tmp: (root / "meta" / "dust_rl.json").write_text("{}"),
                                r"dust_rl\.json: missing or malformed \['env_id', 'env_kwargs', 'spec'"),
-    "dust-json-wrong-state": (lambda root, tmp: _edit_json(root / "meta" / "dust_rl.json", spec={
+    "dust-json-wrong-state": (lambda root, tmp: edit_json(root / "meta" / "dust_rl.json", spec={
         **json.loads((root / "meta" / "dust_rl.json").read_text())["spec"], "state_dim": 5}),
         r"observation\.state: shape \[17\], meta/dust_rl\.json has \[5\]"),
 }

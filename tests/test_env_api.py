@@ -8,9 +8,11 @@ import sys
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 from torchrl.envs import GymEnv
+from torchrl.envs.libs.gym import default_info_dict_reader
 from torchrl.envs.utils import check_env_specs
 
 from dust_rl.envs import DustEnv, list_tasks
@@ -62,7 +64,7 @@ def test_spaces_and_observation_layout(rgb_env):
     assert obs["observation.state"].dtype == np.float32
     assert set(info) == {"is_success", "task", "truncation_reason", "language_instruction"}
     assert obs["language_instruction"] == info["language_instruction"]
-    assert info["task"] == "pick_place" and info["is_success"] is False
+    assert info["task"] == "pick_place" and isinstance(info["is_success"], np.bool_) and not info["is_success"]
     assert rgb_env.render().shape == (64, 64, 3)
 
 
@@ -176,6 +178,34 @@ def test_make_vec_async():
     assert obs["agent_pos"].shape == (2, 17)
     assert reward.shape == (2,) and info["task"].tolist() == ["pick_place", "pick_place"]
     envs.close()
+
+
+@pytest.mark.parametrize("mode,vector_kwargs", [("sync", {}), ("async", {}), ("async", {"copy": False})])
+def test_every_vector_mode_returns_the_real_instruction_in_rgb_mode(mode, vector_kwargs):
+    seeds = [3, 4]
+    expected = []
+    for seed in seeds:
+        single = DustEnv(task="press_button", image_size=32)
+        expected.append(single.reset(seed=seed)[1]["language_instruction"])
+        single.close()
+    assert len(set(expected)) == 2  # two different instructions, so a mix-up shows too
+    envs = gym.make_vec("DustFranka-v0", num_envs=2, vectorization_mode=mode, vector_kwargs=vector_kwargs,
+                        task="press_button", image_size=32)
+    obs, info = envs.reset(seed=seeds)
+    assert list(obs["language_instruction"]) == expected == list(info["language_instruction"])
+    obs, *_ = envs.step(np.zeros((2, 7), np.float32))
+    assert list(obs["language_instruction"]) == expected
+    assert obs["observation.image.front"].shape == (2, 32, 32, 3)
+    envs.close()
+
+
+def test_torchrls_info_reader_reads_is_success():
+    env = GymEnv("DustFranka-v0", task="press_button", obs_mode="state")
+    env.set_info_dict_reader(default_info_dict_reader(["is_success"]))
+    rollout = env.rollout(3)
+    assert rollout["next", "is_success"].shape == (3,)
+    assert rollout["next", "is_success"].dtype == torch.bool and not rollout["next", "is_success"].any()
+    env.close()
 
 
 def test_absolute_control_reaches_commanded_pose():

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 import torch
 from conftest import kill_after_first_checkpoint
+from crafted import CRAFTS
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy, unwrap
-from dust_rl.agents.checkpoint_io import load_checkpoint
+from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint
 from dust_rl.critic_limits import LayerNormReLU
 from dust_rl.critic_warmup import CriticWarmup
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE
@@ -332,3 +333,18 @@ def test_a_rounds_time_adds_up_over_resumed_invocations(tmp_path):
     assert _add_seconds(tmp_path, 100.0) == 100.0  # the invocation that collected and trained
     assert _add_seconds(tmp_path, 0.5) == 100.5  # a resume that read the cached stages back
     assert json.loads((tmp_path / ROUND_SECONDS).read_text()) == {"seconds": 100.5}
+
+
+def test_a_pickle_grafted_into_a_finetune_checkpoint_never_runs_on_resume(policy_path, tmp_path):
+    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ppo", method="residual", algorithm="ppo", steps=8,
+                            n_steps=8, batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
+                            checkpoint_every=8, progress=False)
+    finetune(config)
+    agent_file = (config.out / "rl_agent.pt").read_bytes()
+    latest = CheckpointRotation(config.out / "checkpoints", keep_last=2).latest()
+    marker = tmp_path / "code-ran"
+    CRAFTS["entry"](next((latest / "components").glob("*-agent")) / "state", marker)
+    with pytest.raises(CheckpointError, match=r"cannot resume from this checkpoint .*evil/other\.pickle.*refused"):
+        finetune(dataclasses.replace(config, resume=True))
+    assert not marker.exists()
+    assert (config.out / "rl_agent.pt").read_bytes() == agent_file

@@ -5,16 +5,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import shutil
 
 import pytest
 import torch
 from conftest import kill_after_first_checkpoint
+from crafted import CRAFTS
 
 from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError
-from dust_rl.data import DatasetError, DemoDataset, DemoWindows
+from dust_rl.checkpoint_dirs import DIGESTS, file_sha256
+from dust_rl.cli import main
+from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.env_state_norm import PER_TASK
@@ -362,3 +366,96 @@ def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inpu
     elsewhere = dataclasses.replace(config, out=tmp_path / "other", init_policy=tmp_path / "missing.pt")
     with pytest.raises(CheckpointError, match="missing.pt"):
         train(elsewhere)
+
+
+def _newest_state(out, component: str = "model"):
+    """The memmap folder of ``component`` in the run's newest checkpoint."""
+    latest = sorted((out / "checkpoints").glob("checkpoint-*"))[-1]
+    return next((latest / "components").glob(f"*-{component}")) / "state"
+
+
+def _record_digests(checkpoint) -> None:
+    """Rewrite ``digests.json`` to match the folder, as a crafter would: the checks must hold without it."""
+    files = [p for p in checkpoint.rglob("*") if p.is_file() and p.name != DIGESTS]
+    (checkpoint / DIGESTS).write_text(json.dumps({"files": {p.relative_to(checkpoint).as_posix(): {
+        "size": p.stat().st_size, "sha256": file_sha256(p)} for p in files}}))
+
+
+def _component_outside(state, marker):
+    """The manifest points the model component at a folder outside the checkpoint, one holding a pickle."""
+    outside = shutil.copytree(state.parent, state.parents[4] / "elsewhere")
+    CRAFTS["entry"](outside / "state", marker)
+    manifest = state.parents[2] / "manifest.json"
+    saved = json.loads(manifest.read_text())
+    saved["components"]["model"]["path"] = os.path.relpath(outside, manifest.parent)
+    manifest.write_text(json.dumps(saved))
+
+
+def _component_linked_out(state, marker):
+    """The model component's folder is a symlink to one outside the checkpoint, holding a pickle."""
+    outside = shutil.copytree(state.parent, state.parents[4] / "elsewhere")
+    CRAFTS["entry"](outside / "state", marker)
+    shutil.rmtree(state.parent)
+    os.symlink(outside, state.parent)
+
+
+def _weights_only_payload(state, marker):
+    """A ``state.pt`` beside the memmap folder: torchrl's adapter would read it first."""
+    torch.save({"x": torch.zeros(1)}, state.parent / "state.pt")
+
+
+CHECKPOINT_CRAFTS = {**CRAFTS, "component-outside": _component_outside, "component-linked-out": _component_linked_out,
+                     "state-pt": _weights_only_payload}
+
+
+@pytest.mark.parametrize("craft", CHECKPOINT_CRAFTS)
+def test_a_pickle_grafted_into_a_checkpoint_never_runs_on_resume(craft, run_inputs, tmp_path):
+    out, marker = tmp_path / "run", tmp_path / "code-ran"
+    train(tiny_config(run_inputs, out, steps=4))
+    policy = (out / "policy.pt").read_bytes()
+    state = _newest_state(out)
+    CHECKPOINT_CRAFTS[craft](state, marker)
+    _record_digests(state.parents[2])
+    with pytest.raises(CheckpointError, match=r"cannot resume from this checkpoint .*refused") as error:
+        train(tiny_config(run_inputs, out, steps=4, resume=True))
+    assert "\n" not in str(error.value)
+    assert not marker.exists()
+    assert (out / "policy.pt").read_bytes() == policy
+
+
+@pytest.mark.parametrize("damage,problem", [("truncated", "truncated"), ("flipped", "SHA-256 differs"),
+                                            ("no-digests", "digests.json: missing")])
+def test_a_damaged_checkpoint_is_refused_and_nothing_is_overwritten(damage, problem, run_inputs, tmp_path):
+    out = tmp_path / "run"
+    dataset, encoder = run_inputs
+    args = ["train", "--dataset", str(dataset), "--out", str(out), "--policy.image-encoder", str(encoder),
+            "--steps", "4", "--checkpoint-every", "4", "--log-every", "3", "--threads", "1", "--no-progress",
+            *TINY_ARGS]
+    main(args)
+    policy = (out / "policy.pt").read_bytes()
+    state = _newest_state(out)
+    tensor = max(state.glob("*.memmap"), key=lambda p: p.stat().st_size)
+    if damage == "truncated":  # as a full disk or a killed copy leaves it: it used to load as zeros
+        os.truncate(tensor, tensor.stat().st_size // 2)
+    elif damage == "flipped":
+        data = bytearray(tensor.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        tensor.write_bytes(bytes(data))
+    else:
+        (state.parents[2] / DIGESTS).unlink()
+    with pytest.raises(SystemExit, match=rf"^dust-rl: error: .*cannot resume from this checkpoint .*{problem}") \
+            as error:
+        main([*args, "--resume"])
+    assert "\n" not in str(error.value)
+    assert (out / "policy.pt").read_bytes() == policy
+
+
+def test_resume_refuses_a_dataset_that_changed_since_the_checkpoint(run_inputs, tmp_path):
+    out = tmp_path / "run"
+    train(tiny_config(run_inputs, out, steps=4))
+    policy = (out / "policy.pt").read_bytes()
+    dataset, _ = run_inputs
+    collect_demos(dataset, tasks=["press_button"], episodes=4, env_kwargs={"image_size": 32}, progress=False)
+    with pytest.raises(DatasetError, match=r"changed since this run.s checkpoint \(data, num_rows, episodes_per"):
+        train(tiny_config(run_inputs, out, steps=4, resume=True))
+    assert (out / "policy.pt").read_bytes() == policy

@@ -15,7 +15,7 @@ With ``policy`` a trained policy file runs instead of the expert, exactly as
 a resumed collection cannot mix two policies.
 
 Every argument is checked before anything is written; one collection at a time
-writes into a folder (:func:`~dust_rl.data.lock.dataset_lock`); and a smaller
+writes into a folder (:func:`~dust_rl.data.lock.folder_lock`); and a smaller
 ``episodes`` than the dataset already holds keeps them all (nothing is deleted
 to honour it).
 """
@@ -47,7 +47,7 @@ from .collection_env import collection_env_fns
 from .episodes import EpisodeRecord, scan_episodes, trajectory_to_episode, write_episode
 from .finalize import finalize_dataset
 from .layout import clear_staging
-from .lock import dataset_lock
+from .lock import folder_lock
 from .metadata import open_meta, recorded_env_spec
 from .policy import load_rollout_policy, make_expert_policy
 from .selection import select_episodes
@@ -89,7 +89,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
             policy (DART perturbs the expert).
         CheckpointError: a missing or corrupt policy file, or one that does not fit the env.
         DatasetError: ``root`` holds a collection with other settings.
-        DatasetLockedError: another process is collecting into ``root`` (and ``wait_for_writer`` is off).
+        FolderLockedError: another process is collecting into ``root`` (and ``wait_for_writer`` is off).
     """
     tasks = list(dict.fromkeys(tasks))
     workers = workers if isinstance(workers, Workers) else Workers(workers)
@@ -124,7 +124,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
               "noise_std": float(noise_std), "keep_failed": keep_failed, "policy": actor}
     root = pathlib.Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    with dataset_lock(root, wait=wait_for_writer), ray_runtime(workers), torch_threads(workers.threads):
+    with folder_lock(root, wait=wait_for_writer), ray_runtime(workers), torch_threads(workers.threads):
         clear_staging(root)
         meta = open_meta(root, config, tasks, episodes, spec)
         for task in tasks:

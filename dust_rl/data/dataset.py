@@ -71,6 +71,14 @@ class DemoDataset:
         return self.data.shape[0]
 
     @property
+    def identity(self) -> dict:
+        """What names this version of the dataset: its consolidated data folder (renamed at every collection
+        or import that changes it), rows and episodes per task. A run checkpoint stores it, so a resume can
+        tell that the dataset changed under it."""
+        return {"data": self.meta["data"], "num_rows": self.meta["num_rows"],
+                "episodes_per_task": self.meta.get("episodes_per_task")}
+
+    @property
     def num_episodes(self) -> int:
         return len(self.meta["episodes"])
 

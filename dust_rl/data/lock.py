@@ -1,13 +1,16 @@
-"""One writer per dataset folder: an exclusive ``flock`` on a lock file inside it.
+"""One writer per folder (a dataset, a training run): an exclusive ``flock`` on a lock file inside it.
 
 Two collections writing into one folder clear each other's staging files and race
 on ``meta.json`` (a task can vanish from the request, or a write fails with
-``OSError``). The lock is held for the whole collection; the kernel releases it when
+``OSError``); two training runs in one folder interleave their logs and checkpoints.
+The lock is held for the whole collection or run; the kernel releases it when
 the process ends, however it ends, so a killed collection never leaves a stale lock.
 The holder writes who it is (pid, host, command, start time) into the file, so a
 refused process can say which one holds it. A caller that only needs the data
 to be there (``dust-rl bench suite``, two of which often share a folder) waits
-for the holder instead of failing.
+for the holder instead of failing. The lock file is opened without following a
+symlink and must be a regular file: a ``.lock`` link would otherwise have the
+holder's details written over the file it points to.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import os
 import pathlib
 import shlex
 import socket
+import stat
 import sys
 from collections.abc import Iterator
 
@@ -28,29 +32,36 @@ from dust_rl.errors import UserError
 LOCK_FILE = ".lock"
 
 
-class DatasetLockedError(UserError):
-    """Another process is writing into the dataset folder."""
+class FolderLockedError(UserError):
+    """Another process is writing into the folder, or its lock file is not a plain file."""
 
 
 @contextlib.contextmanager
-def dataset_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
-    """Hold the write lock of the dataset folder ``root`` (which must exist) for the ``with`` body.
+def folder_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
+    """Hold the write lock of the folder ``root`` (which must exist) for the ``with`` body.
 
     Args:
         wait: when another process holds it, say so on stderr and wait until it lets go.
 
     Raises:
-        DatasetLockedError: another process holds it and ``wait`` is off; the message names that process.
+        FolderLockedError: another process holds it and ``wait`` is off (the message names that process), or
+            the lock file is a symlink or not a regular file.
     """
     path = root / LOCK_FILE
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o644)
+    except OSError as err:
+        raise FolderLockedError(f"{path}: cannot open the lock file ({err.strerror}); a symlink is refused, "
+                                "remove it") from err
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise FolderLockedError(f"{path}: the lock file is not a regular file; remove it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            message = f"{root} is being written by another process ({_holder(path)})"
+            message = f"{root} is being written by another process ({_holder(fd)})"
             if not wait:
-                raise DatasetLockedError(f"{message}; wait for it to finish or stop it") from None
+                raise FolderLockedError(f"{message}; wait for it to finish or stop it") from None
             print(f"{message}; waiting for it to finish", file=sys.stderr, flush=True)
             fcntl.flock(fd, fcntl.LOCK_EX)
         holder = {"pid": os.getpid(), "host": socket.gethostname(), "command": shlex.join(sys.orig_argv),
@@ -62,10 +73,10 @@ def dataset_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
         os.close(fd)  # releases the lock; the file stays (removing it would race with the next locker)
 
 
-def _holder(path: pathlib.Path) -> str:
-    """Who holds the lock, as written into the lock file."""
+def _holder(fd: int) -> str:
+    """Who holds the lock, as written into the lock file (read through its open descriptor)."""
     try:
-        holder = json.loads(path.read_text())
+        holder = json.loads(os.pread(fd, 1 << 16, 0))
         return f"pid {holder['pid']} on {holder['host']}, started {holder['started']}: {holder['command']}"
     except (OSError, ValueError, KeyError, TypeError):
         return "it has not written its details yet"

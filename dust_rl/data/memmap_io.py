@@ -52,7 +52,7 @@ def check_memmap_dir(path: pathlib.Path, root: pathlib.Path | None = None) -> No
     if not isinstance(meta, dict) or meta.get("_type") != _TENSORDICT:
         found = meta.get("_type") if isinstance(meta, dict) else type(meta).__name__
         raise DatasetError(f"{meta_path}: holds {found!r}, not a TensorDict of tensors; refusing to load it "
-                           "(non-tensor entries are pickles, which would run code from the dataset)")
+                           "(non-tensor entries are pickles, which would run code on load)")
     if not _is_shape(meta.get("shape")) or meta.get("device") not in _CPU:
         raise DatasetError(f"{meta_path}: bad batch shape {meta.get('shape')!r} or device {meta.get('device')!r}")
     for key, entry in meta.items():
@@ -67,7 +67,7 @@ def check_memmap_dir(path: pathlib.Path, root: pathlib.Path | None = None) -> No
         else:
             found = entry.get("type") if isinstance(entry, dict) else entry
             raise DatasetError(f"{meta_path}: entry {key!r} is {found!r}, not a tensor; refusing to load it "
-                               "(non-tensor entries are pickles, which would run code from the dataset)")
+                               "(non-tensor entries are pickles, which would run code on load)")
 
 
 def _is_shape(value: object) -> bool:
