@@ -79,7 +79,7 @@ from .flow_matching import (
     velocity_target,
 )
 from .mmdit import KV, AttentionKind, Block
-from .samplers import DenoiseStep, run_schedule
+from .samplers import DenoiseStep, VisionSource, run_schedule
 
 MODS_PER_BLOCK = 6  # shift, scale, gate for attention, then for the MLP
 ACTION_STREAM, VISION_STREAM = 0, 1  # rows of the stacked streams of a two-stream model
@@ -331,6 +331,7 @@ class DustModel(nn.Module):
         generator: torch.Generator | None = None,
         callback: Callable[[DenoiseStep, torch.Tensor, torch.Tensor | None], None] | None = None,
         noise_scale: float = 1.0,
+        vision_source: VisionSource | None = None,
     ) -> TensorDict:
         """Sample an action chunk (and, with a vision stream, the predicted future tokens).
 
@@ -342,6 +343,8 @@ class DustModel(nn.Module):
             generator: random source of the initial noise; same seed, same chunk.
             callback: called after every denoising step (see :func:`.samplers.run_schedule`).
             noise_scale: factor on the drawn initial action noise (a sampling temperature).
+            vision_source: vision tokens fed at each step instead of the integrated ones
+                (:data:`.samplers.VisionSource`).
 
         Returns:
             TensorDict [B] with ``action_chunk`` [B, H, Da] and, unless action_only,
@@ -349,7 +352,7 @@ class DustModel(nn.Module):
         """
         ctx = self.encode_context(obs["state"], obs["cond_tokens"], obs.get("cond_mask", None))
         action, vision = run_schedule(self, ctx, schedule, generator, callback, obs.get("action_noise", None),
-                                      noise_scale)
+                                      noise_scale, vision_source)
         out = {"action_chunk": action}
         if vision is not None:
             out["future_tokens"] = vision

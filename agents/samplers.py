@@ -33,6 +33,11 @@ from .flow_matching import cpu_drawn
 if TYPE_CHECKING:  # the model imports this module to sample
     from .dust_model import ChunkContext, DustModel
 
+VisionSource = Callable[["DenoiseStep"], tuple[Tensor, float]]
+"""Per step, the vision tokens [B, N_o, Dv] and their flow time tau_o that the model sees instead of the ones
+the sampler integrates: the oracle-future test (:mod:`dust_rl.diagnose.world_model`) feeds the true future,
+pure noise or another episode's future this way."""
+
 
 @dataclass(frozen=True)
 class DenoiseStep:
@@ -91,6 +96,7 @@ def run_schedule(
     callback: Callable[[DenoiseStep, Tensor, Tensor | None], None] | None = None,
     action_noise: Tensor | None = None,
     noise_scale: float = 1.0,
+    vision_source: VisionSource | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """Integrate both modalities from noise along ``schedule``.
 
@@ -106,9 +112,12 @@ def run_schedule(
             action noise is drawn and discarded all the same, so the vision noise does not change.
         noise_scale: factor on the drawn action noise (:attr:`.config.SamplerConfig.noise_scale`); not
             applied to a given ``action_noise``.
+        vision_source: the vision tokens and tau_o each step feeds the model instead of the integrated ones
+            (the vision noise is drawn all the same, so the action noise does not change with it).
 
     Returns:
-        (action chunk [B, H, Da], future-vision tokens [B, N_o, Dv] or None).
+        (action chunk [B, H, Da], future-vision tokens [B, N_o, Dv] or None: the last step's, given or
+        integrated).
     """
     cfg = model.config
     b, device = ctx.batch_size, ctx.state_token.device
@@ -125,8 +134,12 @@ def run_schedule(
         vision = cpu_drawn(torch.randn, b, cfg.n_vision_tokens, cfg.vision_dim, generator=generator, device=device)
     for step in schedule:
         tau_a = torch.full((b,), step.tau_a, device=device)
-        tau_o = None if vision is None else torch.full((b,), step.tau_o, device=device)
-        need_action, need_vision = step.dt_a != 0, step.dt_o != 0 and vision is not None
+        tau_o_value = step.tau_o
+        if vision is not None and vision_source is not None:
+            vision, tau_o_value = vision_source(step)
+        tau_o = None if vision is None else torch.full((b,), tau_o_value, device=device)
+        need_action = step.dt_a != 0
+        need_vision = step.dt_o != 0 and vision is not None and vision_source is None
         v_a, v_o = model(ctx, action, vision, tau_a, tau_o, need_action, need_vision)
         if need_action:
             action = torch.add(action, v_a, alpha=step.dt_a)

@@ -31,6 +31,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     from dust_rl import commands as data
     from dust_rl.bench_suite import SuiteConfig, suite_command
     from dust_rl.benchmarks.gpu_check import GpuCheckConfig, gpu_check_command
+    from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose_world_model_command
     from dust_rl.evaluate import EvalConfig, evaluate_command
     from dust_rl.finetune import FinetuneConfig, finetune_command
     from dust_rl.quickstart import QuickstartConfig, quickstart
@@ -51,6 +52,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "bench suite": (SuiteConfig, suite_command),
         "bench average": (AverageConfig, average_command),
         "bench gpu": (GpuCheckConfig, gpu_check_command),
+        "diagnose world-model": (WorldModelDiagnosis, diagnose_world_model_command),
     }
 
 

@@ -57,6 +57,7 @@ from dust_rl.checkpoint_dirs import save_checkpoint_dir
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.device import resolve_device
+from dust_rl.diagnose.world_model import Windows, vision_skill, windows_of
 from dust_rl.distributed import Ranks, data_parallel, join_process_group, leave_process_group, rank_device, spawn
 from dust_rl.env_factory import make_env
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
@@ -75,6 +76,7 @@ RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "compile", "eval_
                     "loggers")
 # Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
 NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset", "extra_dataset")
+SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
 
 
 @dataclass(kw_only=True)
@@ -164,7 +166,9 @@ class TrainSettings:
     checkpoint_every: int = 500
     """Steps between checkpoints (one is always written at the end)."""
     eval_every: int = 0
-    """Steps between closed-loop evaluations of the EMA policy (0: none)."""
+    """Steps between closed-loop evaluations of the EMA policy (0: none); with a vision stream each also logs
+    ``wm/skill``, the skill of the sampled future against the present frame on a fixed draw of training windows
+    (:mod:`dust_rl.diagnose.world_model`)."""
     eval_episodes: int = 10
     """Episodes per task of each periodic evaluation."""
     eval_workers: int = 2
@@ -344,6 +348,9 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         policy.normalizer.set_vision_stats(features.image_tokens)
         if policy.config.has_vision and policy.config.future_target == "change":
             policy.normalizer.set_future_change_scale(_future_change_rms(policy, features, windows))
+    # A fixed draw of windows on which every periodic evaluation also scores the world model (wm/skill).
+    skill_windows = (windows_of(policy, features, SKILL_WINDOWS, config.seed)
+                     if config.eval_every and policy.config.has_vision and ranks.is_main else None)
     video = _action_free_batches(config, dataset, policy, n_video) if config.video_dataset else None
     extra = (DatasetBatches(DemoDataset(config.extra_dataset), policy, n_extra, config.extra_action_key,
                             progress=config.progress, **start_rows) if config.extra_dataset else None)
@@ -413,7 +420,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
             save_checkpoint_dir(checkpoint, rotation, done, {"step": done, "dataset": dataset.identity})
         if ranks.is_main and config.eval_every and (done % config.eval_every == 0 or done == config.steps):
             with averaged_weights(ema, trained):
-                _log(loggers, _periodic_eval(config, policy, done), done)
+                _log(loggers, _periodic_eval(config, policy, done, skill_windows), done)
     bar.close()
     seconds = time.perf_counter() - began
     ranks.check_same(nn.utils.parameters_to_vector(trained.parameters()).detach())
@@ -591,8 +598,11 @@ def _log(loggers: list[Logger], scalars: dict[str, float], step: int) -> None:
             logger.log_scalar(name, value, step=step)
 
 
-def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int) -> dict[str, float]:
-    """Closed-loop success of ``policy`` (holding the averaged weights), without touching the training RNG."""
+def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int,
+                   skill_windows: Windows | None) -> dict[str, float]:
+    """Closed-loop success of ``policy`` (holding the averaged weights) and, with a vision stream, the skill of
+    its sampled future on ``skill_windows`` (:mod:`dust_rl.diagnose.world_model`), without touching the
+    training RNG."""
     from dust_rl.evaluate import EvalConfig, evaluate
 
     folder = config.out / "eval" / f"step-{step:07d}"
@@ -600,8 +610,12 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int) -> dict[s
     with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
         report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.eval_episodes,
                                      workers=config.eval_workers, videos=0, progress=False, device=config.device))
-    return {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
+    scalars = {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
         "eval/success_rate": report["overall"]["success_rate"]}
+    if skill_windows is not None:
+        skill = vision_skill(policy, skill_windows, buckets=1, seed=config.seed, batch_size=config.batch_size)
+        scalars["wm/skill"] = skill["joint_sample"]["skill"]
+    return scalars
 
 
 def _plot_losses(out: pathlib.Path) -> None:

@@ -89,6 +89,11 @@ def minilm():
 @pytest.fixture
 def tiny_encoder():
     """A randomly initialised conv autoencoder for 32 px frames (4x4 tokens of 16), small enough for tests."""
+    return make_tiny_encoder()
+
+
+def make_tiny_encoder():
+    """:func:`tiny_encoder` for fixtures of a wider scope."""
     from dust_rl.agents import AutoencoderConfig, ConvAutoencoder
 
     return ConvAutoencoder(AutoencoderConfig(image_size=32, dim=16, width=8, max_width=16))

@@ -108,6 +108,8 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     assert [row["task"] for row in evaluated["tasks"]] == ["press_button", "open_drawer"]
     success = (out / "logs" / "train" / "scalars" / "eval" / "success_rate.csv").read_text().split(",")
     assert int(success[0]) == 12 and float(success[1]) == evaluated["overall"]["success_rate"]
+    step, skill = (out / "logs" / "train" / "scalars" / "wm" / "skill.csv").read_text().split(",")
+    assert int(step) == 12 and math.isfinite(float(skill)) and float(skill) < 1  # a world model's skill, logged
     assert [p.name for p in sorted((out / "checkpoints").iterdir())] == ["checkpoint-000000000008",
                                                                         "checkpoint-000000000012"]
     assert (out / "loss.png").stat().st_size > 0

@@ -1,0 +1,1 @@
+"""Diagnostics a user runs on a trained policy (``dust-rl diagnose ...``): measurements, not training."""

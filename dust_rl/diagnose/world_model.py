@@ -1,0 +1,398 @@
+"""Does the world model predict the future, and could the actions use one? ``dust-rl diagnose world-model``.
+
+DUST is worth its vision stream only if (1) the stream predicts the frame H steps on better than trivial
+guesses and (2) the action stream reads that prediction. Both are measured on windows of a dataset the policy
+was not trained on (collect one on other seeds: ``dust-rl collect --seed 5000 ...``), in the trunk's own units
+(standardised tokens, normalised actions):
+
+1. **Skill of the vision stream.** For flow times tau_o in ``--tau-buckets`` equal buckets, the true future is
+   noised to tau_o (the actions to the same level), and the stream's one-step estimate of the clean future,
+   ``x_tau + (1 - tau) v_o``, is compared with two predictors that need no model: the targets' mean and the
+   present frame (a zero change for ``future_target change``). ``skill = 1 - err / err_present``: above 0 the
+   stream knows more than "nothing moves". The joint sample of the policy's own sampler is scored the same way.
+2. **The oracle-future test.** Action chunks are sampled with the policy's sampler and the same action noise
+   while the vision stream holds (a) its own joint sample, (b) the *true* future re-noised to each step's
+   tau_o, (c) pure noise at tau_o = 0, (d) the true future of another episode of the same task, re-noised the
+   same way. Scored: the chunk's error against the demonstration, and the action flow-matching loss with the
+   vision stream held at the clean version of each (noise for (c)). If (b) does not beat (c), no better world
+   model can help these actions; if it does, (a) - (b) is what a better world model could buy, and (d) tells
+   a future that is read from one that only has to look like the task's.
+
+Paired differences (same windows, same noise) get a 95% interval from the normal approximation of their mean.
+
+| file | what |
+|---|---|
+| ``report.json`` | every number, per tau bucket and per condition, with the command and windows |
+| ``report.md`` | the two tables |
+| ``world_model.png`` | error per tau bucket against the predictors; action error per condition |
+"""
+
+from __future__ import annotations
+
+import math
+import pathlib
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor
+
+from dust_rl.agents import DustPolicy, load_policy, schedule_for, unwrap
+from dust_rl.agents.flow_matching import interpolate, sample_tau, velocity_target
+from dust_rl.agents.samplers import DenoiseStep
+from dust_rl.atomic_files import atomic_write, write_json_atomic, write_text_atomic
+from dust_rl.config_json import config_json
+from dust_rl.data import DatasetError, DemoDataset, DemoWindows
+from dust_rl.device import resolve_device
+from dust_rl.errors import check_at_least
+from dust_rl.features import FeatureCache
+
+CONDITIONS = {
+    "own": "its own joint sample",
+    "true": "the true future, re-noised to each step's tau_o",
+    "noise": "pure noise (tau_o = 0)",
+    "other": "another episode's future (same task), re-noised",
+}
+
+
+@dataclass
+class WorldModelDiagnosis:
+    """Measure a policy's world model on held-out windows: the vision stream's skill against trivial predictors,
+    and the oracle-future test of whether its actions can use a future (``dust-rl diagnose world-model``)."""
+
+    policy: pathlib.Path
+    """Policy file (``dust-rl train``)."""
+    dataset: pathlib.Path
+    """Dataset of the policy's env and tasks whose episodes it was not trained on."""
+    out: pathlib.Path = pathlib.Path("runs/diagnose/world_model")
+    """Folder for ``report.json``, ``report.md`` and ``world_model.png``."""
+    windows: int = 512
+    """Windows drawn at random from the dataset (fewer if it has fewer rows)."""
+    batch_size: int = 128
+    """Windows per forward pass."""
+    tau_buckets: int = 5
+    """Equal buckets of tau_o in [0, 1] for the vision stream's error."""
+    seed: int = 0
+    """Seed of the windows drawn and of every noise."""
+    device: str = "auto"
+    """auto | cpu | cuda | cuda:N | mps."""
+    threads: int | None = None
+    """torch threads (default: torch's choice)."""
+    progress: bool = True
+    """Show the feature cache's progress bar."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "windows", "batch_size", "tau_buckets", "threads")
+        resolve_device(self.device)
+
+
+@dataclass
+class Windows:
+    """The diagnosed windows as the trunk sees them, with what the two tests need beside."""
+
+    batch: TensorDict
+    """The trunk's batch [N] (``cond_tokens``, ``state``, ``action_chunk``, ``future_tokens`` ...)."""
+    present: Tensor | None
+    """[N, N_o, Dv] the "nothing moves" prediction of ``future_tokens`` (None without a vision stream)."""
+    other: Tensor | None
+    """[N] index of a window of another episode of the same task (-1: none), for condition (d)."""
+
+
+def per_window_error(pred: Tensor, target: Tensor, valid: Tensor | None = None) -> Tensor:
+    """Mean squared error of each window [B] over its valid rows (``valid`` [B, rows]) and features."""
+    squared = (pred.float() - target.float()).square().mean(-1)
+    if valid is None:
+        return squared.flatten(1).mean(1)
+    return torch.where(valid, squared, 0.0).sum(1) / valid.sum(1).clamp_min(1)
+
+
+def mean_interval(values: Tensor) -> dict[str, float]:
+    """Mean, its 95% interval (normal approximation) and the count of ``values`` [n]."""
+    values = values.double()
+    n = values.numel()
+    mean = values.mean().item() if n else math.nan
+    half = 1.96 * values.std().item() / math.sqrt(n) if n > 1 else math.nan
+    return {"mean": mean, "ci95_low": mean - half, "ci95_high": mean + half, "n": n}
+
+
+def paired(first: Tensor, second: Tensor) -> dict[str, float]:
+    """``first - second`` on the same windows: mean with its 95% interval and the two-sided p-value of a zero
+    mean (normal approximation; hundreds of windows)."""
+    summary = mean_interval(first - second)
+    half = (summary["ci95_high"] - summary["mean"]) / 1.96
+    summary["p"] = math.erfc(abs(summary["mean"]) / half / math.sqrt(2)) if half > 0 else math.nan
+    return summary
+
+
+def draw_windows(config: WorldModelDiagnosis, policy: DustPolicy) -> Windows:
+    """``config.windows`` random windows of the dataset in the trunk's units.
+
+    Raises:
+        DatasetError: the dataset's cameras or sizes do not fit the policy.
+    """
+    dataset = DemoDataset(config.dataset)
+    features = FeatureCache(dataset, policy, progress=config.progress, store=True)
+    return windows_of(policy, features, config.windows, config.seed, config.batch_size)
+
+
+def windows_of(policy: DustPolicy, features: FeatureCache, count: int, seed: int, batch_size: int = 128) -> Windows:
+    """``count`` windows of ``features``' dataset drawn with ``seed`` (torch's global generator is left as it
+    was), in the trunk's units: the trunk's normalisation must be set before."""
+    dataset = features.dataset
+    windows = DemoWindows(dataset, horizon=policy.config.horizon, batch_size=min(count, len(dataset)), images=False)
+    parts, presents = [], []
+    with torch.random.fork_rng(devices=[]), torch.no_grad():  # cached views may be drawn at random too
+        torch.manual_seed(seed)
+        drawn = windows.sample()
+        for rows in drawn.split(batch_size):
+            feature_batch = features.batch(rows)
+            parts.append(policy._model_batch(feature_batch))
+            if policy.config.has_vision:
+                presents.append(present_frame(policy, feature_batch))
+    batch = torch.cat(parts)
+    if not policy.config.has_vision:
+        return Windows(batch, None, None)
+    rows = drawn.get("index")
+    episode = torch.searchsorted(dataset.episode_starts, rows, right=True) - 1
+    return Windows(batch, torch.cat(presents), other_episode_windows(episode, dataset.row_task_index[rows], seed))
+
+
+def present_frame(policy: DustPolicy, features: TensorDict) -> Tensor:
+    """The world-model target if nothing moved: the present frame (a frame target), no change (a change target)."""
+    image = policy.normalizer.normalize_vision(features.get("image_tokens"))
+    present = policy.future_targets(image)
+    return present if policy.config.future_target == "frame" else torch.zeros_like(present)
+
+
+def other_episode_windows(episode: Tensor, task: Tensor, seed: int) -> Tensor:
+    """Per window, a random window of another episode of the same task (-1 where there is none)."""
+    generator = torch.Generator().manual_seed(seed)
+    other = torch.full_like(episode, -1)
+    for i in range(len(episode)):
+        candidates = torch.nonzero((task == task[i]) & (episode != episode[i])).flatten()
+        if len(candidates):
+            other[i] = candidates[torch.randint(len(candidates), (1,), generator=generator)]
+    return other
+
+
+def vision_skill(policy: DustPolicy, windows: Windows, buckets: int, seed: int, batch_size: int) -> dict:
+    """The vision stream's error per tau bucket and of its joint sample, against the two trivial predictors."""
+    batch, model = windows.batch, policy.model
+    target = batch.get("future_tokens")
+    valid = ~batch.get("future_is_clamped") if "future_is_clamped" in batch.keys() else torch.ones(
+        len(target), dtype=torch.bool, device=target.device)
+    mean_prediction = target[valid].mean(0, keepdim=True).expand_as(target)
+    generator = torch.Generator().manual_seed(seed)
+    errors = {name: [] for name in range(buckets)}
+    with torch.no_grad():
+        for rows in torch.arange(len(target)).split(batch_size):
+            part = batch[rows.to(batch.device)]
+            ctx = model.encode_context(part.get("state"), part.get("cond_tokens"), part.get("cond_mask", None))
+            action, future = part.get("action_chunk"), part.get("future_tokens")
+            for bucket in range(buckets):
+                u = torch.rand(len(rows), generator=generator)
+                tau = ((bucket + u) / buckets).to(future.device)
+                eps_a = torch.randn(action.shape, generator=generator).to(action)
+                eps_o = torch.randn(future.shape, generator=generator).to(future)
+                noisy = interpolate(future, eps_o, tau)
+                _, v_o = model(ctx, interpolate(action, eps_a, tau), noisy, tau, tau, need_action=False)
+                estimate = noisy + (1 - tau).view(-1, 1, 1) * v_o
+                errors[bucket].append(per_window_error(estimate, future))
+    sampled = own_samples(policy, batch, seed, batch_size)[1]
+    reference = {"mean": per_window_error(mean_prediction, target)[valid],
+                 "present": per_window_error(windows.present, target)[valid]}
+    err_present = reference["present"].mean().item()
+
+    def row(error: Tensor) -> dict:
+        error = error[valid]
+        return {**mean_interval(error), "skill": 1 - error.mean().item() / err_present,
+                "vs_present": paired(error, reference["present"])}
+
+    return {"valid_windows": int(valid.sum()), "mean_predictor": mean_interval(reference["mean"]),
+            "present_predictor": mean_interval(reference["present"]),
+            "buckets": [{"tau": [b / buckets, (b + 1) / buckets], **row(torch.cat(errors[b]))} for b in range(buckets)],
+            "joint_sample": row(per_window_error(sampled, target))}
+
+
+def own_samples(policy: DustPolicy, batch: TensorDict, seed: int, batch_size: int,
+                source: Callable[[TensorDict, Tensor], Callable[[DenoiseStep], tuple[Tensor, float]]] | None = None
+                ) -> tuple[Tensor, Tensor | None]:
+    """Action chunks [N, H, Da] and the future [N, N_o, Dv] of the policy's sampler on ``batch``, each slice of
+    ``batch_size`` seeded alike, so that every condition starts from the same action noise; ``source(part,
+    rows)`` gives a slice's vision tokens per step (:data:`~dust_rl.agents.samplers.VisionSource`)."""
+    schedule, actions, futures = schedule_for(policy.config), [], []
+    for index, rows in enumerate(torch.arange(batch.batch_size[0]).split(batch_size)):
+        part = batch[rows.to(batch.device)]
+        generator = torch.Generator().manual_seed(seed * 100_003 + index)
+        out = policy.model.predict_action(part, schedule, generator,
+                                          vision_source=None if source is None else source(part, rows))
+        actions.append(out.get("action_chunk"))
+        futures.append(out.get("future_tokens", None))
+    return torch.cat(actions), (torch.cat(futures) if futures[0] is not None else None)
+
+
+def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: int) -> dict:
+    """Action error and action loss with the vision stream holding each of :data:`CONDITIONS`.
+
+    The action loss holds the vision stream at the clean future (tau_o = 1; pure noise at tau_o = 0 for
+    ``noise``); a variant with one timestep for both streams gets the future re-noised to the actions' tau and
+    no ``noise`` condition (its model never sees the two at different flow times).
+    """
+    batch, model, cfg = windows.batch, policy.model, policy.config
+    action, pad = batch.get("action_chunk"), batch.get("action_is_pad", None)
+    device, valid = action.device, None if pad is None else ~pad
+    skipped = {}
+    conditions = list(CONDITIONS) if cfg.has_vision else ["own"]
+    if cfg.has_vision and not cfg.decoupled:
+        conditions.remove("noise")
+        skipped["noise"] = f"variant {cfg.variant} shares one flow time between the streams"
+    if "other" in conditions and not bool((windows.other >= 0).all()):
+        conditions.remove("other")
+        skipped["other"] = "fewer than two episodes of some diagnosed task"
+    generator = torch.Generator().manual_seed(seed + 1)
+    eps_o = torch.randn(batch.get("future_tokens").shape, generator=generator).to(action) if cfg.has_vision else None
+    futures = {"true": batch.get("future_tokens"), "noise": eps_o}
+    if "other" in conditions:
+        futures["other"] = batch.get("future_tokens")[windows.other.to(device)]
+
+    def source(name: str) -> Callable[[TensorDict, Tensor], Callable[[DenoiseStep], tuple[Tensor, float]]]:
+        def for_slice(part: TensorDict, rows: Tensor) -> Callable[[DenoiseStep], tuple[Tensor, float]]:
+            future, noise = futures[name][rows.to(device)], eps_o[rows.to(device)]
+            if name == "noise":
+                return lambda step: (noise, 0.0)
+            return lambda step: (torch.lerp(noise, future, step.tau_o), step.tau_o)
+        return for_slice
+
+    errors = {}
+    for name in conditions:
+        chunks, sampled = own_samples(policy, batch, seed, batch_size, None if name == "own" else source(name))
+        errors[name] = per_window_error(chunks, action, valid)
+        if name == "own":
+            futures["own"] = sampled
+    loss_generator = torch.Generator().manual_seed(seed + 2)
+    tau_a = sample_tau(len(action), s=cfg.tau_s, alpha=cfg.tau_alpha, generator=loss_generator).to(device)
+    eps_a = torch.randn(action.shape, generator=loss_generator).to(action)
+    noisy_action = interpolate(action, eps_a, tau_a)
+    results = {}
+    for name in conditions:
+        losses = []
+        with torch.no_grad():
+            for rows in torch.arange(len(action), device=device).split(batch_size):
+                part = batch[rows]
+                ctx = model.encode_context(part.get("state"), part.get("cond_tokens"), part.get("cond_mask", None))
+                vision = tau_o = None
+                if cfg.has_vision:
+                    vision, tau_o = futures[name][rows], torch.full((len(rows),), 0.0 if name == "noise" else 1.0,
+                                                                     device=device)
+                    if not cfg.decoupled:
+                        tau_o = tau_a[rows]
+                        vision = interpolate(vision, eps_o[rows], tau_o)
+                v_a, _ = model(ctx, noisy_action[rows], vision, tau_a[rows], tau_o, need_vision=False)
+                losses.append(per_window_error(v_a, velocity_target(action[rows], eps_a[rows]),
+                                               None if valid is None else valid[rows]))
+        results[name] = {"vision": CONDITIONS[name], "action_error": mean_interval(errors[name]),
+                         "action_loss": mean_interval(torch.cat(losses))}
+    pairs = (("true", "noise"), ("own", "true"), ("own", "noise"), ("other", "noise"), ("true", "other"))
+    return {"conditions": results, "skipped": skipped,
+            "paired_action_error": {f"{a} - {b}": paired(errors[a], errors[b]) for a, b in pairs
+                                    if a in errors and b in errors}}
+
+
+def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
+    """Run both tests and write the report; returns what ``report.json`` holds.
+
+    Raises:
+        CheckpointError, DatasetError: an unreadable policy or dataset, or one that does not fit the other.
+    """
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    policy = unwrap(load_policy(config.policy)).to(resolve_device(config.device)).eval()
+    trained_on = policy.info.get("dataset")
+    if trained_on and pathlib.Path(trained_on).resolve() == config.dataset.resolve():
+        raise DatasetError(f"{config.dataset} is the dataset {config.policy} was trained on; diagnose on held-out "
+                           "episodes (e.g. dust-rl collect --seed 5000 ...)")
+    windows = draw_windows(config, policy)
+    report = {"policy": str(config.policy), "dataset": str(config.dataset), "variant": policy.config.variant,
+              "future_target": policy.config.future_target if policy.config.has_vision else None,
+              "windows": windows.batch.batch_size[0], "command": command, "config": config_json(config),
+              "oracle_future": oracle_future(policy, windows, config.seed, config.batch_size)}
+    if policy.config.has_vision:
+        report["vision_stream"] = vision_skill(policy, windows, config.tau_buckets, config.seed, config.batch_size)
+    config.out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(config.out / "report.json", report)
+    write_text_atomic(config.out / "report.md", markdown(report))
+    plot(report, config.out / "world_model.png")
+    return report
+
+
+def _interval(row: dict, digits: int = 4) -> str:
+    return f"{row['mean']:.{digits}f} [{row['ci95_low']:.{digits}f}, {row['ci95_high']:.{digits}f}]"
+
+
+def markdown(report: dict) -> str:
+    """The report's two tables."""
+    lines = [f"# World-model diagnosis of {report['policy']}", "",
+             f"{report['windows']} windows of {report['dataset']}; variant {report['variant']}; command: "
+             f"`{report['command']}`", ""]
+    vision = report.get("vision_stream")
+    if vision:
+        lines += ["## The vision stream against trivial predictors", "",
+                  f"Target: {report['future_target']}; {vision['valid_windows']} windows whose t+H is inside the "
+                  f"episode. Error of the targets' mean: {_interval(vision['mean_predictor'])}; of the present "
+                  f"frame: {_interval(vision['present_predictor'])}.", "",
+                  "| tau_o | error (95% CI) | skill (1 - err / err_present) |", "|---|---|---|"]
+        for row in vision["buckets"]:
+            lines.append(f"| {row['tau'][0]:.2f}-{row['tau'][1]:.2f} | {_interval(row)} | {row['skill']:+.3f} |")
+        lines += [f"| joint sample (the policy's sampler) | {_interval(vision['joint_sample'])} | "
+                  f"{vision['joint_sample']['skill']:+.3f} |", ""]
+    oracle = report["oracle_future"]
+    lines += ["## The oracle-future test", "",
+              "| vision stream holds | action error vs demonstration (95% CI) | action loss (95% CI) |",
+              "|---|---|---|"]
+    for row in oracle["conditions"].values():
+        lines.append(f"| {row['vision']} | {_interval(row['action_error'])} | {_interval(row['action_loss'])} |")
+    if oracle["paired_action_error"]:
+        lines += ["", "| action error, paired | difference (95% CI) | p |", "|---|---|---|"]
+        for name, row in oracle["paired_action_error"].items():
+            lines.append(f"| {name} | {_interval(row)} | {row['p']:.3g} |")
+    lines += [""] * bool(oracle["skipped"]) + [f"Condition '{name}' not run: {why}."
+                                               for name, why in oracle["skipped"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def plot(report: dict, path: pathlib.Path) -> None:
+    """Vision error per tau bucket against the predictors (left), action error per condition (right)."""
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(10, 4), layout="constrained")
+    left, right = figure.subplots(1, 2)
+    vision = report.get("vision_stream")
+    if vision:
+        centres = [sum(row["tau"]) / 2 for row in vision["buckets"]]
+        left.errorbar(centres, [row["mean"] for row in vision["buckets"]],
+                      yerr=[row["mean"] - row["ci95_low"] for row in vision["buckets"]], marker="o",
+                      label="vision stream, one step")
+        for name, style in (("mean_predictor", ":"), ("present_predictor", "--")):
+            left.axhline(vision[name]["mean"], linestyle=style, color="grey", label=name.replace("_", " "))
+        left.axhline(vision["joint_sample"]["mean"], color="C1", label="joint sample")
+        left.set(xlabel="tau_o", ylabel="error of the future (standardised)", title="world model")
+        left.legend(fontsize=8)
+    else:
+        left.set_axis_off()
+        left.text(0.5, 0.5, "no vision stream", ha="center")
+    conditions = report["oracle_future"]["conditions"]
+    names = list(conditions)
+    means = [conditions[n]["action_error"]["mean"] for n in names]
+    right.bar(names, means, yerr=[conditions[n]["action_error"]["mean"] - conditions[n]["action_error"]["ci95_low"]
+                                  for n in names], color=[f"C{i}" for i in range(len(names))])
+    right.set(ylabel="action error vs demonstration", title="oracle-future test")
+    with atomic_write(path, "wb") as f:
+        figure.savefig(f, format="png", dpi=100)
+
+
+def diagnose_world_model_command(config: WorldModelDiagnosis, command: str | None = None) -> None:
+    """``dust-rl diagnose world-model``: run, print the tables, say where the files are."""
+    diagnose(config, command)
+    print((config.out / "report.md").read_text())
+    print(f"report: {config.out / 'report.json'}; plot: {config.out / 'world_model.png'}")

@@ -1,0 +1,116 @@
+"""``dust-rl diagnose world-model`` and the sampler's vision source it is built on."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import torch
+from conftest import make_tiny_encoder
+
+from dust_rl.agents import DustConfig, DustModel, random_batch
+from dust_rl.agents.samplers import action_only_schedule, async_schedule, run_schedule
+from dust_rl.cli import main
+from dust_rl.data import DatasetError
+from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
+from dust_rl.train import TrainConfig, train
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+TINY = {"horizon": 4, "d_model": 32, "n_heads": 2, "n_mmdit": 2, "n_dit": 0}
+
+
+def _model_and_context(**config):
+    """A model with every weight random (a new one's zero-initialised gates and decoders output zero velocity,
+    which no input could change) and a chunk context."""
+    torch.manual_seed(0)
+    model = DustModel(DustConfig(**{**TINY, **config})).eval()
+    with torch.no_grad():
+        for parameter in model.parameters():
+            parameter.normal_(0.0, 0.3)
+    batch = random_batch(model.config, 3, 5, torch.Generator().manual_seed(1))
+    return model, model.encode_context(batch["state"], batch["cond_tokens"])
+
+
+def _drawn_noise(model, seed: int = 0):
+    """The action and vision noise ``run_schedule`` draws from a generator seeded ``seed``, in its order."""
+    generator, cfg = torch.Generator().manual_seed(seed), model.config
+    action = torch.randn(3, cfg.horizon, cfg.action_dim, generator=generator)
+    return action, torch.randn(3, cfg.n_vision_tokens, cfg.vision_dim, generator=generator)
+
+
+def test_a_noise_source_turns_the_joint_sampler_into_the_action_only_one():
+    """With the vision stream held at its initial noise and tau_o = 0, the synchronous schedule steps the actions
+    exactly as the action-only schedule does: the source replaces the vision input and nothing else."""
+    model, ctx = _model_and_context()
+    _, noise = _drawn_noise(model)
+    held, vision = run_schedule(model, ctx, async_schedule(4, 1), torch.Generator().manual_seed(0),
+                                vision_source=lambda step: (noise, 0.0))
+    reference, _ = run_schedule(model, ctx, action_only_schedule(4), torch.Generator().manual_seed(0))
+    assert torch.equal(held, reference)
+    assert torch.equal(vision, noise)
+
+
+def test_the_vision_source_reaches_the_actions():
+    model, ctx = _model_and_context()
+    future = torch.randn(3, model.config.n_vision_tokens, model.config.vision_dim)
+    seen = []
+
+    def source(step):
+        seen.append(step.tau_o)
+        return future * step.tau_o, step.tau_o
+
+    oracle, vision = run_schedule(model, ctx, async_schedule(2, 2), torch.Generator().manual_seed(0),
+                                  vision_source=source)
+    own, _ = run_schedule(model, ctx, async_schedule(2, 2), torch.Generator().manual_seed(0))
+    assert seen == [step.tau_o for step in async_schedule(2, 2)]
+    assert torch.equal(vision, future * seen[-1])
+    assert not torch.allclose(oracle, own)  # the joint attention reads the vision tokens
+
+
+@pytest.fixture(scope="module")
+def trained(demo_dir, tmp_path_factory):
+    """A tiny DUST policy trained on a copy of the demo dataset, and another copy as held-out episodes."""
+    from dust_rl.agents import PolicyConfig, save_image_encoder
+
+    root = tmp_path_factory.mktemp("diagnose")
+    data = shutil.copytree(demo_dir, root / "data")
+    encoder = save_image_encoder(make_tiny_encoder(), root / "encoder.pt")
+    policies = {}
+    for variant in ("dust", "action_only"):
+        config = TrainConfig(dataset=data, out=root / variant, steps=6, batch_size=8, checkpoint_every=6, threads=1,
+                             progress=False, loggers=("csv",),
+                             policy=PolicyConfig(**TINY, variant=variant, image_encoder=str(encoder)))
+        policies[variant] = train(config).policy
+    return policies, data, shutil.copytree(demo_dir, root / "heldout")
+
+
+def test_report_of_a_dust_policy(trained, tmp_path, capsys):
+    policies, _, heldout = trained
+    out = tmp_path / "report"
+    main(["diagnose", "world-model", "--policy", str(policies["dust"]), "--dataset", str(heldout), "--out",
+          str(out), "--windows", "48", "--batch-size", "16", "--no-progress", "--threads", "1"])
+    report = json.loads((out / "report.json").read_text())
+    assert set(report["oracle_future"]["conditions"]) == {"own", "true", "noise", "other"}
+    assert "true - noise" in report["oracle_future"]["paired_action_error"]
+    buckets = report["vision_stream"]["buckets"]
+    assert len(buckets) == 5 and all(row["n"] == buckets[0]["n"] > 0 for row in buckets)
+    # Near tau_o = 1 the one-step estimate is the noised target itself, whatever the stream predicts.
+    assert buckets[-1]["mean"] < buckets[0]["mean"]
+    assert (out / "world_model.png").stat().st_size > 0
+    assert "The oracle-future test" in capsys.readouterr().out
+
+
+def test_an_action_only_policy_has_only_its_own_condition(trained, tmp_path):
+    policies, _, heldout = trained
+    report = diagnose(WorldModelDiagnosis(policy=policies["action_only"], dataset=heldout, out=tmp_path,
+                                          windows=16, progress=False))
+    assert list(report["oracle_future"]["conditions"]) == ["own"]
+    assert "vision_stream" not in report
+
+
+def test_the_training_dataset_is_refused(trained, tmp_path):
+    policies, data, _ = trained
+    with pytest.raises(DatasetError, match="trained on"):
+        diagnose(WorldModelDiagnosis(policy=policies["dust"], dataset=data, out=tmp_path, windows=8, progress=False))
