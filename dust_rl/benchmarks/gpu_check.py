@@ -228,13 +228,7 @@ class GpuCheck:
     def train_rows(self) -> None:
         for preset in self.size.presets:
             for precision in PRECISIONS:
-                trainer = None
-                with self.row("train", f"{preset} {precision} eager, batch {self.size.batch}") as row:
-                    if row is not None:
-                        trainer = _Trainer(preset, self.device, precision, compile_model=False)
-                        speed, _ = trainer.steps_per_s(self.size.batch, self.size.steps, warmup=2)
-                        row.value = f"{speed:,.0f} samples/s"
-                        row.detail = self._memory(f"{trainer.params / 1e6:.1f}M parameters")
+                trainer = self._speed_row("train", preset, precision, compile_model=False)
                 if trainer is not None:
                     self._largest_batch(preset, precision, trainer)
                 del trainer
@@ -242,17 +236,23 @@ class GpuCheck:
     def compile_rows(self) -> None:
         """The eager training rows at the table's batch again, compiled (last by default: compiling takes the
         longest, and the budget then skips these rather than the end-to-end sections)."""
-        if not self.size.compile:
-            return
-        for preset in self.size.presets:
-            for precision in PRECISIONS:
-                with self.row("compile", f"{preset} {precision} torch.compile, batch {self.size.batch}") as row:
-                    if row is not None:
-                        trainer = _Trainer(preset, self.device, precision, compile_model=True)
-                        speed, first = trainer.steps_per_s(self.size.batch, self.size.steps, warmup=2)
-                        row.value = f"{speed:,.0f} samples/s"
-                        row.detail = self._memory(f"first step (compilation) {first:.1f} s")
-                        del trainer
+        if self.size.compile:
+            for preset in self.size.presets:
+                for precision in PRECISIONS:
+                    self._speed_row("compile", preset, precision, compile_model=True)
+
+    def _speed_row(self, section: str, preset: str, precision: Precision, compile_model: bool) -> _Trainer | None:
+        """Samples/s at the table's batch; returns the trainer (None if the row did not run)."""
+        trainer = None
+        mode = "torch.compile" if compile_model else "eager"
+        with self.row(section, f"{preset} {precision} {mode}, batch {self.size.batch}") as row:
+            if row is not None:
+                trainer = _Trainer(preset, self.device, precision, compile_model)
+                speed, first = trainer.steps_per_s(self.size.batch, self.size.steps, warmup=2)
+                row.value = f"{speed:,.0f} samples/s"
+                row.detail = self._memory(f"first step (compilation) {first:.1f} s" if compile_model
+                                          else f"{trainer.params / 1e6:.1f}M parameters")
+        return trainer
 
     def _largest_batch(self, preset: str, precision: Precision, trainer: _Trainer) -> None:
         """Double the batch from twice the table's until a step runs out of memory (or ``max_batch``)."""
