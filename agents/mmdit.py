@@ -47,15 +47,14 @@ def split_heads(x: Tensor, n_parts: int, n_heads: int) -> tuple[Tensor, ...]:
 
 # CUDA's attention kernels fail from a batch of 65,536 on (cuDNN: "mha_graph.execute ... is_good()", the others:
 # "invalid argument"; measured on an H200, torch 2.11, bf16; 65,535 runs): larger batches go in slices.
-MAX_CUDA_ATTENTION_BATCH = 65535
+MAX_ATTENTION_BATCH = 65535
 
 
 def attention(q: Tensor, k: Tensor, v: Tensor, mask: Tensor | None) -> Tensor:
-    """``scaled_dot_product_attention`` over [B, h, N, e], in batch slices CUDA's kernels accept."""
-    if not (q.is_cuda and q.shape[0] > MAX_CUDA_ATTENTION_BATCH):
+    """``scaled_dot_product_attention`` over [B, h, N, e], in batch slices every CUDA kernel accepts."""
+    if q.shape[0] <= MAX_ATTENTION_BATCH:
         return F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
-    slices = range(0, q.shape[0], MAX_CUDA_ATTENTION_BATCH)
-    rows = [slice(start, start + MAX_CUDA_ATTENTION_BATCH) for start in slices]
+    rows = [slice(start, start + MAX_ATTENTION_BATCH) for start in range(0, q.shape[0], MAX_ATTENTION_BATCH)]
     return torch.cat([F.scaled_dot_product_attention(q[r], k[r], v[r], attn_mask=mask if mask is None or
                                                      mask.shape[0] == 1 else mask[r]) for r in rows])
 

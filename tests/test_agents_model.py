@@ -284,3 +284,25 @@ def test_invalid_configs_are_rejected():
         tiny("action_only", sampler="sync")
     with pytest.raises(ValueError):
         tiny("nope")
+
+
+@pytest.mark.parametrize("variant", ["dust", "mmdit_shared"])
+def test_attention_over_a_batch_too_large_for_cuda_runs_in_slices(variant, monkeypatch):
+    """Batches above CUDA's attention limit (65,535) are sliced: here the limit is lowered to 2, and a batch of
+    5 chunks (10 stream rows, padded streams masked) gives the velocities of the unsliced computation."""
+    from dust_rl.agents import mmdit
+
+    torch.manual_seed(0)
+    model = DustModel(DustConfig(variant=variant, d_model=32, n_heads=2, n_mmdit=2, n_dit=2)).double().eval()
+    with torch.no_grad():
+        for parameter in model.parameters():  # a new model's zero-initialised gates would hide the attention
+            parameter.normal_(0.0, 0.3)
+    batch = random_batch(model.config, 5, 6, torch.Generator().manual_seed(1)).double()
+    ctx = model.encode_context(batch["state"], batch["cond_tokens"])
+    tau = torch.rand(5, dtype=torch.float64)
+    inputs = (ctx, batch["action_chunk"], batch["future_tokens"], tau, tau)
+    whole = model(*inputs)
+    monkeypatch.setattr(mmdit, "MAX_ATTENTION_BATCH", 2)
+    sliced = model(*inputs)
+    for got, expected in zip(sliced, whole):
+        assert_close_up_to_rounding(got, expected, n_terms=model.config.d_model, depth=6)
