@@ -95,7 +95,8 @@ def test_report_of_a_dust_policy(trained, tmp_path, capsys):
     assert set(report["oracle_future"]["conditions"]) == {"own", "true", "noise", "other"}
     assert "true - noise" in report["oracle_future"]["paired_action_error"]
     buckets = report["vision_stream"]["buckets"]
-    assert len(buckets) == 5 and all(row["n"] == buckets[0]["n"] > 0 for row in buckets)
+    assert len(buckets) == 5 and all(row["windows"] == buckets[0]["windows"] > 0 for row in buckets)
+    assert buckets[0]["episodes"] > 1
     # Near tau_o = 1 the one-step estimate is the noised target itself, whatever the stream predicts.
     assert buckets[-1]["mean"] < buckets[0]["mean"]
     assert (out / "world_model.png").stat().st_size > 0
@@ -114,3 +115,13 @@ def test_the_training_dataset_is_refused(trained, tmp_path):
     policies, data, _ = trained
     with pytest.raises(DatasetError, match="trained on"):
         diagnose(WorldModelDiagnosis(policy=policies["dust"], dataset=data, out=tmp_path, windows=8, progress=False))
+
+
+def test_intervals_are_over_episodes_not_windows():
+    from dust_rl.diagnose.world_model import mean_interval
+
+    # Two episodes: one of many windows at 1.0, one of a single window at 3.0. Each episode weighs the same.
+    values, episode = torch.tensor([1.0] * 9 + [3.0]), torch.tensor([0] * 9 + [1])
+    summary = mean_interval(values, episode)
+    assert summary["mean"] == 2.0 and summary["episodes"] == 2 and summary["windows"] == 10
+    assert summary["ci95_low"] < 1.0 < 3.0 < summary["ci95_high"]  # two episodes tell little

@@ -18,7 +18,9 @@ was not trained on (collect one on other seeds: ``dust-rl collect --seed 5000 ..
    model can help these actions; if it does, (a) - (b) is what a better world model could buy, and (d) tells
    a future that is read from one that only has to look like the task's.
 
-Paired differences (same windows, same noise) get a 95% interval from the normal approximation of their mean.
+Every number is a mean over episodes of the per-episode mean over windows, with a 95% interval from the normal
+approximation over episodes (the windows of one episode are not independent); paired differences (same windows,
+same noise) likewise, with the p-value of a zero mean.
 
 | file | what |
 |---|---|
@@ -95,6 +97,8 @@ class Windows:
     """The trunk's batch [N] (``cond_tokens``, ``state``, ``action_chunk``, ``future_tokens`` ...)."""
     present: Tensor | None
     """[N, N_o, Dv] the "nothing moves" prediction of ``future_tokens`` (None without a vision stream)."""
+    episode: Tensor
+    """[N] the dataset episode of each window (intervals are over episodes)."""
     other: Tensor | None
     """[N] index of a window of another episode of the same task (-1: none), for condition (d)."""
 
@@ -107,19 +111,21 @@ def per_window_error(pred: Tensor, target: Tensor, valid: Tensor | None = None) 
     return torch.where(valid, squared, 0.0).sum(1) / valid.sum(1).clamp_min(1)
 
 
-def mean_interval(values: Tensor) -> dict[str, float]:
-    """Mean, its 95% interval (normal approximation) and the count of ``values`` [n]."""
-    values = values.double()
-    n = values.numel()
-    mean = values.mean().item() if n else math.nan
-    half = 1.96 * values.std().item() / math.sqrt(n) if n > 1 else math.nan
-    return {"mean": mean, "ci95_low": mean - half, "ci95_high": mean + half, "n": n}
+def mean_interval(values: Tensor, episode: Tensor) -> dict[str, float]:
+    """Mean over episodes of each episode's mean of ``values`` [n], with its 95% interval (normal approximation
+    over episodes: the windows of one episode are not independent draws), and the counts."""
+    groups, index = torch.unique(episode.cpu(), return_inverse=True)
+    sums = torch.zeros(len(groups), dtype=torch.float64).index_add_(0, index, values.detach().cpu().double())
+    means = sums / torch.bincount(index, minlength=len(groups))
+    n = len(means)
+    mean = means.mean().item() if n else math.nan
+    half = 1.96 * means.std().item() / math.sqrt(n) if n > 1 else math.nan
+    return {"mean": mean, "ci95_low": mean - half, "ci95_high": mean + half, "episodes": n, "windows": len(values)}
 
 
-def paired(first: Tensor, second: Tensor) -> dict[str, float]:
-    """``first - second`` on the same windows: mean with its 95% interval and the two-sided p-value of a zero
-    mean (normal approximation; hundreds of windows)."""
-    summary = mean_interval(first - second)
+def paired(first: Tensor, second: Tensor, episode: Tensor) -> dict[str, float]:
+    """``first - second`` on the same windows (:func:`mean_interval`) and the two-sided p-value of a zero mean."""
+    summary = mean_interval(first - second, episode)
     half = (summary["ci95_high"] - summary["mean"]) / 1.96
     summary["p"] = math.erfc(abs(summary["mean"]) / half / math.sqrt(2)) if half > 0 else math.nan
     return summary
@@ -150,12 +156,12 @@ def windows_of(policy: DustPolicy, features: FeatureCache, count: int, seed: int
             parts.append(policy._model_batch(feature_batch))
             if policy.config.has_vision:
                 presents.append(present_frame(policy, feature_batch))
-    batch = torch.cat(parts)
-    if not policy.config.has_vision:
-        return Windows(batch, None, None)
     rows = drawn.get("index")
     episode = torch.searchsorted(dataset.episode_starts, rows, right=True) - 1
-    return Windows(batch, torch.cat(presents), other_episode_windows(episode, dataset.row_task_index[rows], seed))
+    if not policy.config.has_vision:
+        return Windows(torch.cat(parts), None, episode, None)
+    return Windows(torch.cat(parts), torch.cat(presents), episode,
+                   other_episode_windows(episode, dataset.row_task_index[rows], seed))
 
 
 def present_frame(policy: DustPolicy, features: TensorDict) -> Tensor:
@@ -202,15 +208,17 @@ def vision_skill(policy: DustPolicy, windows: Windows, buckets: int, seed: int, 
     sampled = own_samples(policy, batch, seed, batch_size)[1]
     reference = {"mean": per_window_error(mean_prediction, target)[valid],
                  "present": per_window_error(windows.present, target)[valid]}
-    err_present = reference["present"].mean().item()
+    episode = windows.episode[valid.cpu()]
+    present = mean_interval(reference["present"], episode)
 
     def row(error: Tensor) -> dict:
         error = error[valid]
-        return {**mean_interval(error), "skill": 1 - error.mean().item() / err_present,
-                "vs_present": paired(error, reference["present"])}
+        summary = mean_interval(error, episode)
+        return {**summary, "skill": 1 - summary["mean"] / present["mean"],
+                "vs_present": paired(error, reference["present"], episode)}
 
-    return {"valid_windows": int(valid.sum()), "mean_predictor": mean_interval(reference["mean"]),
-            "present_predictor": mean_interval(reference["present"]),
+    return {"valid_windows": int(valid.sum()), "mean_predictor": mean_interval(reference["mean"], episode),
+            "present_predictor": present,
             "buckets": [{"tau": [b / buckets, (b + 1) / buckets], **row(torch.cat(errors[b]))} for b in range(buckets)],
             "joint_sample": row(per_window_error(sampled, target))}
 
@@ -291,11 +299,11 @@ def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: i
                 v_a, _ = model(ctx, noisy_action[rows], vision, tau_a[rows], tau_o, need_vision=False)
                 losses.append(per_window_error(v_a, velocity_target(action[rows], eps_a[rows]),
                                                None if valid is None else valid[rows]))
-        results[name] = {"vision": CONDITIONS[name], "action_error": mean_interval(errors[name]),
-                         "action_loss": mean_interval(torch.cat(losses))}
+        results[name] = {"vision": CONDITIONS[name], "action_error": mean_interval(errors[name], windows.episode),
+                         "action_loss": mean_interval(torch.cat(losses), windows.episode)}
     pairs = (("true", "noise"), ("own", "true"), ("own", "noise"), ("other", "noise"), ("true", "other"))
     return {"conditions": results, "skipped": skipped,
-            "paired_action_error": {f"{a} - {b}": paired(errors[a], errors[b]) for a, b in pairs
+            "paired_action_error": {f"{a} - {b}": paired(errors[a], errors[b], windows.episode) for a, b in pairs
                                     if a in errors and b in errors}}
 
 
@@ -333,7 +341,8 @@ def _interval(row: dict, digits: int = 4) -> str:
 def markdown(report: dict) -> str:
     """The report's two tables."""
     lines = [f"# World-model diagnosis of {report['policy']}", "",
-             f"{report['windows']} windows of {report['dataset']}; variant {report['variant']}; command: "
+             f"{report['windows']} windows of {report['dataset']}; variant {report['variant']}; means over episodes "
+             "with 95% intervals over episodes; command: "
              f"`{report['command']}`", ""]
     vision = report.get("vision_stream")
     if vision:
