@@ -26,7 +26,7 @@ same noise) likewise, with the p-value of a zero mean.
 |---|---|
 | ``report.json`` | every number, per tau bucket and per condition, with the command and windows |
 | ``report.md`` | the two tables |
-| ``world_model.png`` | error per tau bucket against the predictors; action error per condition |
+| ``world_model.png`` | error per tau bucket against the predictors; each condition's action error minus noise's |
 """
 
 from __future__ import annotations
@@ -371,7 +371,8 @@ def markdown(report: dict) -> str:
 
 
 def plot(report: dict, path: pathlib.Path) -> None:
-    """Vision error per tau bucket against the predictors (left), action error per condition (right)."""
+    """Vision error per tau bucket against the predictors (left); each condition's action error minus that with
+    pure noise, paired (right; the plain errors for a policy without a vision stream)."""
     from matplotlib.figure import Figure
 
     figure = Figure(figsize=(10, 4), layout="constrained")
@@ -390,12 +391,14 @@ def plot(report: dict, path: pathlib.Path) -> None:
     else:
         left.set_axis_off()
         left.text(0.5, 0.5, "no vision stream", ha="center")
-    conditions = report["oracle_future"]["conditions"]
-    names = list(conditions)
-    means = [conditions[n]["action_error"]["mean"] for n in names]
-    right.bar(names, means, yerr=[conditions[n]["action_error"]["mean"] - conditions[n]["action_error"]["ci95_low"]
-                                  for n in names], color=[f"C{i}" for i in range(len(names))])
-    right.set(ylabel="action error vs demonstration", title="oracle-future test")
+    oracle = report["oracle_future"]
+    pairs = {name: row for name, row in oracle["paired_action_error"].items() if name.endswith(" - noise")}
+    rows = pairs or {name: row["action_error"] for name, row in oracle["conditions"].items()}
+    right.bar(list(rows), [row["mean"] for row in rows.values()],
+              yerr=[row["mean"] - row["ci95_low"] for row in rows.values()], color=[f"C{i}" for i in range(len(rows))])
+    right.axhline(0.0, color="black", linewidth=0.8)
+    right.set(ylabel="action error, paired difference" if pairs else "action error vs demonstration",
+              title="oracle-future test" + (" (below 0: the future helps)" if pairs else ""))
     with atomic_write(path, "wb") as f:
         figure.savefig(f, format="png", dpi=100)
 
