@@ -19,7 +19,8 @@ A run folder holds
 
 ``--nproc N`` (or ``torchrun --nproc-per-node N -m dust_rl.train ...``) trains with
 ``DistributedDataParallel`` over N processes, each on its slice of every global batch
-(:mod:`dust_rl.distributed`); rank 0 writes the run folder.
+(:mod:`dust_rl.distributed`); rank 0 writes the run folder and holds its lock, so a second run into the
+same folder is refused, naming the first one's pid.
 
 The frozen backbone's features are cached once per dataset (:class:`~dust_rl.features.FeatureCache`).
 Every setting is checked when the config is built, and the dataset, env and model before the run
@@ -29,6 +30,7 @@ weights, so no checkpoint or ``policy.pt`` holds NaN weights.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import math
 import os
@@ -67,7 +69,7 @@ from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_widt
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.readout_cache import readout_cache_path, warm_up_or_load
 from dust_rl.readout_warmup import warm_up_readout
-from dust_rl.run_folder import check_run_folder, restore, write_run_config
+from dust_rl.run_folder import check_run_folder, locked_run_folder, restore
 
 LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 # Fields that may differ between a run and its resumption.
@@ -296,6 +298,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     Raises:
         DatasetError, CheckpointError, ConfigError: unusable dataset, encoder file or model settings.
         FileExistsError, FileNotFoundError: ``out`` holds a run (without ``resume``), or none (with it).
+        FolderLockedError: another run is writing into ``out`` (the message names its pid).
         ConfigError: ``resume`` with settings other than the stored run's.
         NonFiniteLossError: training diverged (the message names the step).
         RankFailedError: with ``nproc`` > 1, a process stopped with one of the errors above.
@@ -309,7 +312,6 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     """:func:`train` in this process, as one rank of the run when there are several."""
     if config.threads:
         torch.set_num_threads(config.threads)
-    out = config.out
     ranks = _join(config)
     check_run_folder(config, RESUMABLE_FIELDS)
     ranks.barrier()  # every rank has seen the folder before rank 0 writes it
@@ -324,8 +326,14 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.device), ranks))
     finally:
         probe.close()
-    if not config.resume and ranks.is_main:
-        write_run_config(config, command)
+    with locked_run_folder(config, RESUMABLE_FIELDS, command) if ranks.is_main else contextlib.nullcontext():
+        return _train_in_folder(config, ranks, dataset, policy)
+
+
+def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, policy: DustPolicy) -> TrainResult:
+    """The run itself, once its folder is this run's (rank 0 holds its lock)."""
+    out = config.out
+    env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
     # A fine-tuned policy's read-out keeps the object-state units it was trained in (dust_rl.env_state_norm).
     state_units = PER_TASK if config.init_policy is None else policy.info.get(ENV_STATE_NORM_INFO)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 
 import numpy as np
@@ -19,6 +20,7 @@ from dust_rl.critic_limits import LayerNormReLU
 from dust_rl.critic_warmup import CriticWarmup
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE
 from dust_rl.data.episodes import scan_episodes
+from dust_rl.data.lock import FolderLockedError, folder_lock
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import EvalConfig, evaluate
 from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
@@ -230,6 +232,11 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         FinetuneConfig(policy=policy_path, device="tpu")
     with pytest.raises(ConfigError, match="no_such_task"):
         finetune(FinetuneConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    with folder_lock(busy), pytest.raises(FolderLockedError, match=f"pid {os.getpid()}"):  # as a run holds it
+        finetune(FinetuneConfig(policy=policy_path, out=busy, steps=8, progress=False))
+    assert [p.name for p in busy.iterdir()] == [".lock"]
 
 
 def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_path, tmp_path):

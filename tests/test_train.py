@@ -19,6 +19,7 @@ from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.checkpoint_dirs import DIGESTS, file_sha256
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
+from dust_rl.data.lock import FolderLockedError, folder_lock
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.env_state_norm import PER_TASK
@@ -26,7 +27,8 @@ from dust_rl.errors import ConfigError
 from dust_rl.features import FeatureCache
 from dust_rl.keys import ACTION_IS_PAD_KEY
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
-from dust_rl.train import TrainConfig, train
+from dust_rl.run_folder import locked_run_folder
+from dust_rl.train import RESUMABLE_FIELDS, TrainConfig, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -459,3 +461,24 @@ def test_resume_refuses_a_dataset_that_changed_since_the_checkpoint(run_inputs, 
     with pytest.raises(DatasetError, match=r"changed since this run.s checkpoint \(data, num_rows, episodes_per"):
         train(tiny_config(run_inputs, out, steps=4, resume=True))
     assert (out / "policy.pt").read_bytes() == policy
+
+
+def test_a_second_run_into_a_busy_folder_is_refused_naming_the_first(run_inputs, tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    with folder_lock(out), pytest.raises(FolderLockedError, match=f"pid {os.getpid()}"):  # as a run holds it
+        train(tiny_config(run_inputs, out, steps=2))
+    assert sorted(p.name for p in out.iterdir()) == [".lock"]  # nothing of the refused run's
+    # A run holds the lock until its end (the holder's details are its own), then lets go: --resume runs.
+    train(tiny_config(run_inputs, out, steps=2))
+    assert json.loads((out / ".lock").read_text())["pid"] == os.getpid()
+    train(tiny_config(run_inputs, out, steps=2, resume=True))
+    # Refused under the lock (the folder changed since the first check), a run leaves no folder it created.
+    fresh = tmp_path / "fresh" / "run"
+    with (pytest.raises(FileNotFoundError, match="nothing to resume"),
+          locked_run_folder(tiny_config(run_inputs, fresh, resume=True), RESUMABLE_FIELDS, None)):
+        pass
+    assert not fresh.exists()
+    with pytest.raises(DatasetError):
+        train(tiny_config((tmp_path / "missing", run_inputs[1]), tmp_path / "other"))
+    assert not (tmp_path / "other").exists()
