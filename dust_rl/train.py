@@ -51,6 +51,7 @@ from tqdm.auto import tqdm
 from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.config import PolicyConfig
+from dust_rl.agents.factory import IMAGE_SIZE_INFO, frame_size
 from dust_rl.agents.flow_matching import Shard
 from dust_rl.agents.precision import Precision, autocast
 from dust_rl.aux_frame_cache import cached_aux_frames, cached_frame_tokens
@@ -338,7 +339,7 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     state_units = PER_TASK if config.init_policy is None else policy.info.get(ENV_STATE_NORM_INFO)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
                    "dataset": str(config.dataset), "variant": policy.config.variant, "steps": config.steps,
-                   ENV_STATE_NORM_INFO: state_units,
+                   ENV_STATE_NORM_INFO: state_units, IMAGE_SIZE_INFO: frame_size(dataset.meta["spec"]["image_shape"]),
                    **{name: str(getattr(config, name)) if getattr(config, name) else None
                       for name in ("video_dataset", "extra_dataset", "init_policy")}}
     features = _cached_features(config, dataset, policy, ranks)

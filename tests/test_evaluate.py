@@ -18,6 +18,8 @@ from dust_rl.agents import (
     save_policy,
     unwrap,
 )
+from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
+from dust_rl.agents.factory import POLICY_KIND
 from dust_rl.data.video import read_mp4
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import Episode, EvalConfig, describe_sampler, evaluate, paired_comparison, wilson_interval
@@ -151,6 +153,23 @@ def test_policy_for_another_action_space(tmp_path, minilm):
     path = tiny_policy_file(tmp_path / "policy.pt", minilm, action_dim=3)
     with pytest.raises(CheckpointError, match="action_dim: policy has 3, env has 7"):
         evaluate(EvalConfig(policy=path, out=tmp_path / "eval"))
+
+
+def test_a_policy_for_other_frames_or_cameras_is_refused(tmp_path, minilm):
+    # Trained on 32 px frames (as recorded at training), its info edited to ask for a 64 px env.
+    claims_64 = tiny_policy_file(tmp_path / "claims_64.pt", minilm,
+                                 info={**INFO, "env_kwargs": {"image_size": 64}, "image_size": [32, 32]})
+    config = EvalConfig(policy=claims_64, out=tmp_path / "eval", episodes=1, max_steps=5, progress=False)
+    with pytest.raises(CheckpointError, match=r"image size: policy was trained on \[32, 32\] px frames, env renders "
+                                              r"\[64, 64\]"):
+        evaluate(config)
+    path = save_policy(unwrap(load_policy(claims_64)), tmp_path / "other_camera.pt")
+    payload = load_checkpoint(path, POLICY_KIND)
+    payload["cameras"], payload["info"] = ["front", "belly"], INFO
+    save_checkpoint(payload, path, POLICY_KIND)
+    with pytest.raises(CheckpointError, match=r"cameras: policy reads \['belly'\]"):
+        evaluate(dataclasses.replace(config, policy=path))
+    assert not (tmp_path / "eval").exists()
 
 
 def test_bad_tasks_and_sampler_settings_fail_before_any_episode(policy_path, tmp_path, minilm):

@@ -100,6 +100,7 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     policy = unwrap(load_policy(result.policy))
     assert policy.config.horizon == 4 and policy.execute_steps == 2
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button", "open_drawer"]
+    assert policy.info["image_size"] == [32, 32]  # the frames it was trained on, checked against an env on load
     stored = json.loads((out / "config.json").read_text())
     assert stored["command"] == "dust-rl train ..." and stored["config"]["steps"] == 12
     rows = (out / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text().split()
