@@ -6,6 +6,7 @@ import dataclasses
 import json
 import pathlib
 
+import numpy as np
 import pytest
 
 from dust_rl.agents import (
@@ -20,7 +21,7 @@ from dust_rl.agents import (
 )
 from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.factory import POLICY_KIND
-from dust_rl.data.video import read_mp4
+from dust_rl.data.video import read_mp4, write_mp4
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import Episode, EvalConfig, describe_sampler, evaluate, paired_comparison, wilson_interval
 from dust_rl.report import plot_loss_curves, read_scalar_csv
@@ -131,6 +132,21 @@ def test_video_is_the_evaluated_episode_with_its_predicted_future(report, eval_c
     frames = list(read_mp4(pathlib.Path(video["path"])))
     assert len(frames) == video["length"] + 1  # every observation, the last one included
     assert frames[0].shape == (LABEL_HEIGHT + IMAGE, 4 * IMAGE, 3)  # front | wrist | prediction | real future
+
+
+def test_a_video_is_replaced_only_once_the_new_one_is_whole(tmp_path):
+    path = tmp_path / "episode.mp4"  # an earlier evaluation's video
+    write_mp4(path, [np.full((32, 32, 3), 90, np.uint8)] * 4, fps=20)
+    before = path.read_bytes()
+
+    def interrupted():
+        yield from [np.zeros((32, 32, 3), np.uint8)] * 100  # enough for the encoder to write packets
+        raise KeyboardInterrupt  # the re-run stopped while it renders
+
+    with pytest.raises(KeyboardInterrupt):
+        write_mp4(path, interrupted(), fps=20)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["episode.mp4"]
+    assert write_mp4(path, [np.zeros((32, 32, 3), np.uint8)] * 3, fps=20) == 3 and len(list(read_mp4(path))) == 3
 
 
 def test_same_config_same_episodes_with_any_worker_count(report, eval_config, tmp_path):
