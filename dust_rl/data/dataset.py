@@ -19,7 +19,11 @@ from dust_rl.keys import INSTRUCTION_KEY
 from .errors import DatasetError
 from .layout import META_FILE
 from .memmap_io import load_memmap_checked
-from .metadata import read_meta, recorded_env_spec, spec_mismatches
+from .metadata import SPEC_KEYS, read_meta, recorded_env_spec, spec_mismatches
+
+# Entries of a finished dataset's meta.json that its readers use, with their JSON types.
+FINISHED_META = {"env_id": str, "env_kwargs": dict, "spec": dict, "tasks": list, "instructions": list,
+                 "episodes": list, "num_rows": int}
 
 
 def _is_int(value: object) -> bool:
@@ -45,6 +49,7 @@ class DemoDataset:
         if not self.meta.get("data"):
             raise DatasetError(f"{self.root}: collection was not finished (no consolidated data in {META_FILE}); "
                                "re-run the collect command to resume it")
+        self._check_entries()
         self._check_episode_table()
         self.data = load_memmap_checked(self.root / self.meta["data"])
         if self.data.shape[0] != self.meta["num_rows"] or self.meta["num_rows"] != sum(self.lengths.tolist()):
@@ -52,6 +57,15 @@ class DemoDataset:
                                f"{self.meta['num_rows']} (episode lengths sum to {sum(self.lengths.tolist())})")
         if env is not None:
             self.check_env(env)
+
+    def _check_entries(self) -> None:
+        """The entries a finished dataset's readers use must be there, of their JSON types."""
+        bad = [key for key, kind in FINISHED_META.items() if not isinstance(self.meta.get(key), kind)]
+        spec = self.meta.get("spec")
+        bad += [f"spec.{key}" for key in SPEC_KEYS if isinstance(spec, dict) and key not in spec]
+        if bad:
+            raise DatasetError(f"{self.root / META_FILE}: missing or malformed {', '.join(bad)}; the file was edited "
+                               "or damaged: restore it, or collect (import) the dataset again")
 
     def _check_episode_table(self) -> None:
         """Episodes must lie back to back from row 0, each at least one row long, with a known task and
