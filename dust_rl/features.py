@@ -84,7 +84,7 @@ class FeatureCache:
             raise ValueError(f"views must be >= 1, got {views}")
         self.policy, self.dataset, self.batch_size = policy, dataset, batch_size
         key = feature_key(dataset, policy, views, batch_size)
-        self.path = dataset.root / "features" / f"{key}.npy" if store else None
+        self.path = dataset.cache_root / "features" / f"{key}.npy" if store else None
         # Stored row-major, [rows, views, ...], so encoding appends batch after batch of rows.
         shape = (len(dataset), views, len(policy.cameras), policy.config.n_image_tokens,
                  policy.config.vision_dim)

@@ -75,7 +75,7 @@ from dust_rl.run_folder import check_run_folder, locked_run_folder, restore
 LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 # Fields that may differ between a run and its resumption.
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "compile", "eval_every", "eval_episodes", "eval_workers",
-                    "loggers")
+                    "loggers", "cache_dir")
 # Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
 NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset", "extra_dataset")
 
@@ -271,6 +271,9 @@ class TrainConfig(TrainSettings):
     """Run folder: config, checkpoints, logs, ``policy.pt``."""
     resume: bool = False
     """Continue the run in ``out`` from its newest checkpoint."""
+    cache_dir: pathlib.Path | None = None
+    """Where the caches derived from the datasets (features, aux frames, read-out fits) go, one subfolder per
+    dataset; default: inside each dataset, or the user's cache folder when it is read-only."""
 
     @classmethod
     def from_settings(cls, settings: TrainSettings, **where) -> TrainConfig:
@@ -322,7 +325,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     ranks.barrier()  # every rank has seen the folder before rank 0 writes it
 
     # Data, env check, policy (all checked before the run folder is written), cached frozen features.
-    dataset = DemoDataset(config.dataset)
+    dataset = DemoDataset(config.dataset, cache_dir=config.cache_dir)
     env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
     probe = make_env(env_id, {**env_kwargs, "task": dataset.tasks[0]})
     dataset.check_env(probe)
@@ -358,8 +361,9 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
         if policy.config.has_vision and policy.config.future_target == "change":
             policy.normalizer.set_future_change_scale(_future_change_rms(policy, features, windows))
     video = _action_free_batches(config, dataset, policy, n_video) if config.video_dataset else None
-    extra = (DatasetBatches(DemoDataset(config.extra_dataset), policy, n_extra, config.extra_action_key,
-                            progress=config.progress, **start_rows) if config.extra_dataset else None)
+    extra = (DatasetBatches(DemoDataset(config.extra_dataset, cache_dir=config.cache_dir), policy, n_extra,
+                            config.extra_action_key, progress=config.progress, **start_rows)
+             if config.extra_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
     loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers] if ranks.is_main else []
     progress = config.progress and ranks.is_main
@@ -543,7 +547,7 @@ def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPoli
     """Fit the read-out alone (:mod:`dust_rl.readout_warmup`), or load the same fit cached in the dataset folder
     by an earlier run (:mod:`dust_rl.readout_cache`; not with demonstration batches, ``demo_batch``, whose draws
     depend on more)."""
-    path = None if demo_batch is not None else readout_cache_path(dataset.root / "readout_cache", policy, config,
+    path = None if demo_batch is not None else readout_cache_path(dataset.cache_root / "readout_cache", policy, config,
                                                                 feature_key(dataset, policy))
 
     def warm_up(log_fit: Callable[[dict[str, float], int], None]) -> None:
@@ -561,7 +565,7 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                        first_seed: int = FIRST_SEED) -> AuxFrameBatches:
     """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed): ``aux_frames``
     of them to fit, or ``count`` from ``first_seed`` on (frames that only measure)."""
-    stored = cached_aux_frames(dataset.root / "aux_frames", dataset.meta["env_id"], dataset.meta["env_kwargs"],
+    stored = cached_aux_frames(dataset.cache_root / "aux_frames", dataset.meta["env_id"], dataset.meta["env_kwargs"],
                                dataset.tasks, policy.cameras, count or config.aux_frames, env_state_width(dataset),
                                seed=config.seed, expert_fraction=config.aux_expert_fraction,
                                approach_fraction=config.aux_approach_fraction,
@@ -590,7 +594,7 @@ def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: Dust
     Raises:
         DatasetError: a policy with a read-out and action-free episodes of other tasks.
     """
-    video = DemoDataset(config.video_dataset)
+    video = DemoDataset(config.video_dataset, cache_dir=config.cache_dir)
     if policy.config.aux_state_dim and set(video.tasks) - set(dataset.tasks):
         raise DatasetError(f"{config.video_dataset}: action-free episodes of tasks {sorted(video.tasks)} beside a "
                            f"read-out of {sorted(dataset.tasks)}: their object state means something else; use "

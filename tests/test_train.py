@@ -7,6 +7,7 @@ import json
 import math
 import os
 import shutil
+import subprocess
 
 import pytest
 import torch
@@ -19,6 +20,7 @@ from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.checkpoint_dirs import DIGESTS, file_sha256
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
+from dust_rl.data.dataset import cache_root, writable
 from dust_rl.data.lock import FolderLockedError, folder_lock
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
@@ -483,3 +485,47 @@ def test_a_second_run_into_a_busy_folder_is_refused_naming_the_first(run_inputs,
     with pytest.raises(DatasetError):
         train(tiny_config((tmp_path / "missing", run_inputs[1]), tmp_path / "other"))
     assert not (tmp_path / "other").exists()
+
+
+@pytest.fixture
+def read_only():
+    """Make a folder read-only for this process, as a user's dataset on a read-only share is: by its mode, or
+    (root ignores modes) by the immutable attribute; skips where neither holds."""
+    made = []
+
+    def make(folder):
+        folder.chmod(0o555)
+        made.append(folder)
+        if writable(folder) and shutil.which("chattr"):
+            subprocess.run(["chattr", "+i", str(folder)], check=False, capture_output=True)
+        if writable(folder):
+            pytest.skip("cannot make a folder read-only for this process here")
+        return folder
+
+    yield make
+    for folder in made:
+        if shutil.which("chattr"):
+            subprocess.run(["chattr", "-i", str(folder)], check=False, capture_output=True)
+        folder.chmod(0o755)
+
+
+def test_a_read_only_dataset_keeps_its_caches_in_a_cache_folder(run_inputs, tmp_path, monkeypatch, read_only):
+    dataset, _ = run_inputs
+    identity = DemoDataset(dataset).identity
+    assert cache_root(dataset, identity) == dataset  # writable: the caches stay with the data
+    named = cache_root(dataset, identity, tmp_path / "mine")
+    assert named.parent == tmp_path / "mine" and named != cache_root(dataset, {**identity, "num_rows": 1},
+                                                                        tmp_path / "mine")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    before = sorted(p.name for p in dataset.iterdir())
+    read_only(dataset)
+    fallback = cache_root(dataset, identity)
+    assert fallback.parent == tmp_path / "xdg" / "dust-rl"
+    config = tiny_config(run_inputs, tmp_path / "run", steps=2, aux_frames=8, lambda_aux=1.0, readout="tokens",
+                         readout_warmup=2, readout_demos=False)
+    train(config)
+    assert list((fallback / "features").glob("*.npy")) and list((fallback / "aux_frames").iterdir())
+    assert list((fallback / "readout_cache").iterdir())
+    assert sorted(p.name for p in dataset.iterdir()) == before
+    train(dataclasses.replace(config, out=tmp_path / "run2", cache_dir=tmp_path / "mine"))  # --cache-dir
+    assert list((cache_root(dataset, identity, tmp_path / "mine") / "features").glob("*.npy"))

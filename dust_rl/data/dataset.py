@@ -8,6 +8,9 @@ table, and (on request) that the dataset fits the env it will be used with.
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
+import os
 import pathlib
 
 import gymnasium as gym
@@ -30,6 +33,25 @@ def _is_int(value: object) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+def writable(folder: pathlib.Path) -> bool:
+    """Whether this process may create files in ``folder`` (a read-only dataset's caches go elsewhere)."""
+    return os.access(folder, os.W_OK | os.X_OK)
+
+
+def cache_root(root: pathlib.Path, identity: dict, cache_dir: pathlib.Path | None = None) -> pathlib.Path:
+    """The folder of the caches derived from the dataset at ``root`` (of version ``identity``).
+
+    ``cache_dir`` if given, else the dataset folder itself when this process may write there, else the user's
+    cache folder (``$XDG_CACHE_HOME``, default ``~/.cache``, ``/dust-rl``); outside the dataset, in a subfolder
+    named by a digest of the dataset's path and version, so datasets never share caches.
+    """
+    if cache_dir is None and writable(root):
+        return root
+    base = cache_dir or pathlib.Path(os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache") / "dust-rl"
+    key = json.dumps({"dataset": str(root.resolve()), **identity}, sort_keys=True)
+    return base / hashlib.sha256(key.encode()).hexdigest()[:16]
+
+
 class DemoDataset:
     """A finalised dataset folder (see :mod:`dust_rl.data.layout`).
 
@@ -37,14 +59,18 @@ class DemoDataset:
         root: the folder written by :func:`dust_rl.data.collect_demos` (or ``dataset import``).
         env: if given, raise :class:`DatasetError` unless the dataset's cameras, image shape,
             state/action sizes and control rate match this env's.
+        cache_dir: where caches derived from the dataset go (:func:`cache_root`); default: inside it when it
+            is writable, else the user's cache folder.
 
     Attributes:
         meta: the parsed ``meta.json``.
         data: all rows, a memmap TensorDict ``[num_rows]`` (nothing is read until indexed).
     """
 
-    def __init__(self, root: str | pathlib.Path, env: gym.Env | None = None) -> None:
+    def __init__(self, root: str | pathlib.Path, env: gym.Env | None = None,
+                 cache_dir: str | pathlib.Path | None = None) -> None:
         self.root = pathlib.Path(root)
+        self.cache_dir = None if cache_dir is None else pathlib.Path(cache_dir)
         self.meta = read_meta(self.root)
         if not self.meta.get("data"):
             raise DatasetError(f"{self.root}: collection was not finished (no consolidated data in {META_FILE}); "
@@ -83,6 +109,12 @@ class DemoDataset:
 
     def __len__(self) -> int:
         return self.data.shape[0]
+
+    @functools.cached_property
+    def cache_root(self) -> pathlib.Path:
+        """Where caches derived from this dataset (features, aux frames, read-out fits) go: see
+        :func:`cache_root`."""
+        return cache_root(self.root, self.identity, self.cache_dir)
 
     @property
     def identity(self) -> dict:
