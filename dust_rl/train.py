@@ -65,7 +65,7 @@ from dust_rl.env_factory import make_env
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.env_state_norm import PER_TASK, EnvStateNorm
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
+from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction, no_space_left
 from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_width, feature_key
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.readout_cache import readout_cache_path, warm_up_or_load
@@ -334,7 +334,9 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.device), ranks))
     finally:
         probe.close()
-    with locked_run_folder(config, RESUMABLE_FIELDS, command) if ranks.is_main else contextlib.nullcontext():
+    with (locked_run_folder(config, RESUMABLE_FIELDS, command) if ranks.is_main else contextlib.nullcontext(),
+          no_space_left(f"training into {config.out}", "free some space and run the same command with --resume: "
+                        "checkpoints are only ever replaced whole")):
         return _train_in_folder(config, ranks, dataset, policy)
 
 

@@ -20,6 +20,7 @@ from test_train import TINY_ARGS
 from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
+from dust_rl.data.layout import STAGING_DIR
 from dust_rl.data.lock import folder_lock
 from dust_rl.env_factory import env_tasks
 from dust_rl.envs import list_tasks
@@ -278,3 +279,23 @@ def test_bad_input_ends_in_one_line_naming_it(case, demo_dir, tmp_path):
     made = sorted(tmp_path.iterdir())
     assert problem in error_of(args)
     assert sorted(tmp_path.iterdir()) == made and len(made) >= len(before)  # nothing written by the command
+
+
+def test_a_full_disk_ends_collection_in_one_line_and_a_rerun_resumes(tmp_path, monkeypatch):
+    real = shutil.disk_usage
+    episodes = []
+
+    def filling_up(path):  # the disk is full once the first episode is written
+        episodes.append(path)
+        usage = real(path)
+        return usage._replace(free=0) if len(episodes) > 1 else usage
+
+    monkeypatch.setattr(shutil, "disk_usage", filling_up)
+    out = tmp_path / "ds"
+    message = error_of(collect_args(out, episodes=2, task="press_button"))
+    assert f"no space left on device while collecting into {out}" in message and "re-run the same command" in message
+    assert not (out / STAGING_DIR).exists()  # nothing half written is left
+    assert sorted(p.name for p in (out / "episodes" / "press_button").iterdir()) == ["seed-000000"]
+    monkeypatch.undo()
+    main(collect_args(out, episodes=2, task="press_button"))
+    assert DemoDataset(out).meta["episodes_per_task"] == {"press_button": 2}

@@ -38,7 +38,7 @@ from dust_rl.agents import load_policy
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.episode_collector import episode_collector, torch_threads
-from dust_rl.errors import ConfigError, UserError
+from dust_rl.errors import ConfigError, UserError, no_space_left
 from dust_rl.search_expert import SearchExpertFactory
 from dust_rl.search_settings import SearchSettings
 from dust_rl.workers import Workers, ray_runtime
@@ -128,7 +128,9 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
               "noise_std": float(noise_std), "keep_failed": keep_failed, "policy": actor}
     root = pathlib.Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    with folder_lock(root, wait=wait_for_writer), ray_runtime(workers), torch_threads(workers.threads):
+    with (folder_lock(root, wait=wait_for_writer), ray_runtime(workers), torch_threads(workers.threads),
+          no_space_left(f"collecting into {root}", "free some space and re-run the same command: the episodes "
+                        "written so far are kept", clean=lambda: clear_staging(root))):
         clear_staging(root)
         meta = open_meta(root, config, tasks, episodes, spec)
         for task in tasks:
