@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
 from dust_rl.augment import JITTER, MAX_SHIFT, augment_frames, view_generator
+from dust_rl.cache_files import cached, record_cache
 from dust_rl.data import DatasetError, DemoDataset
 from dust_rl.env_state_norm import EnvStateNorm
 from dust_rl.keys import (
@@ -92,8 +93,9 @@ class FeatureCache:
         if self.path is None:
             rows = torch.cat(list(encoded))
         else:
-            if not self.path.is_file():
+            if not cached(self.path):
                 write_rows(self.path, shape, encoded)
+                record_cache(self.path)
             rows = read_rows(self.path, shape)
         self.views = rows.transpose(0, 1)
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(dataset.instructions)

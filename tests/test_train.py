@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 
+import numpy as np
 import pytest
 import torch
 from conftest import kill_after_first_checkpoint
@@ -16,12 +17,14 @@ from crafted import CRAFTS
 
 from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
-from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
+from dust_rl.cache_files import cache_files
 from dust_rl.checkpoint_dirs import DIGESTS, file_sha256
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
 from dust_rl.data.dataset import cache_root, writable
 from dust_rl.data.lock import FolderLockedError, folder_lock
+from dust_rl.data.tools import dataset_summary
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.env_state_norm import PER_TASK
@@ -29,6 +32,7 @@ from dust_rl.errors import ConfigError
 from dust_rl.features import FeatureCache
 from dust_rl.keys import ACTION_IS_PAD_KEY
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
+from dust_rl.readout_cache import READOUT_KIND
 from dust_rl.run_folder import locked_run_folder
 from dust_rl.train import RESUMABLE_FIELDS, TrainConfig, train
 
@@ -529,3 +533,45 @@ def test_a_read_only_dataset_keeps_its_caches_in_a_cache_folder(run_inputs, tmp_
     assert sorted(p.name for p in dataset.iterdir()) == before
     train(dataclasses.replace(config, out=tmp_path / "run2", cache_dir=tmp_path / "mine"))  # --cache-dir
     assert list((cache_root(dataset, identity, tmp_path / "mine") / "features").glob("*.npy"))
+
+
+def test_a_cache_changed_since_it_was_written_is_refused_and_dataset_info_lists_them(run_inputs, tmp_path):
+    dataset, _ = run_inputs
+    config = tiny_config(run_inputs, tmp_path / "run", steps=2, aux_frames=8, lambda_aux=1.0, readout="tokens",
+                         readout_warmup=2, readout_demos=False)
+    train(config)
+    caches = {path.name: path for path, _ in cache_files(dataset)}
+    listed = dataset_summary(DemoDataset(dataset))
+    assert len(caches) == 6 and all(f"{p.relative_to(dataset)} (" in listed for p in caches.values()), listed
+    [features] = [p for p in caches.values() if p.parent.name == "features"]
+    [readout] = [p for p in caches.values() if p.parent.name == "readout_cache"]
+    frames = next(p for p in caches.values() if p.suffix == ".npz")  # fitted on and held out: 2 of each
+    tokens = next(p for p in caches.values() if ".tokens-" in p.name)
+    runs = iter(range(10))
+
+    def refused_when(path, poison):
+        original = path.read_bytes()
+        poison(path)
+        with pytest.raises(DatasetError, match=f"{path.name}: this cache changed since it was written"):
+            train(dataclasses.replace(config, out=tmp_path / f"run-{next(runs)}"))
+        path.write_bytes(original)
+
+    def zero_the_tail(path):  # still a well-formed .npy: its last values zeroed
+        path.write_bytes(path.read_bytes()[:-256] + bytes(256))
+
+    def scale_the_weights(path):  # a well-formed read-out fit, its weights x1000
+        payload = load_checkpoint(path, READOUT_KIND)
+        payload["state_dict"] = {k: v * 1000 if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
+        save_checkpoint({k: v for k, v in payload.items() if k not in ("kind", "format_version")}, path, READOUT_KIND)
+
+    def shift_the_objects(path):  # well-formed aux frames whose object state was moved
+        with np.load(path, allow_pickle=False) as stored:
+            arrays = {name: stored[name] for name in stored.files}
+        arrays["env_state"] = arrays["env_state"] + 1
+        np.savez(path, **arrays)
+
+    refused_when(features, zero_the_tail)
+    refused_when(readout, scale_the_weights)
+    readout.rename(tmp_path / "fit.pt")  # without the fit, the aux frames and their tokens are read
+    refused_when(frames, shift_the_objects)
+    refused_when(tokens, zero_the_tail)
