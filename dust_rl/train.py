@@ -334,9 +334,9 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.device), ranks))
     finally:
         probe.close()
-    with (locked_run_folder(config, RESUMABLE_FIELDS, command) if ranks.is_main else contextlib.nullcontext(),
-          no_space_left(f"training into {config.out}", "free some space and run the same command with --resume: "
-                        "checkpoints are only ever replaced whole")):
+    with (no_space_left(f"training into {config.out}", "free some space and run again (with --resume once a "
+                        "checkpoint exists): checkpoints are only ever replaced whole"),
+          locked_run_folder(config, RESUMABLE_FIELDS, command) if ranks.is_main else contextlib.nullcontext()):
         return _train_in_folder(config, ranks, dataset, policy)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import math
 import os
@@ -28,7 +29,7 @@ from dust_rl.data.tools import dataset_summary
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.env_state_norm import PER_TASK
-from dust_rl.errors import ConfigError
+from dust_rl.errors import ConfigError, NoSpaceError
 from dust_rl.features import FeatureCache
 from dust_rl.keys import ACTION_IS_PAD_KEY
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
@@ -575,3 +576,16 @@ def test_a_cache_changed_since_it_was_written_is_refused_and_dataset_info_lists_
     readout.rename(tmp_path / "fit.pt")  # without the fit, the aux frames and their tokens are read
     refused_when(frames, shift_the_objects)
     refused_when(tokens, zero_the_tail)
+
+
+
+def test_a_full_disk_ends_training_in_one_line_and_leaves_no_run_folder(run_inputs, tmp_path, monkeypatch):
+    def full(fd):  # where a full disk shows for buffered writes: the data cannot be flushed
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    out = tmp_path / "run"
+    with pytest.raises(NoSpaceError, match=f"no space left on device while training into {out} .* free some space"):
+        train(tiny_config(run_inputs, out, steps=2))
+    assert not out.exists()  # its config.json could not be written: nothing of the run is left
+    assert not [p for p in run_inputs[0].rglob("*") if p.name.endswith(".tmp")]
