@@ -144,7 +144,8 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
 
     Args:
         path: the checkpoint file.
-        env: if given, the checkpoint must fit its action size, state size and cameras.
+        env: if given, the checkpoint must fit its action size, state size, cameras and (for a trained policy)
+            frame size.
         execute_steps: override the stored receding-horizon step count.
 
     Raises:

@@ -195,10 +195,6 @@ class TrainSettings:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
                        "eval_episodes", "eval_workers", "threads", "nproc")
-        cores = os.cpu_count() or 1
-        if self.nproc > cores and resolve_device(self.device).type == "cpu":
-            raise ConfigError(f"--nproc {self.nproc} processes on the CPU of a machine with {cores} cores: each "
-                              f"would wait on the others; give --nproc at most {cores}")
         check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup", "start_rows")
         check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
         check_finite(self, "weight_decay")
@@ -248,6 +244,10 @@ class TrainSettings:
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
         self.check_data_parallel(self.nproc)
+        cores = os.cpu_count() or 1
+        if self.nproc > cores and resolve_device(self.device).type == "cpu":
+            raise ConfigError(f"--nproc {self.nproc} processes on the CPU of a machine with {cores} cores: each "
+                              f"would wait on the others; give --nproc at most {cores}")
 
     def check_data_parallel(self, nproc: int) -> None:
         """Raise unless these settings can train over ``nproc`` processes."""
