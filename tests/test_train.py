@@ -211,10 +211,15 @@ def test_a_warmed_readout_is_cached_shared_by_the_variants_and_changes_nothing_e
             for run in ("dust", "ao")]
     assert logs[0].read_text() == logs[1].read_text() != ""  # the cached fit's scalars are replayed
 
-    # Training after a cached warm-up is the run that fitted it, bit for bit; a corrupt cache file is refitted.
+    # Training after a cached warm-up is the run that fitted it, bit for bit; a damaged cache file is refused, one
+    # without its record (an older version's) is refitted.
     again = trained_weights(train(tiny_config(run_inputs, tmp_path / "again", **readout)).policy)
     assert all(torch.equal(dust[k], again[k]) for k in dust)
-    next(cache.glob("*.pt")).write_bytes(b"not a checkpoint")
+    fit = next(cache.glob("*.pt"))
+    fit.write_bytes(b"not a checkpoint")
+    with pytest.raises(DatasetError, match="this cache changed since it was written"):
+        train(tiny_config(run_inputs, tmp_path / "damaged", **readout))
+    fit.with_name(fit.name + ".sha256").unlink()
     refitted = trained_weights(train(tiny_config(run_inputs, tmp_path / "refit", **readout)).policy)
     assert all(torch.equal(dust[k], refitted[k]) for k in dust)
     # Another warm-up setting is another fit.
