@@ -19,7 +19,7 @@ from crafted import CRAFTS
 from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
-from dust_rl.cache_files import cache_files
+from dust_rl.cache_files import CACHE_FOLDERS, cache_files
 from dust_rl.checkpoint_dirs import DIGESTS, file_sha256
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
@@ -543,6 +543,8 @@ def test_a_read_only_dataset_keeps_its_caches_in_a_cache_folder(run_inputs, tmp_
 
 def test_a_cache_changed_since_it_was_written_is_refused_and_dataset_info_lists_them(run_inputs, tmp_path):
     dataset, _ = run_inputs
+    for folder in CACHE_FOLDERS:  # caches other tests left in the shared dataset are not this run's
+        shutil.rmtree(dataset / folder, ignore_errors=True)
     config = tiny_config(run_inputs, tmp_path / "run", steps=2, aux_frames=8, lambda_aux=1.0, readout="tokens",
                          readout_warmup=2, readout_demos=False)
     train(config)
