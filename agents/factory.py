@@ -28,11 +28,18 @@ from .policy import DustPolicy
 from .text_encoder import TextEncoder, TransformersTextEncoder
 
 POLICY_KIND = "dust-rl-policy"
+# ``info`` entry of a trained policy: [height, width] of the frames it was trained on, checked against an env's.
+IMAGE_SIZE_INFO = "image_size"
 LEGACY_TRUNK_PREFIX = "agent.model."
 
 
+def frame_size(shape: Sequence[int]) -> list[int]:
+    """[height, width] of a camera frame of ``shape``, channels first (torchrl) or last (gymnasium)."""
+    return [int(n) for n in (shape[-2:] if shape[-3] == 3 else shape[-3:-1])]
+
+
 def env_spec(env: EnvBase) -> dict:
-    """Action size and bounds, state size and cameras of a torchrl env.
+    """Action size and bounds, state size, cameras and frame size ([height, width]) of a torchrl env.
 
     The observations may use the canonical VLA keys (``make_torchrl_env``) or the flat gymnasium names
     a plain ``GymEnv`` keeps (``"observation.state"``, ``"observation.image.<cam>"``): policies read both.
@@ -54,6 +61,9 @@ def env_spec(env: EnvBase) -> dict:
     action = env.action_spec
     dim = action.shape[-1]
     spec = {"action_dim": dim, "state_dim": state.shape[-1], "cameras": cameras}
+    if cameras:
+        image = obs[IMAGE_KEY, cameras[0]] if STATE_KEY in obs.keys(include_nested=True) else obs[prefix + cameras[0]]
+        spec[IMAGE_SIZE_INFO] = frame_size(image.shape)
     space = getattr(action, "space", None)
     if getattr(space, "low", None) is not None:
         spec["action_low"], spec["action_high"] = space.low.reshape(-1, dim)[0], space.high.reshape(-1, dim)[0]
@@ -134,7 +144,8 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
 
     Args:
         path: the checkpoint file.
-        env: if given, the checkpoint must fit its action size, state size and cameras.
+        env: if given, the checkpoint must fit its action size, state size, cameras and (for a trained policy)
+            frame size.
         execute_steps: override the stored receding-horizon step count.
 
     Raises:
@@ -182,5 +193,8 @@ def check_fits_env(policy: DustPolicy, env: EnvBase, source: object = "policy") 
     absent = [cam for cam in policy.cameras if cam not in spec["cameras"]]
     if absent:
         problems.append(f"cameras: policy reads {absent}, env has {spec['cameras']}")
+    trained = policy.info.get(IMAGE_SIZE_INFO)
+    if trained is not None and spec.get(IMAGE_SIZE_INFO) is not None and list(trained) != spec[IMAGE_SIZE_INFO]:
+        problems.append(f"image size: policy was trained on {trained} px frames, env renders {spec[IMAGE_SIZE_INFO]}")
     if problems:
         raise CheckpointError(f"{source} does not fit the env:\n  " + "\n  ".join(problems))

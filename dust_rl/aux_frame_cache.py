@@ -51,6 +51,7 @@ from tensordict import TensorDict
 from dust_rl.agents import DustPolicy
 from dust_rl.atomic_files import atomic_write
 from dust_rl.aux_frames import encode_frames, render_aux_frames
+from dust_rl.cache_files import cached, record_cache
 from dust_rl.data import DatasetError
 from dust_rl.features import hash_weights
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, TASK_INDEX_KEY
@@ -83,7 +84,7 @@ def cached_aux_frames(folder: pathlib.Path, env_id: str, env_kwargs: dict, tasks
     key = {"format": FORMAT, "env_id": env_id, "env_kwargs": env_kwargs, "tasks": tasks, "cameras": cameras,
            "count": count, "env_state_width": env_state_width, **settings}
     path = folder / f"{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.npz"
-    if path.is_file():
+    if cached(path):
         return StoredFrames(*_read(path, cameras, count, env_state_width), path)
     rows, instructions = render_aux_frames(env_id, env_kwargs, tasks, cameras, count, env_state_width,
                                            progress=progress, **settings)
@@ -92,6 +93,7 @@ def cached_aux_frames(folder: pathlib.Path, env_id: str, env_kwargs: dict, tasks
         np.savez(file, **{f"image_{i}": rows.get((*IMAGE_KEY, cam)).numpy() for i, cam in enumerate(cameras)},
                  env_state=rows.get(ENV_STATE_KEY).numpy(), task_index=rows.get(TASK_INDEX_KEY).numpy(),
                  instructions=np.array(instructions, dtype=str))
+    record_cache(path)
     return StoredFrames(rows, instructions, path)
 
 
@@ -107,10 +109,11 @@ def cached_frame_tokens(frames_file: pathlib.Path, policy: DustPolicy, frames: t
                                         "encoder": encoder.reference()}, sort_keys=True).encode())
     hash_weights(digest, encoder)
     path = frames_file.with_name(f"{frames_file.stem}.tokens-{digest.hexdigest()[:16]}.npy")
-    if not path.is_file():
+    if not cached(path):
         tokens = encode_frames(policy, frames)
         with atomic_write(path, "wb") as file:
             np.save(file, tokens.numpy(), allow_pickle=False)
+        record_cache(path)
         return tokens
     try:
         tokens = np.load(path, allow_pickle=False)

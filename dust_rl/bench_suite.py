@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from matplotlib.figure import Figure
 
 from dust_rl.agents import VARIANTS, SamplerConfig
-from dust_rl.agents.config import Variant
+from dust_rl.agents.config import MAX_STEPS, Variant
 from dust_rl.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.config_json import config_json
 from dust_rl.data import collect_demos
@@ -101,8 +101,8 @@ class SuiteConfig:
             raise ConfigError("demos and seeds must each list at least one value (demos >= 1)")
         if not self.variants and self.video_dataset is None:
             raise ConfigError("variants is empty and there is no --video-dataset: the study would train nothing")
-        if any(v % 4 for v in self.vision_steps):
-            raise ConfigError(f"vision_steps must be multiples of N_A = 4, got {self.vision_steps}")
+        if any(v % 4 or not 4 <= v <= MAX_STEPS for v in self.vision_steps):  # N_o steps, sync and async
+            raise ConfigError(f"vision_steps must be multiples of N_A = 4 in [4, {MAX_STEPS}], got {self.vision_steps}")
 
 
 @dataclass(frozen=True)

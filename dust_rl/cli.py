@@ -12,6 +12,7 @@ parser, naming the group (exit code 2). Any other exception is a bug and keeps i
 
 from __future__ import annotations
 
+import os
 import shlex
 import sys
 from collections.abc import Callable
@@ -64,6 +65,7 @@ def main(argv: list[str] | None = None) -> None:
     table = commands()
     name = " ".join(argv[:2]) if " ".join(argv[:2]) in table else argv[0] if argv else None
     try:
+        check_utf8(argv)
         if name in table:  # parsed on its own, so messages name the command ("dust-rl train --help")
             config_class, runner = table[name]
             words = len(name.split())
@@ -75,6 +77,17 @@ def main(argv: list[str] | None = None) -> None:
             tyro.cli(choices, args=argv, prog="dust-rl", description=DESCRIPTION, config=GROUPS)
     except (UserError, CheckpointError, OSError) as err:
         raise SystemExit(f"dust-rl: error: {err}") from err
+
+
+def check_utf8(argv: list[str]) -> None:
+    """Raise :class:`ConfigError` at an argument that is not UTF-8 text (a path with such a byte): torch's
+    files, JSON metadata and tyro need text, and would fail on it deep inside a run."""
+    for arg in argv:
+        try:
+            arg.encode()
+        except UnicodeEncodeError:
+            raise ConfigError(f"argument {os.fsencode(arg)!r} is not UTF-8 text; rename the file or folder "
+                              "with a UTF-8 name") from None
 
 
 def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:

@@ -190,6 +190,8 @@ class DatasetVideo:
         from dust_rl.data.tools import write_episode_grid
 
         check_at_least(self, 1, "episodes", "columns")
+        if self.out.suffix.lower() != ".mp4":
+            raise ConfigError(f"--out must name an .mp4 file (the grid is an H.264 MP4), got {self.out}")
         dataset = DemoDataset(self.dir)
         print(write_episode_grid(dataset, self.out, range(min(self.episodes, dataset.num_episodes)),
                                  columns=self.columns))

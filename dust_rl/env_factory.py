@@ -19,7 +19,10 @@ from dust_rl.errors import ConfigError
 
 
 def env_spec_of(env_id: str) -> gym.envs.registration.EnvSpec:
-    """The registered spec of ``env_id``; raises :class:`ConfigError` for an unknown id."""
+    """The registered spec of ``env_id``; raises :class:`ConfigError` for an id dust-rl does not register (another
+    gymnasium env has none of the tasks, cameras and metadata datasets and policies record)."""
+    if env_id not in ENV_IDS:
+        raise ConfigError(f"unknown env id {env_id!r}; dust-rl registers {list(ENV_IDS)}")
     try:
         return gym.spec(env_id)
     except gym.error.Error as err:

@@ -7,7 +7,10 @@ any other exception is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import math
+from collections.abc import Callable, Iterator
 
 
 class UserError(Exception):
@@ -48,3 +51,21 @@ def check_fraction(config: object, *names: str) -> None:
         value = getattr(config, name)
         if not 0 <= value < 1:
             raise ConfigError(f"{name} must be in [0, 1), got {value}")
+
+
+class NoSpaceError(UserError):
+    """The disk filled up while a command wrote its files."""
+
+
+@contextlib.contextmanager
+def no_space_left(doing: str, advice: str, clean: Callable[[], None] | None = None) -> Iterator[None]:
+    """Turn a full disk (``OSError`` ENOSPC) in the ``with`` body into :class:`NoSpaceError` saying so, after
+    ``clean`` removed what was half written; any other error passes unchanged."""
+    try:
+        yield
+    except OSError as err:
+        if err.errno != errno.ENOSPC:
+            raise
+        if clean is not None:
+            clean()
+        raise NoSpaceError(f"no space left on device while {doing} ({err.filename or err.strerror}); {advice}") from err

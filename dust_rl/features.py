@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
 from dust_rl.augment import JITTER, MAX_SHIFT, augment_frames, view_generator
+from dust_rl.cache_files import cached, record_cache
 from dust_rl.data import DatasetError, DemoDataset
 from dust_rl.env_state_norm import EnvStateNorm
 from dust_rl.keys import (
@@ -84,7 +85,7 @@ class FeatureCache:
             raise ValueError(f"views must be >= 1, got {views}")
         self.policy, self.dataset, self.batch_size = policy, dataset, batch_size
         key = feature_key(dataset, policy, views, batch_size)
-        self.path = dataset.root / "features" / f"{key}.npy" if store else None
+        self.path = dataset.cache_root / "features" / f"{key}.npy" if store else None
         # Stored row-major, [rows, views, ...], so encoding appends batch after batch of rows.
         shape = (len(dataset), views, len(policy.cameras), policy.config.n_image_tokens,
                  policy.config.vision_dim)
@@ -92,8 +93,9 @@ class FeatureCache:
         if self.path is None:
             rows = torch.cat(list(encoded))
         else:
-            if not self.path.is_file():
+            if not cached(self.path):
                 write_rows(self.path, shape, encoded)
+                record_cache(self.path)
             rows = read_rows(self.path, shape)
         self.views = rows.transpose(0, 1)
         self.text_tokens, self.text_mask = policy.backbone.text_tokens(dataset.instructions)

@@ -60,7 +60,7 @@ from dust_rl.frozen_policy_env import FrozenPolicyEnv
 from dust_rl.report import plot_learning_curve
 from dust_rl.residual import ResidualEnv
 from dust_rl.rl_checkpoint import SB3LearningState
-from dust_rl.run_folder import check_run_folder, restore, write_run_config
+from dust_rl.run_folder import check_run_folder, locked_run_folder, restore
 from dust_rl.search_settings import SearchSettings
 from dust_rl.self_imitation import is_dagger, self_imitation
 from dust_rl.start_at_base import WarmStartSAC, start_at_base
@@ -265,26 +265,32 @@ class FinetuneConfig:
 
 def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     """Fine-tune, save the result, compare with the base policy; returns the report."""
+    resumable = PPO_RESUMABLE_FIELDS if config.algorithm == "ppo" else RESUMABLE_FIELDS
     with torch_threads(config.threads):
-        check_run_folder(config, PPO_RESUMABLE_FIELDS if config.algorithm == "ppo" else RESUMABLE_FIELDS)
+        check_run_folder(config, resumable)
         policy = unwrap(load_policy(config.policy))
         env_id, env_kwargs, task = policy_env(config, policy)
         demos = config.demos or pathlib.Path(policy.info.get("dataset") or "")
         if config.method == "self_imitation" and not (demos / "meta.json").is_file():
             raise ConfigError(f"self_imitation trains on the policy's demonstrations too; {demos} is not a dataset: "
                               "pass --demos")
-        if not config.resume:
-            write_run_config(config, command)
-        if config.method in ("wm_select", "self_imitation"):
-            result = (wm_select(config, task, policy) if config.method == "wm_select"
-                      else self_imitation(dataclasses.replace(config, demos=demos), task, env_id, env_kwargs))
-            episodes = {name: [Episode(*e) for e in row["per_episode"]] for name, row in result["rows"].items()}
-            extra = {k: v for k, v in result.items() if k not in ("rows", "train_seconds")}
-            trained_s = result["train_seconds"]
-        else:
-            policy.to(resolve_device(config.device))
-            episodes, trained_s = train_rl(config, finetune_env_factory(config, policy)[0])
-            extra = {"rl_agent": str(config.out / "rl_agent.pt")}
+        with locked_run_folder(config, resumable, command):
+            return _finetune_in_folder(config, command, policy, env_id, env_kwargs, task, demos)
+
+
+def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: DustPolicy, env_id: str,
+                        env_kwargs: dict, task: str, demos: pathlib.Path) -> dict:
+    """The fine-tuning and its report, once the run folder is this run's."""
+    if config.method in ("wm_select", "self_imitation"):
+        result = (wm_select(config, task, policy) if config.method == "wm_select"
+                  else self_imitation(dataclasses.replace(config, demos=demos), task, env_id, env_kwargs))
+        episodes = {name: [Episode(*e) for e in row["per_episode"]] for name, row in result["rows"].items()}
+        extra = {k: v for k, v in result.items() if k not in ("rows", "train_seconds")}
+        trained_s = result["train_seconds"]
+    else:
+        policy.to(resolve_device(config.device))
+        episodes, trained_s = train_rl(config, finetune_env_factory(config, policy)[0])
+        extra = {"rl_agent": str(config.out / "rl_agent.pt")}
     report = {
         "policy": str(config.policy), "method": config.method, "algorithm": config.algorithm, "task": task,
         "steps": config.steps, "command": command, "config": config_json(config),

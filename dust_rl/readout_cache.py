@@ -15,7 +15,7 @@ no longer mixes the trunk's effect with the read-out's.
 The key hashes the read-out's initial weights, the normalisation its inputs pass through, the dataset's frozen
 features and every setting the fit reads (:data:`WARMUP_SETTINGS`); a hit loads the fitted weights and replays the
 warm-up's logged scalars into the new run's logs. A file that does not load (corrupt, another format) is fitted
-again and replaced.
+again and replaced; one whose bytes changed since it was written is refused (:mod:`dust_rl.cache_files`).
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from torch import nn
 
 from dust_rl.agents import DustPolicy
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
+from dust_rl.cache_files import cached, record_cache
 from dust_rl.features import hash_weights
 
 READOUT_KIND = "dust-rl/readout-warmup"
@@ -59,6 +60,8 @@ def readout_cache_path(folder: pathlib.Path, policy: DustPolicy, settings: objec
 
 def load_warmed_readout(path: pathlib.Path, modules: nn.Module) -> Logged | None:
     """Load a cached fit into ``modules``; returns its logged scalars, or None when there is none to load."""
+    if not cached(path):
+        return None
     try:
         payload = load_checkpoint(path, READOUT_KIND)
         modules.load_state_dict(payload["state_dict"])
@@ -91,4 +94,5 @@ def warm_up_or_load(path: pathlib.Path | None, modules: nn.Module, seed: int,
         warm_up(log_and_keep)
     if path is not None:
         save_checkpoint({"state_dict": modules.state_dict(), "logged": logged}, path, READOUT_KIND)
+        record_cache(path)
     return False

@@ -4,14 +4,16 @@ A new run needs an unused folder; ``--resume`` needs a run there started with th
 the fields a run may change between sittings, such as threads or progress bars, may differ; a field the
 stored run predates counts as its default, so a run started by an older version resumes). The run's
 ``config.json`` records the full config, the command and package versions, and checkpoints are torchrl
-``Checkpoint`` directories kept by a ``CheckpointRotation``.
+``Checkpoint`` directories kept by a ``CheckpointRotation``. One run writes into a folder at a time: it holds
+the folder's lock (:func:`~dust_rl.data.lock.folder_lock`) from its ``config.json`` to its end.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
 from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
@@ -20,6 +22,7 @@ from dust_rl.agents.checkpoint_io import CheckpointError
 from dust_rl.atomic_files import write_json_atomic
 from dust_rl.checkpoint_dirs import check_checkpoint_dir, newest_checkpoint
 from dust_rl.config_json import config_json
+from dust_rl.data.lock import LOCK_FILE, folder_lock
 from dust_rl.data.metadata import package_versions
 from dust_rl.errors import ConfigError
 
@@ -63,6 +66,33 @@ def _defaults(config) -> dict:
             continue
         values[field.name] = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
     return json.loads(json.dumps(values, default=str))
+
+
+@contextlib.contextmanager
+def locked_run_folder(config, resumable: Iterable[str], command: str | None) -> Iterator[None]:
+    """Hold ``config.out``'s lock for the ``with`` body, a new run's ``config.json`` written first.
+
+    Two runs in one folder would interleave their logs and checkpoints. The folder is checked again under
+    the lock (another run may have started since :func:`check_run_folder`); a new run refused there leaves
+    no folder behind.
+
+    Raises:
+        FolderLockedError: another process holds the folder (the message names its pid).
+        FileExistsError, FileNotFoundError, ConfigError: as :func:`check_run_folder`.
+    """
+    created = not config.out.exists()
+    config.out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(config.out):
+        try:
+            check_run_folder(config, resumable)
+            if not config.resume:
+                write_run_config(config, command)
+        except BaseException:
+            if created:
+                (config.out / LOCK_FILE).unlink(missing_ok=True)
+                config.out.rmdir()
+            raise
+        yield
 
 
 def write_run_config(config, command: str | None) -> None:

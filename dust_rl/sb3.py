@@ -31,6 +31,7 @@ from torch import Tensor
 from dust_rl.agents import ImageEncoder, TextEncoder, TransformersTextEncoder, pooled_text
 from dust_rl.agents.backbone import resolve_image_encoder
 from dust_rl.agents.image_encoder import image_tokens
+from dust_rl.errors import ConfigError
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, flat_name
 
 ENV_STATE_NAME = flat_name(ENV_STATE_KEY)
@@ -53,15 +54,19 @@ class SB3Observations(gym.ObservationWrapper):
     auxiliary losses); an agent meant to act from pixels must not read them, so they go unless ``privileged``.
 
     Args:
-        env: a dust-rl env (any observation mode) whose instruction is a ``Text`` space.
+        env: a dust-rl env (any observation mode) whose instruction is a ``Text`` space (:class:`ConfigError`
+            otherwise).
         text_encoder: the frozen text encoder; default: MiniLM, DUST's own.
         privileged: keep the object state (an oracle baseline).
     """
 
     def __init__(self, env: gym.Env, text_encoder: TextEncoder | None = None, privileged: bool = False) -> None:
+        space = env.observation_space
+        if not (isinstance(space, spaces.Dict) and isinstance(space.spaces.get(INSTRUCTION_KEY), spaces.Text)):
+            entries = list(space.spaces) if isinstance(space, spaces.Dict) else type(space).__name__
+            raise ConfigError(f"SB3Observations wraps a dust-rl env (gymnasium.make('DustFranka-v0', task=...)), "
+                              f"whose observations hold a Text {INSTRUCTION_KEY!r}; this env's are {entries}")
         super().__init__(env)
-        if INSTRUCTION_KEY not in env.observation_space.spaces:
-            raise ValueError(f"the env's observations have no {INSTRUCTION_KEY!r} entry to embed")
         self.text_encoder = text_encoder or TransformersTextEncoder()
         self.dropped = set() if privileged else {ENV_STATE_NAME}
         self.observation_space = spaces.Dict({

@@ -33,6 +33,7 @@ from dust_rl.train import RESUMABLE_FIELDS
 # Training settings that may differ between studies: they change how a run is carried out, not what it trains.
 NOT_THE_RECIPE = (*RESUMABLE_FIELDS, "seed", "log_every", "checkpoint_every", "nproc")
 SHARED = ("env", "main_demos", "eval_seeds")  # what every study must have in common besides the recipe
+READ = (*SHARED, "task", "train", "rows")  # the entries of results.json this command reads
 
 
 @dataclass
@@ -53,14 +54,24 @@ def load_study(study: pathlib.Path) -> dict:
     """A study's ``results.json``, given its folder or the file itself.
 
     Raises:
-        ConfigError: the folder holds no finished study, or the file given does not exist.
+        ConfigError: the folder holds no finished study, the file given does not exist, or it is not a study's
+            results (unreadable, or without the entries this command reads).
     """
     if study.suffix == ".json" and not study.is_file():
         raise ConfigError(f"{study}: no such results file (give a study folder or its results.json)")
     path = study if study.is_file() else study / "results.json"
     if not path.is_file():
         raise ConfigError(f"{study} holds no results.json: run (or finish) `dust-rl bench suite --out {study}`")
-    return json.loads(path.read_text())
+    try:
+        study = json.loads(path.read_text())
+    except (UnicodeDecodeError, ValueError) as err:
+        raise ConfigError(f"{path}: not a readable results file ({err}); run `dust-rl bench suite` again into its "
+                          "folder to rewrite it") from err
+    missing = [key for key in READ if key not in study] if isinstance(study, dict) else list(READ)
+    if missing:
+        raise ConfigError(f"{path}: not a results file (no {', '.join(missing)}); run `dust-rl bench suite` again "
+                          "into its folder to rewrite it")
+    return study
 
 
 def recipe(study: dict) -> dict:

@@ -19,7 +19,8 @@ A run folder holds
 
 ``--nproc N`` (or ``torchrun --nproc-per-node N -m dust_rl.train ...``) trains with
 ``DistributedDataParallel`` over N processes, each on its slice of every global batch
-(:mod:`dust_rl.distributed`); rank 0 writes the run folder.
+(:mod:`dust_rl.distributed`); rank 0 writes the run folder and holds its lock, so a second run into the
+same folder is refused, naming the first one's pid.
 
 The frozen backbone's features are cached once per dataset (:class:`~dust_rl.features.FeatureCache`).
 Every setting is checked when the config is built, and the dataset, env and model before the run
@@ -29,6 +30,7 @@ weights, so no checkpoint or ``policy.pt`` holds NaN weights.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import math
 import os
@@ -49,6 +51,7 @@ from tqdm.auto import tqdm
 from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.config import PolicyConfig
+from dust_rl.agents.factory import IMAGE_SIZE_INFO, frame_size
 from dust_rl.agents.flow_matching import Shard
 from dust_rl.agents.precision import Precision, autocast
 from dust_rl.aux_frame_cache import cached_aux_frames, cached_frame_tokens
@@ -63,17 +66,17 @@ from dust_rl.env_factory import make_env
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.env_state_norm import PER_TASK, EnvStateNorm
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction
+from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction, no_space_left
 from dust_rl.features import FeatureCache, dataset_policy_kwargs, env_state_width, feature_key
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.readout_cache import readout_cache_path, warm_up_or_load
 from dust_rl.readout_warmup import warm_up_readout
-from dust_rl.run_folder import check_run_folder, restore, write_run_config
+from dust_rl.run_folder import check_run_folder, locked_run_folder, restore
 
 LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 # Fields that may differ between a run and its resumption.
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "compile", "eval_every", "eval_episodes", "eval_workers",
-                    "loggers")
+                    "loggers", "cache_dir")
 # Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
 NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset", "extra_dataset")
 SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
@@ -245,6 +248,10 @@ class TrainSettings:
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
         self.check_data_parallel(self.nproc)
+        cores = os.cpu_count() or 1
+        if self.nproc > cores and resolve_device(self.device).type == "cpu":
+            raise ConfigError(f"--nproc {self.nproc} processes on the CPU of a machine with {cores} cores: each "
+                              f"would wait on the others; give --nproc at most {cores}")
 
     def check_data_parallel(self, nproc: int) -> None:
         """Raise unless these settings can train over ``nproc`` processes."""
@@ -268,6 +275,9 @@ class TrainConfig(TrainSettings):
     """Run folder: config, checkpoints, logs, ``policy.pt``."""
     resume: bool = False
     """Continue the run in ``out`` from its newest checkpoint."""
+    cache_dir: pathlib.Path | None = None
+    """Where the caches derived from the datasets (features, aux frames, read-out fits) go, one subfolder per
+    dataset; default: inside each dataset, or the user's cache folder when it is read-only."""
 
     @classmethod
     def from_settings(cls, settings: TrainSettings, **where) -> TrainConfig:
@@ -300,6 +310,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     Raises:
         DatasetError, CheckpointError, ConfigError: unusable dataset, encoder file or model settings.
         FileExistsError, FileNotFoundError: ``out`` holds a run (without ``resume``), or none (with it).
+        FolderLockedError: another run is writing into ``out`` (the message names its pid).
         ConfigError: ``resume`` with settings other than the stored run's.
         NonFiniteLossError: training diverged (the message names the step).
         RankFailedError: with ``nproc`` > 1, a process stopped with one of the errors above.
@@ -313,13 +324,12 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     """:func:`train` in this process, as one rank of the run when there are several."""
     if config.threads:
         torch.set_num_threads(config.threads)
-    out = config.out
     ranks = _join(config)
     check_run_folder(config, RESUMABLE_FIELDS)
     ranks.barrier()  # every rank has seen the folder before rank 0 writes it
 
     # Data, env check, policy (all checked before the run folder is written), cached frozen features.
-    dataset = DemoDataset(config.dataset)
+    dataset = DemoDataset(config.dataset, cache_dir=config.cache_dir)
     env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
     probe = make_env(env_id, {**env_kwargs, "task": dataset.tasks[0]})
     dataset.check_env(probe)
@@ -328,13 +338,21 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.device), ranks))
     finally:
         probe.close()
-    if not config.resume and ranks.is_main:
-        write_run_config(config, command)
+    with (no_space_left(f"training into {config.out}", "free some space and run again (with --resume once a "
+                        "checkpoint exists): checkpoints are only ever replaced whole"),
+          locked_run_folder(config, RESUMABLE_FIELDS, command) if ranks.is_main else contextlib.nullcontext()):
+        return _train_in_folder(config, ranks, dataset, policy)
+
+
+def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, policy: DustPolicy) -> TrainResult:
+    """The run itself, once its folder is this run's (rank 0 holds its lock)."""
+    out = config.out
+    env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
     # A fine-tuned policy's read-out keeps the object-state units it was trained in (dust_rl.env_state_norm).
     state_units = PER_TASK if config.init_policy is None else policy.info.get(ENV_STATE_NORM_INFO)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
                    "dataset": str(config.dataset), "variant": policy.config.variant, "steps": config.steps,
-                   ENV_STATE_NORM_INFO: state_units,
+                   ENV_STATE_NORM_INFO: state_units, IMAGE_SIZE_INFO: frame_size(dataset.meta["spec"]["image_shape"]),
                    **{name: str(getattr(config, name)) if getattr(config, name) else None
                       for name in ("video_dataset", "extra_dataset", "init_policy")}}
     features = _cached_features(config, dataset, policy, ranks)
@@ -352,8 +370,9 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     skill_windows = (windows_of(policy, features, SKILL_WINDOWS, config.seed)
                      if config.eval_every and policy.config.has_vision and ranks.is_main else None)
     video = _action_free_batches(config, dataset, policy, n_video) if config.video_dataset else None
-    extra = (DatasetBatches(DemoDataset(config.extra_dataset), policy, n_extra, config.extra_action_key,
-                            progress=config.progress, **start_rows) if config.extra_dataset else None)
+    extra = (DatasetBatches(DemoDataset(config.extra_dataset, cache_dir=config.cache_dir), policy, n_extra,
+                            config.extra_action_key, progress=config.progress, **start_rows)
+             if config.extra_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
     loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers] if ranks.is_main else []
     progress = config.progress and ranks.is_main
@@ -537,7 +556,7 @@ def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPoli
     """Fit the read-out alone (:mod:`dust_rl.readout_warmup`), or load the same fit cached in the dataset folder
     by an earlier run (:mod:`dust_rl.readout_cache`; not with demonstration batches, ``demo_batch``, whose draws
     depend on more)."""
-    path = None if demo_batch is not None else readout_cache_path(dataset.root / "readout_cache", policy, config,
+    path = None if demo_batch is not None else readout_cache_path(dataset.cache_root / "readout_cache", policy, config,
                                                                 feature_key(dataset, policy))
 
     def warm_up(log_fit: Callable[[dict[str, float], int], None]) -> None:
@@ -555,7 +574,7 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
                        first_seed: int = FIRST_SEED) -> AuxFrameBatches:
     """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed): ``aux_frames``
     of them to fit, or ``count`` from ``first_seed`` on (frames that only measure)."""
-    stored = cached_aux_frames(dataset.root / "aux_frames", dataset.meta["env_id"], dataset.meta["env_kwargs"],
+    stored = cached_aux_frames(dataset.cache_root / "aux_frames", dataset.meta["env_id"], dataset.meta["env_kwargs"],
                                dataset.tasks, policy.cameras, count or config.aux_frames, env_state_width(dataset),
                                seed=config.seed, expert_fraction=config.aux_expert_fraction,
                                approach_fraction=config.aux_approach_fraction,
@@ -584,7 +603,7 @@ def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: Dust
     Raises:
         DatasetError: a policy with a read-out and action-free episodes of other tasks.
     """
-    video = DemoDataset(config.video_dataset)
+    video = DemoDataset(config.video_dataset, cache_dir=config.cache_dir)
     if policy.config.aux_state_dim and set(video.tasks) - set(dataset.tasks):
         raise DatasetError(f"{config.video_dataset}: action-free episodes of tasks {sorted(video.tasks)} beside a "
                            f"read-out of {sorted(dataset.tasks)}: their object state means something else; use "

@@ -17,6 +17,8 @@ import numpy as np
 # 1 / (control_hz * physics_dt) carries four roundings (two inputs, product, quotient), each within
 # half an ulp; twice that bound separates a whole number of substeps from a genuine remainder.
 _SUBSTEP_RTOL = 4 * float(np.finfo(np.float64).eps)
+# Largest image side an env renders: a bigger one would allocate gigabytes per frame (and per dataset row).
+MAX_IMAGE_SIDE = 1024
 
 
 def check_choice(name: str, value: object, choices: Sequence) -> None:
@@ -30,11 +32,11 @@ def _is_int(value: object) -> bool:
 
 
 def image_shape(image_size: object) -> tuple[int, int, int]:
-    """``(height, width, 3)`` from a positive int or a pair of positive ints."""
+    """``(height, width, 3)`` from a positive int or a pair of positive ints, each at most ``MAX_IMAGE_SIDE``."""
     pair = image_size if isinstance(image_size, Sequence) and not isinstance(image_size, str) else None
     sizes = (image_size, image_size) if pair is None else tuple(pair)
-    if len(sizes) != 2 or not all(_is_int(s) and s > 0 for s in sizes):
-        raise ValueError(f"image_size must be a positive int or a (height, width) pair of positive ints, "
+    if len(sizes) != 2 or not all(_is_int(s) and 0 < s <= MAX_IMAGE_SIDE for s in sizes):
+        raise ValueError(f"image_size must be an int in [1, {MAX_IMAGE_SIDE}] or a (height, width) pair of them, "
                          f"got {image_size!r}")
     return int(sizes[0]), int(sizes[1]), 3
 

@@ -14,6 +14,7 @@ from dust_rl import aux_frame_cache
 from dust_rl.agents import make_policy, unwrap
 from dust_rl.aux_frame_cache import cached_aux_frames, cached_frame_tokens
 from dust_rl.aux_frames import encode_frames, render_aux_frames
+from dust_rl.cache_files import record_cache
 from dust_rl.data import DatasetError, DemoDataset
 from dust_rl.features import dataset_policy_kwargs, env_state_width
 
@@ -23,7 +24,7 @@ ARGS = ("DustFranka-v0", DEMO_ENV_KWARGS, ["pick_place", "push"], ["front", "wri
 
 def test_stored_frames_are_the_rendered_ones_and_keyed_by_their_settings(tmp_path, monkeypatch):
     first, instructions, _ = cached_aux_frames(tmp_path, *ARGS, seed=1, progress=False)
-    (stored,) = tmp_path.iterdir()
+    (stored,) = tmp_path.glob("*.npz")
     fresh, fresh_instructions = render_aux_frames(*ARGS, seed=1, progress=False)
 
     def render_again(*args, **kwargs):
@@ -34,19 +35,23 @@ def test_stored_frames_are_the_rendered_ones_and_keyed_by_their_settings(tmp_pat
         again, instructions_again, _ = cached_aux_frames(tmp_path, *ARGS, seed=1, progress=False)
     assert (again == first).all() and (again == fresh).all()  # read back bit for bit, as a fresh render
     assert instructions_again == instructions == fresh_instructions
-    assert list(tmp_path.iterdir()) == [stored]
+    assert list(tmp_path.glob("*.npz")) == [stored]
     other = cached_aux_frames(tmp_path, *ARGS, seed=2, progress=False).rows
-    assert len(list(tmp_path.iterdir())) == 2 and not (other == first).all()
+    assert len(list(tmp_path.glob("*.npz"))) == 2 and not (other == first).all()
 
 
 def test_a_damaged_store_is_named(tmp_path):
     cached_aux_frames(tmp_path, *ARGS, progress=False)
-    (stored,) = tmp_path.iterdir()
+    (stored,) = tmp_path.glob("*.npz")
     stored.write_bytes(stored.read_bytes()[:100])
+    with pytest.raises(DatasetError, match="this cache changed since it was written .*; delete it"):
+        cached_aux_frames(tmp_path, *ARGS, progress=False)
+    record_cache(stored)  # damaged before its record was written
     with pytest.raises(DatasetError, match="unreadable aux frames.*delete the file"):
         cached_aux_frames(tmp_path, *ARGS, progress=False)
     with stored.open("wb") as file:  # readable, but not the frames its name promises
         np.savez(file, image_0=np.zeros((3, 3, 8, 8), np.uint8), image_1=np.zeros((2, 3, 8, 8), np.uint8))
+    record_cache(stored)
     with pytest.raises(DatasetError, match=r"image_1 is uint8 \(2, 3, 8, 8\), expected uint8 \(3, 3\)"):
         cached_aux_frames(tmp_path, *ARGS, progress=False)
 
@@ -83,8 +88,12 @@ def test_stored_tokens_are_the_encoded_ones_and_keyed_by_encoder_weights_and_gri
     assert len(list(tmp_path.glob("*.tokens-*.npy"))) == 3
 
     np.save(tokens_file, first.numpy()[:2])  # readable, but not the frames' tokens
+    with pytest.raises(DatasetError, match="this cache changed since it was written"):
+        cached_frame_tokens(stored.path, policy, frames)
+    record_cache(tokens_file)  # as if written so
     with pytest.raises(DatasetError, match=r"tokens are float32 \(2, 2, 16, 16\), expected float32 \(3, 2\)"):
         cached_frame_tokens(stored.path, policy, frames)
     tokens_file.write_bytes(b"\x93NUMPY")
+    record_cache(tokens_file)
     with pytest.raises(DatasetError, match="unreadable aux-frame tokens.*delete the file"):
         cached_frame_tokens(stored.path, policy, frames)

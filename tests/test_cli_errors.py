@@ -20,6 +20,7 @@ from test_train import TINY_ARGS
 from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
+from dust_rl.data.layout import STAGING_DIR
 from dust_rl.data.lock import folder_lock
 from dust_rl.env_factory import env_tasks
 from dust_rl.envs import list_tasks
@@ -236,3 +237,66 @@ def test_preset_sets_the_policy_size_and_flags_override_it(train_args, tmp_path)
                                                                         "--preset", "huge"])
     assert "applies to dust-rl train" in error_of(["eval", "--policy", "p.pt", "--preset", "gpu-base"])
     assert not (tmp_path / "r").exists()
+
+
+def _corrupt_studies(tmp_path, demo_dir) -> list[str]:
+    for name, text in (("a", '{"env": "DustFranka-v0", '), ("b", "{}")):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(text)
+    return ["bench", "average", "--studies", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "avg")]
+
+
+def _no_spec(tmp_path, demo_dir) -> list[str]:
+    dataset = shutil.copytree(demo_dir, tmp_path / "ds")
+    meta = json.loads((dataset / "meta.json").read_text())
+    del meta["spec"]
+    (dataset / "meta.json").write_text(json.dumps(meta))
+    return ["dataset", "info", str(dataset)]
+
+
+BAD_INPUT = {
+    "vision-steps-0": (lambda tmp, demos: ["bench", "suite", "--vision-steps", "0", "--out", str(tmp / "s")],
+                       r"vision_steps must be multiples of N_A = 4 in [4, 1024], got (0,)"),
+    "vision-steps-5000": (lambda tmp, demos: ["bench", "suite", "--vision-steps", "8", "5000", "--out", str(tmp / "s")],
+                          r"vision_steps must be multiples of N_A = 4 in [4, 1024], got (8, 5000)"),
+    "corrupt-results": (_corrupt_studies, "results.json: not a readable results file"),
+    "video-not-mp4": (lambda tmp, demos: ["dataset", "video", str(demos), "--out", str(tmp / "grid.avi")],
+                      "--out must name an .mp4 file"),
+    "no-spec": (_no_spec, "meta.json: missing or malformed spec; the file was edited"),
+    "nproc-above-cores": (lambda tmp, demos: ["train", "--dataset", str(demos), "--out", str(tmp / "run"), "--device",
+                                              "cpu", "--nproc", str((os.cpu_count() or 1) + 1),
+                                              "--batch-size", str((os.cpu_count() or 1) + 1)],
+                          f"give --nproc at most {os.cpu_count() or 1}"),
+    "non-utf8-path": (lambda tmp, demos: ["dataset", "info", os.fsdecode(bytes(tmp / "ds") + b"\xff")],
+                      "is not UTF-8 text; rename"),
+}
+
+
+@pytest.mark.parametrize("case", BAD_INPUT)
+def test_bad_input_ends_in_one_line_naming_it(case, demo_dir, tmp_path):
+    make_args, problem = BAD_INPUT[case]
+    before = sorted(tmp_path.iterdir())
+    args = make_args(tmp_path, demo_dir)
+    made = sorted(tmp_path.iterdir())
+    assert problem in error_of(args)
+    assert sorted(tmp_path.iterdir()) == made and len(made) >= len(before)  # nothing written by the command
+
+
+def test_a_full_disk_ends_collection_in_one_line_and_a_rerun_resumes(tmp_path, monkeypatch):
+    real = shutil.disk_usage
+    episodes = []
+
+    def filling_up(path):  # the disk is full once the first episode is written
+        episodes.append(path)
+        usage = real(path)
+        return usage._replace(free=0) if len(episodes) > 1 else usage
+
+    monkeypatch.setattr(shutil, "disk_usage", filling_up)
+    out = tmp_path / "ds"
+    message = error_of(collect_args(out, episodes=2, task="press_button"))
+    assert f"no space left on device while collecting into {out}" in message and "re-run the same command" in message
+    assert not (out / STAGING_DIR).exists()  # nothing half written is left
+    assert sorted(p.name for p in (out / "episodes" / "press_button").iterdir()) == ["seed-000000"]
+    monkeypatch.undo()
+    main(collect_args(out, episodes=2, task="press_button"))
+    assert DemoDataset(out).meta["episodes_per_task"] == {"press_button": 2}

@@ -192,3 +192,18 @@ def test_import_names_the_feature_that_does_not_fit_the_env(export_dir, tmp_path
         main(["dataset", "import", str(plain), "--out", str(tmp_path / "out"), *PLAIN_IMPORT, *args])
     assert "\n" not in str(error.value)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("edit,problem", [
+    ({"env_id": "CartPole-v1"}, r"unknown env id 'CartPole-v1'; dust-rl registers \['DustFranka-v0'"),
+    ({"env_kwargs": {"image_size": 100000}}, r"image_size must be an int in \[1, 1024\].*got 100000"),
+    ({"env_kwargs": {"image_size": 32, "control_hz": 10.0}}, r"does not match its env \(control_hz: dataset has 20"),
+], ids=["not-a-dust-env", "huge-images", "other-spec"])
+def test_import_refuses_a_dust_rl_json_naming_another_env(export_dir, tmp_path, edit, problem):
+    source = shutil.copytree(export_dir, tmp_path / "source")
+    meta_file = source / "meta" / "dust_rl.json"
+    meta_file.write_text(json.dumps(json.loads(meta_file.read_text()) | edit))
+    with pytest.raises(SystemExit, match=problem) as error:
+        main(["dataset", "import", str(source), "--out", str(tmp_path / "out")])
+    assert "\n" not in str(error.value)
+    assert not (tmp_path / "out").exists()

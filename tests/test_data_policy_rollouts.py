@@ -8,7 +8,7 @@ from test_evaluate import tiny_policy_file
 
 from dust_rl.agents import CheckpointError, load_policy, seeded_executor, unwrap
 from dust_rl.data import DatasetError, collect_demos
-from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE
+from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import load_episode_rows, scan_episodes
 from dust_rl.data.seeding import SeedSchedule
 from dust_rl.errors import ConfigError
@@ -28,7 +28,7 @@ def policy_path(tmp_path_factory, minilm):
 def rollouts(policy_path, tmp_path_factory):
     """An untrained policy never succeeds: the collection keeps every failure until it gives up."""
     root = tmp_path_factory.mktemp("rollouts")
-    with pytest.raises(RuntimeError, match="press_button policy succeeded in only 0 of"):
+    with pytest.raises(SuccessesOutOfReachError, match="press_button policy succeeded in only 0 of .* the policy"):
         collect_demos(root, tasks=["press_button"], episodes=1, env_kwargs=ENV_KWARGS, keep_failed=True,
                       policy=policy_path, progress=False)
     return root

@@ -102,6 +102,7 @@ BAD_ARGUMENTS = [
     ("task", "no_such_task"), ("task", None), ("robot", "ur5"), ("obs_mode", "depth"), ("control_mode", "joint"),
     ("image_size", 0), ("image_size", -8), ("image_size", "64"), ("image_size", True), ("image_size", 64.0),
     ("image_size", (64,)), ("image_size", (64, 0)), ("image_size", (64, "64")), ("image_size", (32, 32, 3)),
+    ("image_size", 100000), ("image_size", (32, 1025)),
     ("cameras", []), ("cameras", "front"), ("cameras", ["front", "front"]), ("cameras", ["front", "nope"]),
     ("reward_type", "shaped"), ("render_mode", "human"), ("render_quality", "ultra"),
     ("max_episode_steps", 0), ("max_episode_steps", -5), ("max_episode_steps", 10.5), ("max_episode_steps", True),

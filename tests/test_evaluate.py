@@ -6,6 +6,7 @@ import dataclasses
 import json
 import pathlib
 
+import numpy as np
 import pytest
 
 from dust_rl.agents import (
@@ -18,7 +19,9 @@ from dust_rl.agents import (
     save_policy,
     unwrap,
 )
-from dust_rl.data.video import read_mp4
+from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
+from dust_rl.agents.factory import POLICY_KIND
+from dust_rl.data.video import read_mp4, write_mp4
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import Episode, EvalConfig, describe_sampler, evaluate, paired_comparison, wilson_interval
 from dust_rl.report import plot_loss_curves, read_scalar_csv
@@ -131,6 +134,21 @@ def test_video_is_the_evaluated_episode_with_its_predicted_future(report, eval_c
     assert frames[0].shape == (LABEL_HEIGHT + IMAGE, 4 * IMAGE, 3)  # front | wrist | prediction | real future
 
 
+def test_a_video_is_replaced_only_once_the_new_one_is_whole(tmp_path):
+    path = tmp_path / "episode.mp4"  # an earlier evaluation's video
+    write_mp4(path, [np.full((32, 32, 3), 90, np.uint8)] * 4, fps=20)
+    before = path.read_bytes()
+
+    def interrupted():
+        yield from [np.zeros((32, 32, 3), np.uint8)] * 100  # enough for the encoder to write packets
+        raise KeyboardInterrupt  # the re-run stopped while it renders
+
+    with pytest.raises(KeyboardInterrupt):
+        write_mp4(path, interrupted(), fps=20)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["episode.mp4"]
+    assert write_mp4(path, [np.zeros((32, 32, 3), np.uint8)] * 3, fps=20) == 3 and len(list(read_mp4(path))) == 3
+
+
 def test_same_config_same_episodes_with_any_worker_count(report, eval_config, tmp_path):
     again = evaluate(dataclasses.replace(eval_config, out=tmp_path / "again", videos=0))
     assert again["tasks"][0]["per_episode"] == report["tasks"][0]["per_episode"]
@@ -151,6 +169,23 @@ def test_policy_for_another_action_space(tmp_path, minilm):
     path = tiny_policy_file(tmp_path / "policy.pt", minilm, action_dim=3)
     with pytest.raises(CheckpointError, match="action_dim: policy has 3, env has 7"):
         evaluate(EvalConfig(policy=path, out=tmp_path / "eval"))
+
+
+def test_a_policy_for_other_frames_or_cameras_is_refused(tmp_path, minilm):
+    # Trained on 32 px frames (as recorded at training), its info edited to ask for a 64 px env.
+    claims_64 = tiny_policy_file(tmp_path / "claims_64.pt", minilm,
+                                 info={**INFO, "env_kwargs": {"image_size": 64}, "image_size": [32, 32]})
+    config = EvalConfig(policy=claims_64, out=tmp_path / "eval", episodes=1, max_steps=5, progress=False)
+    with pytest.raises(CheckpointError, match=r"image size: policy was trained on \[32, 32\] px frames, env renders "
+                                              r"\[64, 64\]"):
+        evaluate(config)
+    path = save_policy(unwrap(load_policy(claims_64)), tmp_path / "other_camera.pt")
+    payload = load_checkpoint(path, POLICY_KIND)
+    payload["cameras"], payload["info"] = ["front", "belly"], INFO
+    save_checkpoint(payload, path, POLICY_KIND)
+    with pytest.raises(CheckpointError, match=r"cameras: policy reads \['belly'\]"):
+        evaluate(dataclasses.replace(config, policy=path))
+    assert not (tmp_path / "eval").exists()
 
 
 def test_bad_tasks_and_sampler_settings_fail_before_any_episode(policy_path, tmp_path, minilm):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 
 import numpy as np
@@ -17,8 +18,9 @@ from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint
 from dust_rl.critic_limits import LayerNormReLU
 from dust_rl.critic_warmup import CriticWarmup
-from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE
+from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import scan_episodes
+from dust_rl.data.lock import FolderLockedError, folder_lock
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate import EvalConfig, evaluate
 from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
@@ -230,6 +232,11 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         FinetuneConfig(policy=policy_path, device="tpu")
     with pytest.raises(ConfigError, match="no_such_task"):
         finetune(FinetuneConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    with folder_lock(busy), pytest.raises(FolderLockedError, match=f"pid {os.getpid()}"):  # as a run holds it
+        finetune(FinetuneConfig(policy=policy_path, out=busy, steps=8, progress=False))
+    assert [p.name for p in busy.iterdir()] == [".lock"]
 
 
 def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_path, tmp_path):
@@ -294,21 +301,21 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
     with pytest.raises(ConfigError, match="pass --demos"):  # the policy file names no training dataset
         finetune(config)
     # An untrained policy never succeeds: the first round's collection gives up, its rollouts kept on disk.
-    with pytest.raises(RuntimeError, match="press_button policy succeeded in only 0 of"):
+    with pytest.raises(SuccessesOutOfReachError, match="press_button policy succeeded in only 0 of .* the policy"):
         finetune(dataclasses.replace(config, out=tmp_path / "ft2", demos=demo_dir))
     records = scan_episodes(tmp_path / "ft2" / "round-1" / "rollouts")["press_button"]
     tried = MAX_SEEDS_PER_EPISODE["policy"] * config.rollout_successes + 10
     assert sorted(records) == list(range(config.rollout_seed, config.rollout_seed + tried))
     assert all(r.length == EPISODE_STEPS and not r.success and not r.kept for r in records.values())
     # More rounds resume the run (the same collection goes on); other changed settings do not.
-    with pytest.raises(RuntimeError, match=f"succeeded in only 0 of {tried + 1} "):
+    with pytest.raises(SuccessesOutOfReachError, match=f"succeeded in only 0 of {tried + 1} "):
         finetune(dataclasses.replace(config, out=tmp_path / "ft2", demos=demo_dir, rounds=2, resume=True))
     with pytest.raises(ConfigError, match="started with other settings \\(rollout_successes\\)"):
         finetune(dataclasses.replace(config, out=tmp_path / "ft2", demos=demo_dir, rollout_successes=2, resume=True))
     # DAgger (the expert's labels taught): the failed rollouts are kept too, with their rows.
     dagger = dataclasses.replace(config, out=tmp_path / "ft3", demos=demo_dir,
                                  train=dataclasses.replace(config.train, extra_action_key="expert_action"))
-    with pytest.raises(RuntimeError, match="succeeded in only 0 of"):
+    with pytest.raises(SuccessesOutOfReachError, match="succeeded in only 0 of"):
         finetune(dagger)
     kept = scan_episodes(tmp_path / "ft3" / "round-1" / "rollouts")["press_button"].values()
     assert len(kept) == tried and all(r.kept for r in kept)

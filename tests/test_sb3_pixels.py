@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -10,6 +11,7 @@ from stable_baselines3.common.env_checker import check_env
 
 from dust_rl.agents import pooled_text
 from dust_rl.env_factory import make_env
+from dust_rl.errors import ConfigError
 from dust_rl.sb3 import FrozenBackboneExtractor, SB3Observations
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -28,6 +30,8 @@ def test_the_instruction_becomes_its_frozen_embedding(minilm):
     oracle = SB3Observations(env.env, minilm, privileged=True)
     assert "observation/environment_state" in oracle.observation_space.spaces
     env.close()
+    with pytest.raises(ConfigError, match=r"wraps a dust-rl env .* this env's are Box"):
+        SB3Observations(gym.make("CartPole-v1"), minilm)
 
 
 def test_sac_on_pixels_through_the_frozen_encoder(minilm, tiny_encoder):

@@ -13,6 +13,7 @@ from test_evaluate import tiny_policy_file
 
 from dust_rl.agents import load_policy, seeded_executor, unwrap
 from dust_rl.data import collect_demos
+from dust_rl.data.collect import SuccessesOutOfReachError
 from dust_rl.data.episodes import load_episode_rows, scan_episodes
 from dust_rl.data.seeding import SeedSchedule
 from dust_rl.env_factory import make_env
@@ -99,7 +100,7 @@ def test_the_best_scoring_candidate_is_executed_and_the_simulator_is_left_as_it_
 
 def test_search_rollouts_are_a_dataset_of_the_searchs_actions(policy_path, tmp_path):
     settings = SearchSettings(candidates=2, lookahead=1)
-    with pytest.raises(RuntimeError, match="succeeded in only 0 of"):  # an untrained policy never succeeds
+    with pytest.raises(SuccessesOutOfReachError, match="succeeded in only 0 of"):  # an untrained policy never succeeds
         collect_demos(tmp_path, tasks=[TASK], episodes=1, env_kwargs=ENV_KWARGS, keep_failed=True,
                       policy=policy_path, search=settings, progress=False)
     records = scan_episodes(tmp_path)[TASK]

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import math
 import os
 import shutil
+import subprocess
 
+import numpy as np
 import pytest
 import torch
 from conftest import kill_after_first_checkpoint
@@ -15,18 +18,24 @@ from crafted import CRAFTS
 
 from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
-from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
+from dust_rl.cache_files import CACHE_FOLDERS, cache_files
 from dust_rl.checkpoint_dirs import DIGESTS, file_sha256
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
+from dust_rl.data.dataset import cache_root, writable
+from dust_rl.data.lock import FolderLockedError, folder_lock
+from dust_rl.data.tools import dataset_summary
 from dust_rl.dataset_batches import DatasetBatches
 from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.env_state_norm import PER_TASK
-from dust_rl.errors import ConfigError
+from dust_rl.errors import ConfigError, NoSpaceError
 from dust_rl.features import FeatureCache
 from dust_rl.keys import ACTION_IS_PAD_KEY
 from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
-from dust_rl.train import TrainConfig, train
+from dust_rl.readout_cache import READOUT_KIND
+from dust_rl.run_folder import locked_run_folder
+from dust_rl.train import RESUMABLE_FIELDS, TrainConfig, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -98,6 +107,7 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     policy = unwrap(load_policy(result.policy))
     assert policy.config.horizon == 4 and policy.execute_steps == 2
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button", "open_drawer"]
+    assert policy.info["image_size"] == [32, 32]  # the frames it was trained on, checked against an env on load
     stored = json.loads((out / "config.json").read_text())
     assert stored["command"] == "dust-rl train ..." and stored["config"]["steps"] == 12
     rows = (out / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text().split()
@@ -203,10 +213,15 @@ def test_a_warmed_readout_is_cached_shared_by_the_variants_and_changes_nothing_e
             for run in ("dust", "ao")]
     assert logs[0].read_text() == logs[1].read_text() != ""  # the cached fit's scalars are replayed
 
-    # Training after a cached warm-up is the run that fitted it, bit for bit; a corrupt cache file is refitted.
+    # Training after a cached warm-up is the run that fitted it, bit for bit; a damaged cache file is refused, one
+    # without its record (an older version's) is refitted.
     again = trained_weights(train(tiny_config(run_inputs, tmp_path / "again", **readout)).policy)
     assert all(torch.equal(dust[k], again[k]) for k in dust)
-    next(cache.glob("*.pt")).write_bytes(b"not a checkpoint")
+    fit = next(cache.glob("*.pt"))
+    fit.write_bytes(b"not a checkpoint")
+    with pytest.raises(DatasetError, match="this cache changed since it was written"):
+        train(tiny_config(run_inputs, tmp_path / "damaged", **readout))
+    fit.with_name(fit.name + ".sha256").unlink()
     refitted = trained_weights(train(tiny_config(run_inputs, tmp_path / "refit", **readout)).policy)
     assert all(torch.equal(dust[k], refitted[k]) for k in dust)
     # Another warm-up setting is another fit.
@@ -461,3 +476,125 @@ def test_resume_refuses_a_dataset_that_changed_since_the_checkpoint(run_inputs, 
     with pytest.raises(DatasetError, match=r"changed since this run.s checkpoint \(data, num_rows, episodes_per"):
         train(tiny_config(run_inputs, out, steps=4, resume=True))
     assert (out / "policy.pt").read_bytes() == policy
+
+
+def test_a_second_run_into_a_busy_folder_is_refused_naming_the_first(run_inputs, tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    with folder_lock(out), pytest.raises(FolderLockedError, match=f"pid {os.getpid()}"):  # as a run holds it
+        train(tiny_config(run_inputs, out, steps=2))
+    assert sorted(p.name for p in out.iterdir()) == [".lock"]  # nothing of the refused run's
+    # A run holds the lock until its end (the holder's details are its own), then lets go: --resume runs.
+    train(tiny_config(run_inputs, out, steps=2))
+    assert json.loads((out / ".lock").read_text())["pid"] == os.getpid()
+    train(tiny_config(run_inputs, out, steps=2, resume=True))
+    # Refused under the lock (the folder changed since the first check), a run leaves no folder it created.
+    fresh = tmp_path / "fresh" / "run"
+    with (pytest.raises(FileNotFoundError, match="nothing to resume"),
+          locked_run_folder(tiny_config(run_inputs, fresh, resume=True), RESUMABLE_FIELDS, None)):
+        pass
+    assert not fresh.exists()
+    with pytest.raises(DatasetError):
+        train(tiny_config((tmp_path / "missing", run_inputs[1]), tmp_path / "other"))
+    assert not (tmp_path / "other").exists()
+
+
+@pytest.fixture
+def read_only():
+    """Make a folder read-only for this process, as a user's dataset on a read-only share is: by its mode, or
+    (root ignores modes) by the immutable attribute; skips where neither holds."""
+    made = []
+
+    def make(folder):
+        folder.chmod(0o555)
+        made.append(folder)
+        if writable(folder) and shutil.which("chattr"):
+            subprocess.run(["chattr", "+i", str(folder)], check=False, capture_output=True)
+        if writable(folder):
+            pytest.skip("cannot make a folder read-only for this process here")
+        return folder
+
+    yield make
+    for folder in made:
+        if shutil.which("chattr"):
+            subprocess.run(["chattr", "-i", str(folder)], check=False, capture_output=True)
+        folder.chmod(0o755)
+
+
+def test_a_read_only_dataset_keeps_its_caches_in_a_cache_folder(run_inputs, tmp_path, monkeypatch, read_only):
+    dataset, _ = run_inputs
+    identity = DemoDataset(dataset).identity
+    assert cache_root(dataset, identity) == dataset  # writable: the caches stay with the data
+    named = cache_root(dataset, identity, tmp_path / "mine")
+    assert named.parent == tmp_path / "mine" and named != cache_root(dataset, {**identity, "num_rows": 1},
+                                                                        tmp_path / "mine")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    before = sorted(p.name for p in dataset.iterdir())
+    read_only(dataset)
+    fallback = cache_root(dataset, identity)
+    assert fallback.parent == tmp_path / "xdg" / "dust-rl"
+    config = tiny_config(run_inputs, tmp_path / "run", steps=2, aux_frames=8, lambda_aux=1.0, readout="tokens",
+                         readout_warmup=2, readout_demos=False)
+    train(config)
+    assert list((fallback / "features").glob("*.npy")) and list((fallback / "aux_frames").iterdir())
+    assert list((fallback / "readout_cache").iterdir())
+    assert sorted(p.name for p in dataset.iterdir()) == before
+    train(dataclasses.replace(config, out=tmp_path / "run2", cache_dir=tmp_path / "mine"))  # --cache-dir
+    assert list((cache_root(dataset, identity, tmp_path / "mine") / "features").glob("*.npy"))
+
+
+def test_a_cache_changed_since_it_was_written_is_refused_and_dataset_info_lists_them(run_inputs, tmp_path):
+    dataset, _ = run_inputs
+    for folder in CACHE_FOLDERS:  # caches other tests left in the shared dataset are not this run's
+        shutil.rmtree(dataset / folder, ignore_errors=True)
+    config = tiny_config(run_inputs, tmp_path / "run", steps=2, aux_frames=8, lambda_aux=1.0, readout="tokens",
+                         readout_warmup=2, readout_demos=False)
+    train(config)
+    caches = {path.name: path for path, _ in cache_files(dataset)}
+    listed = dataset_summary(DemoDataset(dataset))
+    assert len(caches) == 6 and all(f"{p.relative_to(dataset)} (" in listed for p in caches.values()), listed
+    [features] = [p for p in caches.values() if p.parent.name == "features"]
+    [readout] = [p for p in caches.values() if p.parent.name == "readout_cache"]
+    frames = next(p for p in caches.values() if p.suffix == ".npz")  # fitted on and held out: 2 of each
+    tokens = next(p for p in caches.values() if ".tokens-" in p.name)
+    runs = iter(range(10))
+
+    def refused_when(path, poison):
+        original = path.read_bytes()
+        poison(path)
+        with pytest.raises(DatasetError, match=f"{path.name}: this cache changed since it was written"):
+            train(dataclasses.replace(config, out=tmp_path / f"run-{next(runs)}"))
+        path.write_bytes(original)
+
+    def zero_the_tail(path):  # still a well-formed .npy: its last values zeroed
+        path.write_bytes(path.read_bytes()[:-256] + bytes(256))
+
+    def scale_the_weights(path):  # a well-formed read-out fit, its weights x1000
+        payload = load_checkpoint(path, READOUT_KIND)
+        payload["state_dict"] = {k: v * 1000 if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
+        save_checkpoint({k: v for k, v in payload.items() if k not in ("kind", "format_version")}, path, READOUT_KIND)
+
+    def shift_the_objects(path):  # well-formed aux frames whose object state was moved
+        with np.load(path, allow_pickle=False) as stored:
+            arrays = {name: stored[name] for name in stored.files}
+        arrays["env_state"] = arrays["env_state"] + 1
+        np.savez(path, **arrays)
+
+    refused_when(features, zero_the_tail)
+    refused_when(readout, scale_the_weights)
+    readout.rename(tmp_path / "fit.pt")  # without the fit, the aux frames and their tokens are read
+    refused_when(frames, shift_the_objects)
+    refused_when(tokens, zero_the_tail)
+
+
+
+def test_a_full_disk_ends_training_in_one_line_and_leaves_no_run_folder(run_inputs, tmp_path, monkeypatch):
+    def full(fd):  # where a full disk shows for buffered writes: the data cannot be flushed
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    out = tmp_path / "run"
+    with pytest.raises(NoSpaceError, match=f"no space left on device while training into {out} .* free some space"):
+        train(tiny_config(run_inputs, out, steps=2))
+    assert not out.exists()  # its config.json could not be written: nothing of the run is left
+    assert not [p for p in run_inputs[0].rglob("*") if p.name.endswith(".tmp")]

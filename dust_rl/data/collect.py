@@ -38,7 +38,7 @@ from dust_rl.agents import load_policy
 from dust_rl.env_factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.episode_collector import episode_collector, torch_threads
-from dust_rl.errors import ConfigError
+from dust_rl.errors import ConfigError, UserError, no_space_left
 from dust_rl.search_expert import SearchExpertFactory
 from dust_rl.search_settings import SearchSettings
 from dust_rl.workers import Workers, ray_runtime
@@ -55,6 +55,10 @@ from .selection import select_episodes
 # Give up on a task when this many seeds per requested episode have not produced enough successes: the
 # expert fails rarely; a trained policy worth rolling out succeeds in 5% of its episodes or more.
 MAX_SEEDS_PER_EPISODE = {"expert": 3, "policy": 20}
+
+
+class SuccessesOutOfReachError(UserError):
+    """The expert or policy succeeds too rarely for the successes asked for: collection gives up."""
 
 
 def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks: Sequence[str] = ("pick_place",),
@@ -124,7 +128,9 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
               "noise_std": float(noise_std), "keep_failed": keep_failed, "policy": actor}
     root = pathlib.Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    with folder_lock(root, wait=wait_for_writer), ray_runtime(workers), torch_threads(workers.threads):
+    with (folder_lock(root, wait=wait_for_writer), ray_runtime(workers), torch_threads(workers.threads),
+          no_space_left(f"collecting into {root}", "free some space and re-run the same command: the episodes "
+                        "written so far are kept", clean=lambda: clear_staging(root))):
         clear_staging(root)
         meta = open_meta(root, config, tasks, episodes, spec)
         for task in tasks:
@@ -177,8 +183,10 @@ def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, 
             if select_episodes(records, start_seed, episodes, keep_failed) is not None:
                 return
             if len(records) >= MAX_SEEDS_PER_EPISODE[actor] * episodes + 10:
-                raise RuntimeError(f"the {task} {actor} succeeded in only {_successes(records)} of {len(records)} "
-                                   f"episodes; {episodes} successes are out of reach")
+                raise SuccessesOutOfReachError(
+                    f"the {task} {actor} succeeded in only {_successes(records)} of {len(records)} episodes; "
+                    f"{episodes} successes are out of reach (the episodes so far are kept): ask for fewer (collect "
+                    f"--episodes, finetune --rollout-successes){' or train the policy further' if policy else ''}")
 
 
 def _successes(records: dict[int, EpisodeRecord]) -> int:

@@ -8,6 +8,9 @@ table, and (on request) that the dataset fits the env it will be used with.
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
+import os
 import pathlib
 
 import gymnasium as gym
@@ -19,11 +22,34 @@ from dust_rl.keys import INSTRUCTION_KEY
 from .errors import DatasetError
 from .layout import META_FILE
 from .memmap_io import load_memmap_checked
-from .metadata import read_meta, recorded_env_spec, spec_mismatches
+from .metadata import SPEC_KEYS, read_meta, recorded_env_spec, spec_mismatches
+
+# Entries of a finished dataset's meta.json that its readers use, with their JSON types.
+FINISHED_META = {"env_id": str, "env_kwargs": dict, "spec": dict, "tasks": list, "instructions": list,
+                 "episodes": list, "num_rows": int}
 
 
 def _is_int(value: object) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def writable(folder: pathlib.Path) -> bool:
+    """Whether this process may create files in ``folder`` (a read-only dataset's caches go elsewhere)."""
+    return os.access(folder, os.W_OK | os.X_OK)
+
+
+def cache_root(root: pathlib.Path, identity: dict, cache_dir: pathlib.Path | None = None) -> pathlib.Path:
+    """The folder of the caches derived from the dataset at ``root`` (of version ``identity``).
+
+    ``cache_dir`` if given, else the dataset folder itself when this process may write there, else the user's
+    cache folder (``$XDG_CACHE_HOME``, default ``~/.cache``, ``/dust-rl``); outside the dataset, in a subfolder
+    named by a digest of the dataset's path and version, so datasets never share caches.
+    """
+    if cache_dir is None and writable(root):
+        return root
+    base = cache_dir or pathlib.Path(os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache") / "dust-rl"
+    key = json.dumps({"dataset": str(root.resolve()), **identity}, sort_keys=True)
+    return base / hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
 class DemoDataset:
@@ -33,18 +59,23 @@ class DemoDataset:
         root: the folder written by :func:`dust_rl.data.collect_demos` (or ``dataset import``).
         env: if given, raise :class:`DatasetError` unless the dataset's cameras, image shape,
             state/action sizes and control rate match this env's.
+        cache_dir: where caches derived from the dataset go (:func:`cache_root`); default: inside it when it
+            is writable, else the user's cache folder.
 
     Attributes:
         meta: the parsed ``meta.json``.
         data: all rows, a memmap TensorDict ``[num_rows]`` (nothing is read until indexed).
     """
 
-    def __init__(self, root: str | pathlib.Path, env: gym.Env | None = None) -> None:
+    def __init__(self, root: str | pathlib.Path, env: gym.Env | None = None,
+                 cache_dir: str | pathlib.Path | None = None) -> None:
         self.root = pathlib.Path(root)
+        self.cache_dir = None if cache_dir is None else pathlib.Path(cache_dir)
         self.meta = read_meta(self.root)
         if not self.meta.get("data"):
             raise DatasetError(f"{self.root}: collection was not finished (no consolidated data in {META_FILE}); "
                                "re-run the collect command to resume it")
+        self._check_entries()
         self._check_episode_table()
         self.data = load_memmap_checked(self.root / self.meta["data"])
         if self.data.shape[0] != self.meta["num_rows"] or self.meta["num_rows"] != sum(self.lengths.tolist()):
@@ -52,6 +83,15 @@ class DemoDataset:
                                f"{self.meta['num_rows']} (episode lengths sum to {sum(self.lengths.tolist())})")
         if env is not None:
             self.check_env(env)
+
+    def _check_entries(self) -> None:
+        """The entries a finished dataset's readers use must be there, of their JSON types."""
+        bad = [key for key, kind in FINISHED_META.items() if not isinstance(self.meta.get(key), kind)]
+        spec = self.meta.get("spec")
+        bad += [f"spec.{key}" for key in SPEC_KEYS if isinstance(spec, dict) and key not in spec]
+        if bad:
+            raise DatasetError(f"{self.root / META_FILE}: missing or malformed {', '.join(bad)}; the file was edited "
+                               "or damaged: restore it, or collect (import) the dataset again")
 
     def _check_episode_table(self) -> None:
         """Episodes must lie back to back from row 0, each at least one row long, with a known task and
@@ -69,6 +109,12 @@ class DemoDataset:
 
     def __len__(self) -> int:
         return self.data.shape[0]
+
+    @functools.cached_property
+    def cache_root(self) -> pathlib.Path:
+        """Where caches derived from this dataset (features, aux frames, read-out fits) go: see
+        :func:`cache_root`."""
+        return cache_root(self.root, self.identity, self.cache_dir)
 
     @property
     def identity(self) -> dict:

@@ -24,6 +24,7 @@ from .layout import (
     episode_dir,
     inside,
     read_json,
+    reserve_space,
     staging_dir,
     write_json_atomic,
 )
@@ -82,6 +83,7 @@ def write_episode(root: pathlib.Path, record: EpisodeRecord, rows: TensorDictBas
     record = dataclasses.replace(record, kept=rows is not None)
     staging = staging_dir(root)
     if rows is not None:
+        reserve_space(staging, 2 * rows.bytes())  # with room for the consolidated copy
         rows.memmap_(staging / EPISODE_TD_DIR, num_threads=0)
     write_json_atomic(staging / EPISODE_FILE, record.to_json())
     destination = episode_dir(root, record.task, record.seed)

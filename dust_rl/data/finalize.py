@@ -25,7 +25,7 @@ from dust_rl.keys import ENV_STATE_KEY
 
 from .episodes import EpisodeRecord, episode_rows_dir, load_episode_rows, scan_episodes
 from .errors import DatasetError
-from .layout import DATA_PREFIX, META_FILE, staging_dir, write_json_atomic
+from .layout import DATA_PREFIX, META_FILE, allocate_files, staging_dir, write_json_atomic
 from .memmap_io import load_memmap_checked
 from .metadata import read_meta
 from .selection import select_episodes
@@ -134,6 +134,7 @@ def _allocate(rows: TensorDictBase, total: int, env_state_dim: int, path: pathli
     for column in INDEX_COLUMNS:
         template.set(column, torch.zeros((), dtype=torch.int64))
     out = template.expand(total).memmap_like(path, num_threads=0)
+    allocate_files(path)
     out.get(ENV_STATE_KEY).zero_()
     return out
 

@@ -53,7 +53,7 @@ from .errors import DatasetError
 from .finalize import consolidate
 from .layout import FORMAT_VERSION, SAFE_NAME, inside, read_json
 from .lerobot_export import COLUMNS, DUST_META_FILE, IMAGE_PREFIX
-from .metadata import package_versions, recorded_env_spec
+from .metadata import package_versions, recorded_env_spec, spec_mismatches
 from .video import read_mp4
 
 INFO_FILE = "meta/info.json"
@@ -145,6 +145,8 @@ class _LeRobotFolder:
         self.episodes = self._read_episodes()
         self._fill_missing_columns()
         self.records = [self._record(episode, target) for episode in self.episodes]
+        if target is None:
+            self._check_recorded_env()
         width = self.frames["observation.environment_state"].shape[-1]
         self.env_state_dims = self._env_state_dims(width)
         self.meta = self._dataset_meta(base)
@@ -204,6 +206,24 @@ class _LeRobotFolder:
             raise DatasetError(f"{path}: missing or malformed {bad}; re-export the dataset, or import it with "
                                "--env and --task")
         return meta
+
+    def _check_recorded_env(self) -> None:
+        """Raise unless ``dust_rl.json`` names a dust-rl env that takes its kwargs, has every episode's task and
+        renders what its spec records (whose image size sizes the decoded videos)."""
+        from dust_rl.env_factory import check_tasks
+        from dust_rl.errors import ConfigError
+
+        where = self.root / DUST_META_FILE
+        tasks = sorted({record.task for record in self.records})
+        try:
+            check_tasks(self.dust["env_id"], self.dust["env_kwargs"], tasks)
+            env = _env_target(self.dust["env_id"], tasks[0], self.dust["env_kwargs"])
+        except ConfigError as err:
+            raise DatasetError(f"{where}: {err}; re-export the dataset, or import it with --env and --task") from err
+        problems = spec_mismatches(self.spec, env["spec"])
+        if problems:
+            raise DatasetError(f"{where} does not match its env ({'; '.join(problems)}); re-export the dataset, or "
+                               "import it with --env and --task")
 
     def _read_table(self, relative: str, columns: list[str] | None = None) -> pa.Table:
         """The parquet file ``relative``, or all parquet files under that folder, concatenated."""

@@ -25,6 +25,10 @@ _VERSIONED_PACKAGES = ("dust-rl", "mujoco", "torch", "torchrl", "tensordict", "g
 _IMAGE_PREFIX = "observation.image."
 
 
+# What recorded_env_spec records.
+SPEC_KEYS = ("cameras", "image_shape", "state_dim", "action_dim", "control_hz", "fps")
+
+
 def recorded_env_spec(env: gym.Env) -> dict:
     """The parts of an env that a dataset's arrays depend on (cameras, shapes, rates)."""
     spaces = env.observation_space.spaces

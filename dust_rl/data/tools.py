@@ -36,6 +36,7 @@ def dataset_summary(dataset: DemoDataset) -> str:
         f"- size: {data_bytes / 2**20:.1f} MiB consolidated "
         f"({1000 * data_bytes / max(len(dataset), 1) / 2**20:.2f} MiB "
         f"per 1000 transitions), {folder_size(dataset.root) / 2**20:.1f} MiB in the folder",
+        _caches_line(dataset),
         "",
         "| task | episodes | success | length mean | min | max |",
         "|---|---|---|---|---|---|",
@@ -47,6 +48,16 @@ def dataset_summary(dataset: DemoDataset) -> str:
         lines.append(f"| {task} | {len(episodes)} | {100 * success:.0f}% | {lengths.mean():.1f} | "
                      f"{lengths.min()} | {lengths.max()} |" if episodes else f"| {task} | 0 | - | - | - | - |")
     return "\n".join(lines)
+
+
+def _caches_line(dataset: DemoDataset) -> str:
+    """The caches derived from the dataset (:mod:`dust_rl.cache_files`), each with its size."""
+    from dust_rl.cache_files import cache_files
+
+    files = cache_files(dataset.cache_root)
+    listed = ", ".join(f"{path.relative_to(dataset.cache_root)} ({size / 2**20:.1f} MiB)" if size >= 2**20 else
+                       f"{path.relative_to(dataset.cache_root)} ({size / 2**10:.0f} KiB)" for path, size in files)
+    return f"- caches in {dataset.cache_root}: {listed or 'none'}"
 
 
 def write_episode_grid(dataset: DemoDataset, out: str | pathlib.Path, episodes: Sequence[int] | None = None,

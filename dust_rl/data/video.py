@@ -11,6 +11,8 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
+from dust_rl.atomic_files import atomic_write
+
 from .errors import DatasetError
 
 CODEC = "libx264"  # the encoder
@@ -24,13 +26,13 @@ def write_mp4(path: pathlib.Path, frames: Iterable[np.ndarray], fps: int, crf: i
 
     Frame ``i`` gets presentation time ``i / fps``, so a frame's index is its timestamp times ``fps``.
     With ``pad_odd`` (videos to watch, not data) an odd height or width gets one more row or column,
-    repeated from the edge.
+    repeated from the edge. Written atomically: an earlier video at ``path`` stays until the new one is whole.
     """
     import av
 
     path.parent.mkdir(parents=True, exist_ok=True)
     count = 0
-    with av.open(str(path), "w") as container:
+    with atomic_write(path, "wb") as file, av.open(file, "w", format="mp4") as container:
         stream = None
         for frame in frames:
             if pad_odd:
