@@ -4,8 +4,8 @@ A linear probe of the mean token misses what one object in one place says; a pol
 cross-attention does not. This head is the smallest thing that attends like the policy:
 tokens plus an embedded condition (the named colour, the instruction) pass one MLP
 residual, a softmax over tokens pools them, and an MLP gives the numbers. Used by
-``scripts/frozen_feature_probe.py`` (where the named cube is) and
-``scripts/first_move_probe.py`` (the expert's first move), and inside the policy as the
+``experiments/frozen_feature_probe.py`` (where the named cube is) and
+``experiments/first_move_probe.py`` (the expert's first move), and inside the policy as the
 token read-out of the object state (:mod:`.token_readout`).
 """
 

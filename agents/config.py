@@ -85,7 +85,7 @@ class SamplerConfig:
     noise_scale: float = 1.0
     """Scale of the initial action noise, a sampling temperature: 1 as trained; 0 integrates every chunk from the
     noise's mean (deterministic for action_only; with a vision stream its noise still varies). A chunk given its
-    initial noise (noise-space steering, :mod:`dust_rl.steering`) uses that noise as it is."""
+    initial noise (noise-space steering, :mod:`dust_rl.rl.steering`) uses that noise as it is."""
 
     def __post_init__(self) -> None:
         if not (isinstance(self.noise_scale, numbers.Real) and math.isfinite(self.noise_scale)
@@ -144,7 +144,7 @@ class ModelConfig:
     readout_grid: tuple[int, int] | None = None
     """Token grid per camera the token read-out reads, finer than ``cond_grid``: the frozen tokens are kept at this
     grid and pooled to ``cond_grid`` for the trunk. At Lite0 stride 8, (16, 16) reads the named button 2.8 cm off
-    where the pooled 8x8 grid is 5.1 cm off (held-out aux frames, ``scripts/token_readout_probe.py``). None:
+    where the pooled 8x8 grid is 5.1 cm off (held-out aux frames, ``experiments/token_readout_probe.py``). None:
     ``cond_grid``."""
     text_fusion: bool = False
     """Condition every image token on the instruction before the trunk (:mod:`.condition`): the pooled instruction

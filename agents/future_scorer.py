@@ -5,7 +5,7 @@ after it. Drawing K joint samples and executing the one whose predicted
 future looks most like success uses the world model at test time without
 touching the policy's weights: the scorer is a small MLP over the
 (normalised) predicted future tokens, trained afterwards on the policy's own
-rollouts labelled by their outcome (:mod:`dust_rl.wm_select`). With one
+rollouts labelled by their outcome (:mod:`dust_rl.rl.wm_select`). With one
 candidate the policy acts exactly as without a scorer.
 
 ==================  ===================  ==========================================

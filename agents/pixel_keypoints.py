@@ -13,7 +13,7 @@ parameters; forward and backward on 128 frames take 0.33 s on one CPU
 thread); each keypoint becomes a condition token
 (:class:`~.condition.ConditionProjector`), beside the frozen grid tokens.
 On demonstrations alone its read-out learns the same "target = gripper"
-shortcut as the frozen one (:mod:`dust_rl.aux_frames` attacks that; docs/franka_results.md).
+shortcut as the frozen one (:mod:`dust_rl.train.readout.aux_frames` attacks that; docs/franka_results.md).
 
 =============  =================  ==========================================
 tensor         shape              meaning

@@ -127,7 +127,7 @@ class DustPolicy(VLAWrapperBase):
                                             config.keypoint_source, config.text_fusion)
         self.config = config  # the policy's own: set_sampler replaces it; the model reads only its model fields
         # The read-out is built before the trunk, so its initial weights do not depend on the variant: runs of one
-        # seed then warm up the same read-out (dust_rl.readout_cache).
+        # seed then warm up the same read-out (dust_rl.train.readout.cache).
         if config.aux_state_dim and config.readout == "tokens":
             self.state_readout = TokenReadout(len(cameras), config.token_grid, backbone.image_dim, backbone.text_dim,
                                               config.aux_state_dim, config.readout_heads, config.readout_coords)
@@ -384,7 +384,7 @@ class DustPolicy(VLAWrapperBase):
         Args:
             frames: ``image_tokens`` [B, C, N, Dv] (token read-out) or ``pixels`` [B, C, 3, H, W] uint8 (pixel
                 keypoints; shifted at random in training mode), ``text_tokens``, ``text_mask`` and ``env_state``
-                (:class:`~dust_rl.aux_frames.AuxFrameBatches`).
+                (:class:`~dust_rl.train.readout.aux_frames.AuxFrameBatches`).
 
         Raises:
             ValueError: the policy has no read-out that frames alone can train.

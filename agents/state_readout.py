@@ -20,7 +20,7 @@ MSE 0.05 on 40 validation demos against 0.08 with the features.
 Known limit: demonstrations hold the target cube in the gripper for most
 rows, so the read-out learns "the target is where the gripper is" and is
 4-14 cm off in the first steps that decide where the arm goes
-(``scripts/readout_error.py``; docs/franka_results.md).
+(``experiments/readout_error.py``; docs/franka_results.md).
 """
 
 from __future__ import annotations

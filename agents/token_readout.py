@@ -6,7 +6,7 @@ position better: an attention-pooling head fitted on the front camera's
 Lite0 stride-8 tokens of fresh pick_place resets reads it to 1.5 cm (tokens
 pooled to 8x8) or 0.7 cm (16x16), but only when fitted on 2,000 layouts; on
 200 it learns nothing (15.5 cm, predicting the mean; docs/franka_results.md,
-``scripts/frozen_feature_probe.py``). So this read-out is meant to be fitted
+``experiments/frozen_feature_probe.py``). So this read-out is meant to be fitted
 on rendered frames (``--aux-frames``, ``--readout-warmup``), not on the
 demonstrations' few layouts.
 

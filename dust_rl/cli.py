@@ -29,15 +29,16 @@ DESCRIPTION = ("DUST (dual-stream diffusion) for torchrl and gymnasium: collect 
 
 def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     """Every command: name (one or two words) -> (its dataclass of arguments, its runner(config, command line))."""
-    from dust_rl import commands as data
-    from dust_rl.bench_suite import SuiteConfig, suite_command
-    from dust_rl.benchmarks.gpu_check import GpuCheckConfig, gpu_check_command
+    from dust_rl.bench.average import AverageConfig, average_command
+    from dust_rl.bench.gpu_check import GpuCheckConfig, gpu_check_command
+    from dust_rl.bench.suite import SuiteConfig, suite_command
+    from dust_rl.data import commands as data
     from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose_world_model_command
-    from dust_rl.evaluate import EvalConfig, evaluate_command
-    from dust_rl.finetune import FinetuneConfig, finetune_command
+    from dust_rl.evaluate.closed_loop import EvalConfig, evaluate_command
     from dust_rl.quickstart import QuickstartConfig, quickstart
-    from dust_rl.suite_average import AverageConfig, average_command
-    from dust_rl.train import TrainConfig, train_command
+    from dust_rl.rl.finetune import FinetuneConfig, finetune_command
+    from dust_rl.train import encoder_commands as encoders
+    from dust_rl.train.imitation import TrainConfig, train_command
 
     return {
         "quickstart": (QuickstartConfig, quickstart),
@@ -45,8 +46,8 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "expert-table": (data.ExpertTableCommand, data.run_expert_table),
         "collect": (data.CollectCommand, data.run_collect),
         "dataset": (data.DatasetCommand, data.run_dataset),
-        "pretrain-encoder": (data.PretrainEncoderCommand, data.run_pretrain_encoder),
-        "encoder": (data.EncoderCommand, data.run_encoder),
+        "pretrain-encoder": (encoders.PretrainEncoderCommand, encoders.run_pretrain_encoder),
+        "encoder": (encoders.EncoderCommand, encoders.run_encoder),
         "train": (TrainConfig, train_command),
         "eval": (EvalConfig, evaluate_command),
         "finetune": (FinetuneConfig, finetune_command),
@@ -99,7 +100,7 @@ def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:
     if "--preset" not in args:
         return args, None
     from dust_rl.agents.config import POLICY_PRESETS
-    from dust_rl.train import TrainConfig
+    from dust_rl.train.imitation import TrainConfig
 
     at = args.index("--preset")
     if name != "train":

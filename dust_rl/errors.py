@@ -25,6 +25,14 @@ class ConfigError(UserError):
     """
 
 
+
+class DatasetError(UserError, ValueError):
+    """A dataset is missing, corrupt, truncated, or does not match what was asked for.
+
+    The message names the dataset path and the problem so that a user can act on it
+    (delete the folder, re-run collection, pick the right env) without a traceback hunt.
+    """
+
 def check_at_least(config: object, minimum: int, *names: str) -> None:
     """Raise :class:`ConfigError` naming the first of ``config``'s fields ``names`` below ``minimum``.
 

@@ -19,29 +19,14 @@ import time
 from dataclasses import dataclass, field, replace
 
 from dust_rl.agents.backbone import check_image_encoder
-from dust_rl.agents.config import PolicyConfig
-from dust_rl.atomic_files import write_json_atomic
-from dust_rl.config_json import config_json
 from dust_rl.data import DemoDataset, collect_demos
-from dust_rl.env_factory import DEFAULT_ENV_ID
+from dust_rl.envs.factory import DEFAULT_ENV_ID
 from dust_rl.errors import check_at_least
-from dust_rl.evaluate import EvalConfig, evaluate
-from dust_rl.train import TrainConfig, TrainSettings, train
-
-
-def vision_recipe() -> TrainSettings:
-    """The quickstart's training: a task that needs vision (press_button: three coloured buttons, the
-    instruction names one) solved in minutes. Frozen EfficientNet-Lite0 tokens at stride 8 (16x16 per camera,
-    pooled to 8x8 for the trunk), text fused into them, a token read-out of the objects' state fitted first on
-    8,000 rendered frames and fed to the trunk, three quarters of each batch from an episode's first 4 rows
-    (docs/franka_results.md, "The token read-out"). 2,000 steps: 96% / 84% on 50 validation / held-out seeds and
-    14.3 minutes in all on 2 idle cores, where 3,000 steps gave 90% / 86% in 18.0 minutes (README). lr 3e-4, higher than
-    the paper's 1e-4: a small model trained for minutes."""
-    return TrainSettings(policy=PolicyConfig(image_encoder="efficientnet-lite0-s8", cond_grid=(8, 8), text_fusion=True,
-                                             readout="tokens", readout_grid=(16, 16), lambda_aux=1.0,
-                                             aux_state_input=True),
-                         steps=2000, lr=3e-4, start_rows=4, start_fraction=0.75, aux_frames=8000, readout_warmup=4000,
-                         readout_demos=False)
+from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.storage.atomic_files import write_json_atomic
+from dust_rl.storage.config_json import config_json
+from dust_rl.train.imitation import TrainConfig, TrainSettings, train
+from dust_rl.train.recipes import vision_recipe
 
 
 @dataclass
@@ -64,7 +49,7 @@ class QuickstartConfig:
     """Show progress bars."""
     train: TrainSettings = field(default_factory=vision_recipe)
     """Training (``--train.steps``, ``--train.policy.variant`` ...; as ``dust-rl train``, defaults from
-    :func:`vision_recipe`)."""
+    :func:`~dust_rl.train.recipes.vision_recipe`)."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "demos", "eval_episodes", "workers", "image_size")

@@ -263,7 +263,7 @@ class DustEnv(gym.Env):
 
     def snapshot(self) -> SimSnapshot:
         """The state a step changes (the simulator's data, the step count, the shaping's progress), for
-        :meth:`restore`: lookahead search (``dust_rl.search_expert``) tries motions and comes back. The controller
+        :meth:`restore`: a lookahead search tries motions and comes back. The controller
         and the task keep no state between steps (both read the simulator's)."""
         data = mujoco.MjData(self.model)
         mujoco.mj_copyData(data, self.model, self.data)
@@ -280,7 +280,7 @@ class DustEnv(gym.Env):
 
     def advance(self, action: np.ndarray) -> tuple[bool, str]:
         """One control step without an observation (no rendering): :meth:`step` minus the observation, for
-        callers that only look at the end of a motion (``dust_rl.aux_frames`` renders one frame after many
+        callers that only look at the end of a motion (``dust_rl.train.readout.aux_frames`` renders one frame after many
         steps). Returns (success, the truncation reason or "")."""
         action = self._validate_action(action)
         reason = self._apply_action(action)
@@ -295,7 +295,7 @@ class DustEnv(gym.Env):
     def displace_free_bodies(self, rng: np.random.Generator, radius: float, spare_within: float = 0.0) -> None:
         """Move every free body (the task's loose objects) by its own uniformly random offset within ``radius`` on
         the table plane, heights and orientations kept, and recompute the kinematics (no physics step): a frame
-        whose objects sit elsewhere relative to the arm (``dust_rl.aux_frames``). Bodies within ``spare_within``
+        whose objects sit elsewhere relative to the arm (the read-out's aux frames). Bodies within ``spare_within``
         metres of an end effector (held ones) stay where they are; every body draws its offset all the same."""
         grippers = self.data.site_xpos[self._ee_sites]
         for joint in np.flatnonzero(self.model.jnt_type == mujoco.mjtJoint.mjJNT_FREE):

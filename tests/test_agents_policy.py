@@ -25,7 +25,7 @@ from dust_rl.agents.factory import POLICY_KIND
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import UserError
 from dust_rl.keys import ACTION_NOISE_KEY, PREDICTED_FUTURE_KEY
-from dust_rl.wm_select import with_scorer
+from dust_rl.rl.wm_select import with_scorer
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -10,7 +10,12 @@ from tensordict import TensorDict
 
 from dust_rl.agents import DustConfig, DustPolicy, make_policy, unwrap
 from dust_rl.agents.attention_pooling import WIDTH
-from dust_rl.aux_frames import (
+from dust_rl.data import DemoDataset
+from dust_rl.data.env_state_norm import EnvStateNorm
+from dust_rl.data.features import dataset_policy_kwargs, env_state_width
+from dust_rl.envs.factory import make_env
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
+from dust_rl.train.readout.aux_frames import (
     FIRST_SEED,
     HELD_WITHIN,
     MAX_EXPERT_STEPS,
@@ -18,11 +23,6 @@ from dust_rl.aux_frames import (
     _approach_steps,
     render_aux_frames,
 )
-from dust_rl.data import DemoDataset
-from dust_rl.env_factory import make_env
-from dust_rl.env_state_norm import EnvStateNorm
-from dust_rl.features import dataset_policy_kwargs, env_state_width
-from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 ENV_ID = "DustFranka-v0"

@@ -9,9 +9,9 @@ import pytest
 from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
-from dust_rl.bench_suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, Cell, SuiteConfig, markdown, plan, run_suite
+from dust_rl.bench.suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, Cell, SuiteConfig, markdown, plan, run_suite
 from dust_rl.errors import ConfigError
-from dust_rl.train import TrainSettings
+from dust_rl.train.imitation import TrainSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

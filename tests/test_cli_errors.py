@@ -21,10 +21,10 @@ from dust_rl.agents import load_policy, save_image_encoder, unwrap
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
 from dust_rl.data.layout import STAGING_DIR
-from dust_rl.data.lock import folder_lock
-from dust_rl.env_factory import env_tasks
 from dust_rl.envs import list_tasks
+from dust_rl.envs.factory import env_tasks
 from dust_rl.errors import ConfigError
+from dust_rl.storage.lock import folder_lock
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -84,7 +84,7 @@ def test_bad_task_list_writes_nothing(dataset_copy, tmp_path):
 
 def hold_lock(folder) -> subprocess.Popen:
     """A process that holds ``folder``'s dataset lock until a line arrives on its stdin."""
-    script = ("import pathlib, sys, time; from dust_rl.data.lock import folder_lock; "
+    script = ("import pathlib, sys, time; from dust_rl.storage.lock import folder_lock; "
               f"lock = folder_lock(pathlib.Path({str(folder)!r})); lock.__enter__(); "
               "print('locked', flush=True); sys.stdin.readline(); lock.__exit__(None, None, None); time.sleep(120)")
     holder = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -225,7 +225,7 @@ def test_task_all_is_the_suite_of_the_env_ids_robot():
 def test_preset_sets_the_policy_size_and_flags_override_it(train_args, tmp_path):
     from dust_rl.agents.config import POLICY_PRESETS
     from dust_rl.cli import with_preset
-    from dust_rl.train import TrainConfig
+    from dust_rl.train.imitation import TrainConfig
 
     args, default = with_preset("train", ["--dataset", "d", "--preset", "gpu-base", "--policy.n-dit", "2"])
     assert args == ["--dataset", "d", "--policy.n-dit", "2"]

@@ -20,7 +20,7 @@ from dust_rl.data.lerobot_export import DATA_FILE, EPISODES_FILE
 from dust_rl.data.lerobot_import import import_lerobot
 from dust_rl.data.video import read_mp4
 from dust_rl.errors import ConfigError
-from dust_rl.train import TrainConfig, train
+from dust_rl.train.imitation import TrainConfig, train
 
 IMAGE = ("observation", "image", "front")
 # The per-frame features any LeRobot v3 dataset has (besides its videos); no dust-rl extras.

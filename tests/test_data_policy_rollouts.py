@@ -12,7 +12,7 @@ from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import load_episode_rows, scan_episodes
 from dust_rl.data.seeding import SeedSchedule
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate import make_eval_env
+from dust_rl.evaluate.closed_loop import make_eval_env
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

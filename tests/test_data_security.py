@@ -35,7 +35,7 @@ from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, collect_demos
 from dust_rl.data.lerobot_export import EPISODES_FILE
 from dust_rl.data.video import write_mp4
-from dust_rl.train import TrainConfig, train
+from dust_rl.train.imitation import TrainConfig, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

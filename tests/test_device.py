@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from dust_rl.agents.flow_matching import cpu_drawn
-from dust_rl.device import resolve_device
 from dust_rl.errors import ConfigError
+from dust_rl.runtime.device import resolve_device
 
 
 def test_auto_picks_the_accelerator_torch_sees():

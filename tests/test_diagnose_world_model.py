@@ -14,7 +14,7 @@ from dust_rl.agents.samplers import action_only_schedule, async_schedule, run_sc
 from dust_rl.cli import main
 from dust_rl.data import DatasetError
 from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
-from dust_rl.train import TrainConfig, train
+from dust_rl.train.imitation import TrainConfig, train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

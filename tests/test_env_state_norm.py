@@ -10,8 +10,8 @@ from dust_rl.agents import make_policy, unwrap
 from dust_rl.agents.normalizer import MIN_STD
 from dust_rl.data import DemoDataset
 from dust_rl.data.collect import collect_demos
-from dust_rl.env_state_norm import INFO_KEY, PER_TASK, EnvStateNorm
-from dust_rl.features import dataset_policy_kwargs, env_state_width
+from dust_rl.data.env_state_norm import INFO_KEY, PER_TASK, EnvStateNorm
+from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.keys import ENV_STATE_KEY
 
 

@@ -23,9 +23,16 @@ from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.factory import POLICY_KIND
 from dust_rl.data.video import read_mp4, write_mp4
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate import Episode, EvalConfig, describe_sampler, evaluate, paired_comparison, wilson_interval
-from dust_rl.report import plot_loss_curves, read_scalar_csv
-from dust_rl.rollout_video import LABEL_HEIGHT, future_decoder
+from dust_rl.evaluate.closed_loop import (
+    Episode,
+    EvalConfig,
+    describe_sampler,
+    evaluate,
+    paired_comparison,
+    wilson_interval,
+)
+from dust_rl.evaluate.report import plot_loss_curves, read_scalar_csv
+from dust_rl.evaluate.video import LABEL_HEIGHT, future_decoder
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

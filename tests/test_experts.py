@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from conftest import SUITE_TASKS
 
+from dust_rl.data.expert_rollouts import expert_success_table, run_expert_episode
 from dust_rl.envs import DustEnv, list_tasks
 from dust_rl.envs.registration import ENV_IDS
-from dust_rl.expert_rollouts import expert_success_table, run_expert_episode
 
 
 @pytest.mark.parametrize(("robot", "task"), SUITE_TASKS)

@@ -1,4 +1,4 @@
-"""scripts/failure_modes.py sorts real peg_insert trajectories: the scripted expert's, cut at each stage.
+"""experiments/failure_modes.py sorts real peg_insert trajectories: the scripted expert's, cut at each stage.
 
 Why real episodes: the classes read the task's environment-state layout (peg first, then the fixture) and its
 heights, which a hand-made trajectory would only restate.
@@ -15,7 +15,7 @@ import torch
 from dust_rl.envs import DustEnv
 
 _SPEC = importlib.util.spec_from_file_location(
-    "failure_modes", pathlib.Path(__file__).parents[1] / "scripts" / "failure_modes.py")
+    "failure_modes", pathlib.Path(__file__).parents[1] / "experiments" / "failure_modes.py")
 failure_modes = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(failure_modes)
 

@@ -16,18 +16,18 @@ from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint
-from dust_rl.critic_limits import LayerNormReLU
-from dust_rl.critic_warmup import CriticWarmup
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import scan_episodes
-from dust_rl.data.lock import FolderLockedError, folder_lock
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate import EvalConfig, evaluate
-from dust_rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
-from dust_rl.rl_checkpoint import SB3LearningState
-from dust_rl.run_folder import restore
-from dust_rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
-from dust_rl.train import TrainSettings
+from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.rl.checkpoint import SB3LearningState
+from dust_rl.rl.critic_limits import LayerNormReLU
+from dust_rl.rl.critic_warmup import CriticWarmup
+from dust_rl.rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
+from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
+from dust_rl.storage.lock import FolderLockedError, folder_lock
+from dust_rl.storage.run_folder import restore
+from dust_rl.train.imitation import TrainSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

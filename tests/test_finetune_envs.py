@@ -13,11 +13,11 @@ from stable_baselines3.common.env_checker import check_env
 
 from dust_rl.agents import make_policy, unwrap
 from dust_rl.agents.execution import episode_generator
-from dust_rl.env_factory import make_env
-from dust_rl.frozen_policy_env import observation_td
-from dust_rl.residual import ResidualEnv
-from dust_rl.steering import NoiseSteeringEnv
-from dust_rl.torchrl_sac import FIXED_STD_ALPHA, torchrl_env, train_sac
+from dust_rl.envs.factory import make_env
+from dust_rl.rl.frozen_policy_env import observation_td
+from dust_rl.rl.residual import ResidualEnv
+from dust_rl.rl.steering import NoiseSteeringEnv
+from dust_rl.rl.torchrl_sac import FIXED_STD_ALPHA, torchrl_env, train_sac
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

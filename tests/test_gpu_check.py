@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from dust_rl.benchmarks.gpu_check import CheckFailedError, GpuCheckConfig, gpu_check_command
+from dust_rl.bench.gpu_check import CheckFailedError, GpuCheckConfig, gpu_check_command
 from dust_rl.cli import main
 
 

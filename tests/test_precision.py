@@ -9,7 +9,7 @@ from test_train import TINY_POLICY, run_inputs, tiny_config  # noqa: F401 (run_i
 
 from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.data import DemoDataset, DemoWindows
-from dust_rl.train import train
+from dust_rl.train.imitation import train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -16,8 +16,8 @@ from test_evaluate import tiny_policy_file
 
 from dust_rl.data import DemoDataset, collect_demos
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate import EvalConfig, evaluate
-from dust_rl.workers import Workers
+from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.runtime.workers import Workers
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

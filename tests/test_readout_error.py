@@ -6,10 +6,10 @@ import torch
 
 from dust_rl.agents import make_policy, unwrap
 from dust_rl.data import DemoDataset
-from dust_rl.env_state_norm import EnvStateNorm
-from dust_rl.features import dataset_policy_kwargs, env_state_width
+from dust_rl.data.env_state_norm import EnvStateNorm
+from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.keys import ENV_STATE_KEY
-from dust_rl.readout_error import STEP_BUCKETS, TARGET_XY, readout_error_table
+from dust_rl.train.readout.error import STEP_BUCKETS, TARGET_XY, readout_error_table
 
 
 def test_a_read_out_that_always_says_the_mean_is_as_far_off_as_the_mean_is(demo_dir, tiny_encoder, minilm):

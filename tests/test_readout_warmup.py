@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from dust_rl.agents import DustPolicy, make_policy, unwrap
-from dust_rl.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, AuxFrameBatches, render_aux_frames
 from dust_rl.data import DemoDataset
-from dust_rl.env_state_norm import EnvStateNorm
-from dust_rl.features import dataset_policy_kwargs, env_state_width
-from dust_rl.readout_warmup import heldout_loss, warm_up_readout
+from dust_rl.data.env_state_norm import EnvStateNorm
+from dust_rl.data.features import dataset_policy_kwargs, env_state_width
+from dust_rl.train.readout.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, AuxFrameBatches, render_aux_frames
+from dust_rl.train.readout.warmup import heldout_loss, warm_up_readout
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

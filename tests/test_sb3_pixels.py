@@ -10,9 +10,9 @@ from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.env_checker import check_env
 
 from dust_rl.agents import pooled_text
-from dust_rl.env_factory import make_env
+from dust_rl.envs.factory import make_env
 from dust_rl.errors import ConfigError
-from dust_rl.sb3 import FrozenBackboneExtractor, SB3Observations
+from dust_rl.rl.sb3 import FrozenBackboneExtractor, SB3Observations
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

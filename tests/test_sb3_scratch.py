@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from dust_rl.benchmarks.sb3_scratch import train_from_scratch
+from dust_rl.bench.sb3_scratch import train_from_scratch
 from dust_rl.data.seeding import HELDOUT_SEED
 from dust_rl.errors import ConfigError
 

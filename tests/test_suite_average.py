@@ -9,10 +9,10 @@ import pytest
 from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, save_image_encoder
-from dust_rl.bench_suite import AS_TRAINED, SuiteConfig, run_suite
+from dust_rl.bench.average import AverageConfig, average, average_command
+from dust_rl.bench.suite import AS_TRAINED, SuiteConfig, run_suite
 from dust_rl.errors import ConfigError
-from dust_rl.suite_average import AverageConfig, average, average_command
-from dust_rl.train import TrainSettings
+from dust_rl.train.imitation import TrainSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from dust_rl.data import DatasetError
-from dust_rl.token_store import read_rows, write_rows
+from dust_rl.storage.token_store import read_rows, write_rows
 
 SHAPE = (7, 2, 3)
 

@@ -16,26 +16,26 @@ import torch
 from conftest import kill_after_first_checkpoint
 from crafted import CRAFTS
 
-from dust_rl.action_free import ActionFreeBatches, with_action_free
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
-from dust_rl.cache_files import CACHE_FOLDERS, cache_files
-from dust_rl.checkpoint_dirs import DIGESTS, file_sha256
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
 from dust_rl.data.dataset import cache_root, writable
-from dust_rl.data.lock import FolderLockedError, folder_lock
+from dust_rl.data.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
+from dust_rl.data.env_state_norm import PER_TASK
+from dust_rl.data.features import FeatureCache
 from dust_rl.data.tools import dataset_summary
-from dust_rl.dataset_batches import DatasetBatches
-from dust_rl.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
-from dust_rl.env_state_norm import PER_TASK
 from dust_rl.errors import ConfigError, NoSpaceError
-from dust_rl.features import FeatureCache
 from dust_rl.keys import ACTION_IS_PAD_KEY
-from dust_rl.optim import averaged_weights, warmup_cosine, weight_average
-from dust_rl.readout_cache import READOUT_KIND
-from dust_rl.run_folder import locked_run_folder
-from dust_rl.train import RESUMABLE_FIELDS, TrainConfig, train
+from dust_rl.storage.cache_files import CACHE_FOLDERS, cache_files
+from dust_rl.storage.checkpoint_dirs import DIGESTS, file_sha256
+from dust_rl.storage.lock import FolderLockedError, folder_lock
+from dust_rl.storage.run_folder import locked_run_folder
+from dust_rl.train.action_free import ActionFreeBatches, with_action_free
+from dust_rl.train.dataset_batches import DatasetBatches
+from dust_rl.train.imitation import RESUMABLE_FIELDS, TrainConfig, train
+from dust_rl.train.optim import averaged_weights, warmup_cosine, weight_average
+from dust_rl.train.readout.cache import READOUT_KIND
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

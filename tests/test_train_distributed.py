@@ -14,7 +14,7 @@ from dust_rl.agents import save_image_encoder
 from dust_rl.agents.flow_matching import Shard, cpu_drawn, sample_tau
 from dust_rl.cli import main
 from dust_rl.errors import ConfigError
-from dust_rl.train import train
+from dust_rl.train.imitation import train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

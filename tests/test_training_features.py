@@ -13,8 +13,8 @@ from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_image_encode
 from dust_rl.agents.backbone import DEFAULT_IMAGE_ENCODER_FILE
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset, DemoWindows
-from dust_rl.features import FeatureCache, dataset_policy_kwargs
-from dust_rl.pretrain_encoder import FramePool, pretrain_encoder
+from dust_rl.data.features import FeatureCache, dataset_policy_kwargs
+from dust_rl.train.pretrain_encoder import FramePool, pretrain_encoder
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -163,7 +163,7 @@ def test_feature_cache_keeps_augmented_views(dataset, tiny_encoder, minilm):
 
 
 def test_augment_frames_shifts_and_jitters_within_bounds():
-    from dust_rl.augment import MAX_SHIFT, augment_frames
+    from dust_rl.data.augment import MAX_SHIFT, augment_frames
 
     frames = torch.zeros(4, 3, 32, 32, dtype=torch.uint8)
     frames[:, :, 12:20, 12:20] = 200  # a bright square in the middle

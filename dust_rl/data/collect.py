@@ -1,7 +1,7 @@
 """Collect scripted-expert demonstrations (or a trained policy's rollouts) with torchrl collectors into a
 dataset folder.
 
-One torchrl collector per task (:mod:`dust_rl.episode_collector`: ``workers``
+One torchrl collector per task (:mod:`dust_rl.runtime.episode_collector`: ``workers``
 env processes, or Ray actors) runs the expert policy and yields whole
 trajectories; each is written as soon as it finishes. Re-running the same call
 resumes: seeds with a record are not run again, and the dataset is the first
@@ -15,7 +15,7 @@ With ``policy`` a trained policy file runs instead of the expert, exactly as
 a resumed collection cannot mix two policies.
 
 Every argument is checked before anything is written; one collection at a time
-writes into a folder (:func:`~dust_rl.data.lock.folder_lock`); and a smaller
+writes into a folder (:func:`~dust_rl.storage.lock.folder_lock`); and a smaller
 ``episodes`` than the dataset already holds keeps them all (nothing is deleted
 to honour it).
 """
@@ -23,7 +23,6 @@ to honour it).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
 import hashlib
 import json
@@ -35,19 +34,17 @@ from torchrl.collectors import BaseCollector
 from tqdm import tqdm
 
 from dust_rl.agents import load_policy
-from dust_rl.env_factory import check_tasks, make_env
+from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.episode_collector import episode_collector, torch_threads
 from dust_rl.errors import ConfigError, UserError, no_space_left
-from dust_rl.search_expert import SearchExpertFactory
-from dust_rl.search_settings import SearchSettings
-from dust_rl.workers import Workers, ray_runtime
+from dust_rl.runtime.episode_collector import episode_collector, torch_threads
+from dust_rl.runtime.workers import Workers, ray_runtime
+from dust_rl.storage.lock import folder_lock
 
 from .collection_env import collection_env_fns
 from .episodes import EpisodeRecord, scan_episodes, trajectory_to_episode, write_episode
 from .finalize import finalize_dataset
 from .layout import clear_staging
-from .lock import folder_lock
 from .metadata import open_meta, recorded_env_spec
 from .policy import load_rollout_policy, make_expert_policy
 from .selection import select_episodes
@@ -64,8 +61,8 @@ class SuccessesOutOfReachError(UserError):
 def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks: Sequence[str] = ("pick_place",),
                   episodes: int = 100, *, env_kwargs: dict | None = None, workers: int | Workers = 1,
                   start_seed: int = 0, noise_std: float = 0.0, keep_failed: bool = False,
-                  policy: str | pathlib.Path | None = None, search: SearchSettings | None = None,
-                  progress: bool = True, wait_for_writer: bool = False) -> dict:
+                  policy: str | pathlib.Path | None = None, progress: bool = True,
+                  wait_for_writer: bool = False) -> dict:
     """Collect (or resume collecting) ``episodes`` successful expert demos (or policy rollouts) per task into
     ``root``.
 
@@ -80,8 +77,6 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         noise_std: DART perturbation of the executed action (the stored label stays the expert's).
         keep_failed: also store failed episodes (flagged ``success=False``).
         policy: a trained policy file (``policy.pt``) to roll out instead of the expert; it must fit the env.
-        search: with ``policy``, roll it out with a simulator search over its chunks
-            (:mod:`dust_rl.search_expert`); the default (one candidate) is the policy alone.
         wait_for_writer: when another process is collecting into ``root``, wait for it (then resume or find the
             data complete) instead of raising.
 
@@ -104,9 +99,6 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
                           f"got {start_seed!r} and {noise_std!r}")
     if policy is not None and noise_std:
         raise ConfigError("noise_std perturbs the scripted expert's actions; a policy's rollouts take none")
-    search = search if search is not None and search.active else None
-    if search is not None and policy is None:
-        raise ConfigError("a search chooses among a policy's chunks: pass the policy to search with")
     try:
         env_kwargs = json.loads(json.dumps(env_kwargs or {}))  # as it will read back from meta.json
     except (TypeError, ValueError) as err:
@@ -122,8 +114,6 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         load_policy(policy, env=make_torchrl_env(probe))  # raises before anything is written
     probe.close()
     actor = None if policy is None else {"file": policy.name, "sha256": _file_digest(policy)}
-    if search is not None:
-        actor["search"] = dataclasses.asdict(search)
     config = {"env_id": env_id, "env_kwargs": env_kwargs, "start_seed": start_seed,
               "noise_std": float(noise_std), "keep_failed": keep_failed, "policy": actor}
     root = pathlib.Path(root)
@@ -139,7 +129,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
                 print(f"{root}: {task} already holds {target} episodes, more than the {episodes} asked; "
                       "keeping them all, nothing new to collect")
             _collect_task(root, env_id, {**env_kwargs, "task": task}, task, target, workers, start_seed,
-                          noise_std, keep_failed, policy, search, progress)
+                          noise_std, keep_failed, policy, progress)
         meta = finalize_dataset(root, progress)
         clear_staging(root)
     return meta
@@ -147,16 +137,10 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
 
 def demo_collector(env_id: str, env_kwargs: dict, workers: Workers, start_seed: int = 0,
                    known_seeds: frozenset[int] = frozenset(), noise_std: float = 0.0,
-                   policy: pathlib.Path | None = None, search: SearchSettings | None = None,
-                   ) -> contextlib.AbstractContextManager[BaseCollector]:
+                   policy: pathlib.Path | None = None) -> contextlib.AbstractContextManager[BaseCollector]:
     """A torchrl collector yielding one whole episode ``[T]`` at a time, of the expert or of the trained
     ``policy`` (each remote worker loads its own copy), seeds from ``start_seed`` on, ``known_seeds`` skipped
-    (a context). With an active ``search`` the policy's search expert acts, inside each env (it rewinds the
-    simulator), and the collector executes its actions as the scripted expert's."""
-    if search is not None and search.active:
-        env_fns = collection_env_fns(env_id, env_kwargs, start_seed, known_seeds, workers.count,
-                                     SearchExpertFactory(policy, search))
-        return episode_collector(env_fns, workers, policy=make_expert_policy())
+    (a context)."""
     env_fns = collection_env_fns(env_id, env_kwargs, start_seed, known_seeds, workers.count)
     if policy is None:
         return episode_collector(env_fns, workers, policy=make_expert_policy(noise_std))
@@ -167,13 +151,13 @@ def demo_collector(env_id: str, env_kwargs: dict, workers: Workers, start_seed: 
 
 def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, episodes: int, workers: Workers,
                   start_seed: int, noise_std: float, keep_failed: bool, policy: pathlib.Path | None,
-                  search: SearchSettings | None, progress: bool) -> None:
+                  progress: bool) -> None:
     records = scan_episodes(root).get(task, {})
     if select_episodes(records, start_seed, episodes, keep_failed) is not None:
         return
     actor = "expert" if policy is None else "policy"
     with (demo_collector(env_id, env_kwargs, workers, start_seed, frozenset(records), noise_std,
-                         policy, search) as collector,
+                         policy) as collector,
           tqdm(total=episodes, initial=_successes(records), desc=f"collecting {task}", disable=not progress) as bar):
         for trajectory in collector:
             rows, record = trajectory_to_episode(trajectory, task)

@@ -11,8 +11,8 @@ from collections.abc import Callable
 
 from torchrl.envs import InitTracker, StepCounter, TransformedEnv
 
-from dust_rl.env_factory import make_env
 from dust_rl.envs.expert_wrapper import Expert, ExpertActionWrapper, scripted_expert
+from dust_rl.envs.factory import make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 
 from .seeding import EpisodeSeedWrapper, SeedSchedule

@@ -17,11 +17,11 @@ import gymnasium as gym
 import torch
 from tensordict import NonTensorStack, TensorDict
 
+from dust_rl.errors import DatasetError
 from dust_rl.keys import INSTRUCTION_KEY
+from dust_rl.storage.memmap_io import load_memmap_checked
 
-from .errors import DatasetError
 from .layout import META_FILE
-from .memmap_io import load_memmap_checked
 from .metadata import SPEC_KEYS, read_meta, recorded_env_spec, spec_mismatches
 
 # Entries of a finished dataset's meta.json that its readers use, with their JSON types.

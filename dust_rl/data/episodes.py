@@ -14,21 +14,21 @@ import pathlib
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from dust_rl.errors import DatasetError
 from dust_rl.keys import EXPERT_ACTION_KEY, INSTRUCTION_BYTES_KEY, SEED_KEY, STEP_KEY, SUCCESS_KEY
+from dust_rl.storage.memmap_io import load_memmap_checked
+from dust_rl.storage.paths import inside
 
-from .errors import DatasetError
 from .layout import (
     EPISODE_FILE,
     EPISODE_TD_DIR,
     EPISODES_DIR,
     episode_dir,
-    inside,
     read_json,
     reserve_space,
     staging_dir,
     write_json_atomic,
 )
-from .memmap_io import load_memmap_checked
 from .seeding import decode_instruction
 
 # Per-row entries kept from a collected trajectory; the next observation is not stored

@@ -21,12 +21,12 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tqdm import tqdm
 
+from dust_rl.errors import DatasetError
 from dust_rl.keys import ENV_STATE_KEY
+from dust_rl.storage.memmap_io import load_memmap_checked
 
 from .episodes import EpisodeRecord, episode_rows_dir, load_episode_rows, scan_episodes
-from .errors import DatasetError
 from .layout import DATA_PREFIX, META_FILE, allocate_files, staging_dir, write_json_atomic
-from .memmap_io import load_memmap_checked
 from .metadata import read_meta
 from .selection import select_episodes
 from .stats import compute_stats

@@ -20,13 +20,10 @@ import errno
 import json
 import os
 import pathlib
-import re
 import shutil
 import uuid
 
-from dust_rl.atomic_files import write_json_atomic  # noqa: F401  (the dataset writers' import)
-
-from .errors import DatasetError
+from dust_rl.storage.atomic_files import write_json_atomic  # noqa: F401  (the dataset writers' import)
 
 FORMAT_VERSION = 1
 META_FILE = "meta.json"
@@ -81,37 +78,3 @@ def clear_staging(root: pathlib.Path) -> None:
 def read_json(path: pathlib.Path) -> dict:
     with open(path) as f:
         return json.load(f)
-
-
-# A name the package writes for an entry or folder: no separators, never "." or "..".
-SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
-
-
-def inside(root: pathlib.Path, relative: object, source: object) -> pathlib.Path:
-    """``root / relative``, for a path read from a file: refused unless it stays inside ``root``.
-
-    Datasets are downloaded and shared, so a path in their metadata is untrusted: an absolute
-    path, a ``..`` step or a symlink out of the folder would read (or, for a writer, delete)
-    files elsewhere.
-
-    Args:
-        root: the folder the path must stay in.
-        relative: the path as read (anything but a relative ``str`` is refused).
-        source: the file that named it, for the message.
-
-    Raises:
-        DatasetError: naming ``source`` and the path.
-    """
-    if not isinstance(relative, str) or not relative:
-        raise DatasetError(f"{source}: expected a relative path inside {root}, got {relative!r}")
-    path = pathlib.PurePosixPath(relative)
-    if path.is_absolute() or "\\" in relative or ".." in path.parts:
-        raise DatasetError(f"{source}: path {relative!r} leaves the dataset folder {root}; refused")
-    target = root / relative
-    try:
-        escapes = not target.resolve().is_relative_to(root.resolve())
-    except (OSError, RuntimeError) as err:  # a symlink loop
-        raise DatasetError(f"{source}: path {relative!r} does not resolve ({err})") from err
-    if escapes:
-        raise DatasetError(f"{source}: path {relative!r} is a symlink out of the dataset folder {root}; refused")
-    return target

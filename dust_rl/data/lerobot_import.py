@@ -46,14 +46,16 @@ import pyarrow.parquet as pq
 import torch
 from tensordict import TensorDict
 
+from dust_rl.errors import DatasetError
 from dust_rl.keys import ENV_STATE_KEY, EXPERT_ACTION_KEY, IMAGE_KEY, flat_name
+from dust_rl.storage.config_json import package_versions
+from dust_rl.storage.paths import SAFE_NAME, inside
 
 from .episodes import EpisodeRecord
-from .errors import DatasetError
 from .finalize import consolidate
-from .layout import FORMAT_VERSION, SAFE_NAME, inside, read_json
+from .layout import FORMAT_VERSION, read_json
 from .lerobot_export import COLUMNS, DUST_META_FILE, IMAGE_PREFIX
-from .metadata import package_versions, recorded_env_spec, spec_mismatches
+from .metadata import recorded_env_spec, spec_mismatches
 from .video import read_mp4
 
 INFO_FILE = "meta/info.json"
@@ -107,7 +109,7 @@ def import_lerobot(source: str | pathlib.Path, out: str | pathlib.Path, env_id: 
 
 def _env_target(env_id: str | None, task: str | None, env_kwargs: dict | None) -> dict:
     """The metadata a foreign dataset gets from the env it is imported for (the env is built once)."""
-    from dust_rl.env_factory import check_tasks, make_env
+    from dust_rl.envs.factory import check_tasks, make_env
     from dust_rl.errors import ConfigError
 
     if env_id is None or task is None:
@@ -210,7 +212,7 @@ class _LeRobotFolder:
     def _check_recorded_env(self) -> None:
         """Raise unless ``dust_rl.json`` names a dust-rl env that takes its kwargs, has every episode's task and
         renders what its spec records (whose image size sizes the decoded videos)."""
-        from dust_rl.env_factory import check_tasks
+        from dust_rl.envs.factory import check_tasks
         from dust_rl.errors import ConfigError
 
         where = self.root / DUST_META_FILE

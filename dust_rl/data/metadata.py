@@ -8,20 +8,19 @@ env, image size, noise...) and refuse the latter instead of mixing data.
 from __future__ import annotations
 
 import collections
-import importlib.metadata
 import pathlib
-import platform
 
 import gymnasium as gym
 
 from dust_rl.envs.env import FLAT_STATE_KEY, STATE_MODE_KEYS
+from dust_rl.errors import DatasetError
+from dust_rl.storage.config_json import package_versions
+from dust_rl.storage.paths import inside
 
-from .errors import DatasetError
-from .layout import FORMAT_VERSION, META_FILE, inside, read_json, write_json_atomic
+from .layout import FORMAT_VERSION, META_FILE, read_json, write_json_atomic
 
 # Config entries that must be equal to append to an existing dataset.
 FIXED_CONFIG = ("env_id", "env_kwargs", "start_seed", "noise_std", "keep_failed", "policy")
-_VERSIONED_PACKAGES = ("dust-rl", "mujoco", "torch", "torchrl", "tensordict", "gymnasium")
 _IMAGE_PREFIX = "observation.image."
 
 
@@ -50,23 +49,9 @@ def spec_mismatches(expected: dict, actual: dict) -> list[str]:
             for key in actual if expected.get(key) != actual[key]]
 
 
-def package_versions() -> dict[str, str | None]:
-    """Python's version and those of the packages that shape datasets and runs (None: not installed).
-
-    Recorded in dataset metadata and in each training run's ``config.json``.
-    """
-    versions: dict[str, str | None] = {"python": platform.python_version()}
-    for name in _VERSIONED_PACKAGES:
-        try:
-            versions[name] = importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:
-            versions[name] = None
-    return versions
-
-
 def read_meta(root: pathlib.Path) -> dict:
     """``meta.json`` of the dataset at ``root``, with its format version checked and its data folder
-    confined to ``root`` (see :func:`~dust_rl.data.layout.inside`)."""
+    confined to ``root`` (see :func:`~dust_rl.storage.paths.inside`)."""
     path = root / META_FILE
     if not path.is_file():
         raise DatasetError(f"{root}: not a dust-rl dataset (no {META_FILE})")

@@ -51,8 +51,8 @@ def dataset_summary(dataset: DemoDataset) -> str:
 
 
 def _caches_line(dataset: DemoDataset) -> str:
-    """The caches derived from the dataset (:mod:`dust_rl.cache_files`), each with its size."""
-    from dust_rl.cache_files import cache_files
+    """The caches derived from the dataset (:mod:`dust_rl.storage.cache_files`), each with its size."""
+    from dust_rl.storage.cache_files import cache_files
 
     files = cache_files(dataset.cache_root)
     listed = ", ".join(f"{path.relative_to(dataset.cache_root)} ({size / 2**20:.1f} MiB)" if size >= 2**20 else

@@ -11,9 +11,8 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
-from dust_rl.atomic_files import atomic_write
-
-from .errors import DatasetError
+from dust_rl.errors import DatasetError
+from dust_rl.storage.atomic_files import atomic_write
 
 CODEC = "libx264"  # the encoder
 VIDEO_CODEC = "h264"  # the stream format it writes

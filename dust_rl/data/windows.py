@@ -25,7 +25,7 @@ uniformly, an 80-step episode's first row is 1 window in 80: on pick_place with
 2,000 demos a trained policy's first 8-step move missed the expert's by 15 cm
 (chance) while moving on from step 8 was within 1.4 cm, and a small attention
 head on the same frozen tokens fitted the first move to 1.2 cm
-(``scripts/first_move_error.py``, ``scripts/first_move_probe.py``). Measured:
+(``experiments/first_move_error.py``, ``experiments/first_move_probe.py``). Measured:
 a quarter of each batch from the first 4 rows lowered that 15 cm to 13 cm
 only (docs/franka_results.md), so rarity was not the main cause.
 

@@ -43,12 +43,12 @@ from torch import Tensor
 from dust_rl.agents import DustPolicy, load_policy, schedule_for, unwrap
 from dust_rl.agents.flow_matching import interpolate, sample_tau, velocity_target
 from dust_rl.agents.samplers import DenoiseStep
-from dust_rl.atomic_files import atomic_write, write_json_atomic, write_text_atomic
-from dust_rl.config_json import config_json
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
-from dust_rl.device import resolve_device
+from dust_rl.data.features import FeatureCache
 from dust_rl.errors import check_at_least
-from dust_rl.features import FeatureCache
+from dust_rl.runtime.device import resolve_device
+from dust_rl.storage.atomic_files import atomic_write, write_json_atomic, write_text_atomic
+from dust_rl.storage.config_json import config_json
 
 CONDITIONS = {
     "own": "its own joint sample",

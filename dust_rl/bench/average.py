@@ -1,0 +1,212 @@
+"""The paper's comparison over a suite: ``dust-rl bench average`` pools single-task studies.
+
+The paper compares its variants on a suite's average success (RoboCasa, 24 tasks), and so does the goal here
+(DUST against action_only on the Franka suite average). ``dust-rl bench suite --task all`` trains one
+multi-task policy per cell; the single-task studies (``dust-rl bench suite --task T --out runs/bench/T_100``, one
+folder per task, each resumable on its own) give the same average from policies each task can learn in the
+quickstart's minutes. This command reads their ``results.json`` and writes one table: a row per task, a column
+per variant, and the suite average with its 95% interval. A study can also be given as its ``results.json`` alone
+(copied out of its folder, e.g. into ``docs/results/``), so an average outlives the machine its cells ran on.
+
+Only like with like: every study must share the env, the demonstration count, the evaluation seeds and the
+training recipe (up to settings that do not change what is trained: threads, device, logging), and each task
+appears once. A variant's average pools the training seeds that every study trained it with, so each task
+weighs the same (seeds only some studies have are named and left out).
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from dust_rl.bench.suite import AS_TRAINED
+from dust_rl.errors import ConfigError
+from dust_rl.evaluate.closed_loop import wilson_interval
+from dust_rl.evaluate.report import save_png
+from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
+from dust_rl.train.imitation import RESUMABLE_FIELDS
+
+# Training settings that may differ between studies: they change how a run is carried out, not what it trains.
+NOT_THE_RECIPE = (*RESUMABLE_FIELDS, "seed", "log_every", "checkpoint_every", "nproc")
+SHARED = ("env", "main_demos", "eval_seeds")  # what every study must have in common besides the recipe
+READ = (*SHARED, "task", "train", "rows")  # the entries of results.json this command reads
+
+
+@dataclass
+class AverageConfig:
+    """Pool single-task variant comparisons (``dust-rl bench suite`` folders) into a suite average."""
+
+    studies: tuple[pathlib.Path, ...]
+    """Folders of ``dust-rl bench suite`` runs, one task each, or their ``results.json`` files."""
+    out: pathlib.Path = pathlib.Path("runs/bench/suite_average")
+    """Folder of ``average.md``, ``average.json`` and ``average.png``."""
+
+    def __post_init__(self) -> None:
+        if len(self.studies) < 2:
+            raise ConfigError(f"--studies needs at least two study folders, got {len(self.studies)}")
+
+
+def load_study(study: pathlib.Path) -> dict:
+    """A study's ``results.json``, given its folder or the file itself.
+
+    Raises:
+        ConfigError: the folder holds no finished study, the file given does not exist, or it is not a study's
+            results (unreadable, or without the entries this command reads).
+    """
+    if study.suffix == ".json" and not study.is_file():
+        raise ConfigError(f"{study}: no such results file (give a study folder or its results.json)")
+    path = study if study.is_file() else study / "results.json"
+    if not path.is_file():
+        raise ConfigError(f"{study} holds no results.json: run (or finish) `dust-rl bench suite --out {study}`")
+    try:
+        study = json.loads(path.read_text())
+    except (UnicodeDecodeError, ValueError) as err:
+        raise ConfigError(f"{path}: not a readable results file ({err}); run `dust-rl bench suite` again into its "
+                          "folder to rewrite it") from err
+    missing = [key for key in READ if key not in study] if isinstance(study, dict) else list(READ)
+    if missing:
+        raise ConfigError(f"{path}: not a results file (no {', '.join(missing)}); run `dust-rl bench suite` again "
+                          "into its folder to rewrite it")
+    return study
+
+
+def recipe(study: dict) -> dict:
+    """The study's training settings that decide what a cell learns, nested groups flattened (``policy.d_model``)."""
+    flat = {}
+    for key, value in study["train"].items():
+        if isinstance(value, dict):
+            flat.update({f"{key}.{k}": v for k, v in value.items()})
+        elif key not in NOT_THE_RECIPE:
+            flat[key] = value
+    return flat
+
+
+def check_comparable(studies: list[tuple[pathlib.Path, dict]]) -> None:
+    """Refuse studies that differ in anything but their task.
+
+    Raises:
+        ConfigError: naming the first setting that differs, or a task studied twice.
+    """
+    (first_path, first), *others = studies
+    for path, study in others:
+        for key in SHARED:
+            if study[key] != first[key]:
+                raise ConfigError(f"{path} has {key} {study[key]}, {first_path} {first[key]}: average only studies "
+                                  "of the same env, demonstration count and evaluation seeds")
+        theirs, ours = recipe(study), recipe(first)
+        if theirs != ours:
+            differs = sorted(k for k in ours.keys() | theirs.keys() if ours.get(k) != theirs.get(k))
+            raise ConfigError(f"{path} and {first_path} were trained with other settings ({', '.join(differs)}): "
+                              "average only studies of one recipe")
+    tasks = [study["task"] for _, study in studies]
+    if len(set(tasks)) < len(tasks):
+        raise ConfigError(f"a task appears in more than one study ({tasks}): give one folder per task")
+
+
+def per_seed_successes(row: dict, episodes_per_seed: int) -> dict[int, int]:
+    """Successes of each training seed of a results row."""
+    return {seed: round(rate * episodes_per_seed) for seed, rate in zip(row["seeds"], row["per_seed"])}
+
+
+def average(config: AverageConfig) -> dict:
+    """Per-task success of every variant (as trained) and the suite average over the shared training seeds."""
+    studies = [(folder, load_study(folder)) for folder in config.studies]
+    check_comparable(studies)
+    first = studies[0][1]
+    low, high = first["eval_seeds"]
+    n = high - low + 1
+    rows = {study["task"]: {r["variant"]: per_seed_successes(r, n) for r in study["rows"]
+                            if r["sampler"] == AS_TRAINED and r["demos"] == study["main_demos"]}
+            for _, study in studies}
+    variants = [v for v in dict.fromkeys(v for by_variant in rows.values() for v in by_variant)
+                if all(v in by_variant for by_variant in rows.values())]
+    if not variants:
+        raise ConfigError("no variant was evaluated in every study: nothing to average")
+    columns = {}
+    for variant in variants:
+        seeds = sorted(set.intersection(*(set(by_variant[variant]) for by_variant in rows.values())))
+        if not seeds:
+            raise ConfigError(f"{variant}: no training seed is shared by every study")
+        left_out = {task: sorted(set(by_variant[variant]) - set(seeds)) for task, by_variant in rows.items()}
+        per_task = {task: sum(by_variant[variant][s] for s in seeds) for task, by_variant in rows.items()}
+        episodes = n * len(seeds)
+        successes = sum(per_task.values())
+        total = episodes * len(per_task)
+        columns[variant] = {
+            "seeds": seeds, "left_out_seeds": {t: s for t, s in left_out.items() if s},
+            "episodes_per_task": episodes,
+            "per_task": {task: {"successes": k, "success_rate": k / episodes} for task, k in per_task.items()},
+            "successes": successes, "episodes": total, "success_rate": successes / total,
+            "ci95": list(wilson_interval(successes, total)),
+            "trainable_parameters": next(r["trainable_parameters"] for r in first["rows"] if r["variant"] == variant),
+        }
+    return {"env": first["env"], "demos": first["main_demos"], "eval_seeds": first["eval_seeds"],
+            "tasks": sorted(rows), "studies": [str(p) for p in config.studies], "variants": columns}
+
+
+def markdown(result: dict, command: str | None) -> str:
+    """A row per task, a column per variant, the suite average last."""
+    variants = result["variants"]
+    names = list(variants)
+    lines = [f"# Suite average: {len(result['tasks'])} tasks of {result['env']}, {result['demos']} demonstrations "
+             "per task", "",
+             f"Held-out seeds {result['eval_seeds'][0]}..{result['eval_seeds'][1]}; per variant, the training seeds "
+             "every study has (episodes pooled over them).", "",
+             "| task | " + " | ".join(f"{v} ({variants[v]['trainable_parameters'] / 1e6:.2f}M, seeds "
+                                      f"{', '.join(map(str, variants[v]['seeds']))})" for v in names) + " |",
+             "|---|" + "---|" * len(names)]
+    for task in result["tasks"]:
+        cells = []
+        for v in names:
+            t = variants[v]["per_task"][task]
+            cells.append(f"{100 * t['success_rate']:.0f}% ({t['successes']}/{variants[v]['episodes_per_task']})")
+        lines.append(f"| {task} | " + " | ".join(cells) + " |")
+    lines.append("| **suite average** | " + " | ".join(
+        f"**{100 * variants[v]['success_rate']:.0f}%** ({variants[v]['successes']}/{variants[v]['episodes']}; "
+        f"CI {100 * variants[v]['ci95'][0]:.0f}-{100 * variants[v]['ci95'][1]:.0f}%)" for v in names) + " |")
+    lines.append("")
+    for v in names:
+        for task, seeds in variants[v]["left_out_seeds"].items():
+            lines.append(f"- {v}, {task}: left out training seeds {', '.join(map(str, seeds))} (not in every study)")
+    if command:
+        lines += ["", "Reproduce:", "", f"    {command}"]
+    return "\n".join(lines) + "\n"
+
+
+def plot(result: dict, out_png: pathlib.Path) -> pathlib.Path:
+    """Grouped bars: each task and the suite average, a bar per variant (the average with its 95% interval)."""
+    variants = result["variants"]
+    groups = [*result["tasks"], "suite average"]
+    width = 0.8 / len(variants)
+    fig = Figure(figsize=(max(6.0, 0.9 * len(groups)), 4.0), layout="constrained")
+    ax = fig.add_subplot()
+    x = np.arange(len(groups))
+    for i, (name, column) in enumerate(variants.items()):
+        rates = [100 * column["per_task"][t]["success_rate"] for t in result["tasks"]]
+        rates.append(100 * column["success_rate"])
+        bars = ax.bar(x + (i - (len(variants) - 1) / 2) * width, rates, width, label=name)
+        low, high = (100 * c for c in column["ci95"])
+        ax.errorbar(bars[-1].get_x() + width / 2, rates[-1], yerr=[[rates[-1] - low], [high - rates[-1]]],
+                    color="black", capsize=3)
+    ax.set_xticks(x, groups, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=8)
+    ax.set_title(f"{result['env']}, {result['demos']} demonstrations per task, held-out seeds")
+    save_png(fig, out_png)
+    return out_png
+
+
+def average_command(config: AverageConfig, command: str | None = None) -> dict:
+    """``dust-rl bench average``: write the table and the plot, print where they are."""
+    result = average(config)
+    config.out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(config.out / "average.json", result, indent=2)
+    write_text_atomic(config.out / "average.md", markdown(result, command))
+    plot(result, config.out / "average.png")
+    print((config.out / "average.md").read_text())
+    return result

@@ -1,1 +1,0 @@
-"""Benchmark scripts; each prints a markdown table (run with ``python -m``)."""

@@ -1,0 +1,382 @@
+"""Closed-loop evaluation of a trained policy (``dust-rl eval``).
+
+Each task runs in its own torchrl ``Collector`` (``num_collectors=workers`` env
+processes when ``workers > 1``, each building the policy from the checkpoint
+file), which yields one whole episode at a time. Episode ``k`` of every task
+resets from seed ``seed + k`` (workers share the seeds through
+:class:`~dust_rl.data.seeding.SeedSchedule`), and the policy's sampling noise
+is seeded by the episode seed too (:func:`~dust_rl.agents.execution.episode_generator`),
+so an episode's outcome depends on its seed only: the same config gives the
+same episodes, bit for bit, with any number of workers. Exactly ``episodes``
+seeds count per task; episodes the workers start past them are dropped.
+
+Everything that can be wrong with the inputs (counts, missing or corrupt
+checkpoint, a policy that does not fit the env, unknown tasks, sampler
+settings) is checked in this process before any worker starts. A
+``max_steps`` reaches the env's own time limit (:func:`~dust_rl.envs.factory.make_env`),
+above the task's default as well as below it. The report (JSON, markdown, success
+plot, loss curves of the training run) is written by :mod:`dust_rl.evaluate.report`;
+videos of the first episodes of each task by :mod:`dust_rl.evaluate.video`, from
+the evaluated trajectories themselves.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import math
+import pathlib
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Annotated, NamedTuple
+
+import torch
+import tyro
+from tensordict import TensorDictBase
+from torchrl.collectors import BaseCollector
+from torchrl.envs import InitTracker, TransformedEnv
+from tqdm import tqdm
+
+from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy, seeded_executor, unwrap
+from dust_rl.agents.factory import check_fits_env
+from dust_rl.agents.precision import Precision
+from dust_rl.data.seeding import HELDOUT_SEED, EpisodeSeedWrapper, SeedSchedule
+from dust_rl.envs.factory import check_tasks, make_env
+from dust_rl.envs.torchrl_env import make_torchrl_env
+from dust_rl.errors import ConfigError, check_at_least
+from dust_rl.evaluate.report import plot_loss_curves, write_report
+from dust_rl.evaluate.video import write_episode_video
+from dust_rl.keys import SEED_KEY, STATE_KEY, SUCCESS_KEY
+from dust_rl.runtime.device import resolve_device
+from dust_rl.runtime.episode_collector import episode_collector, torch_threads
+from dust_rl.runtime.workers import Backend, Workers, ray_runtime
+from dust_rl.storage.config_json import config_json
+
+
+@dataclass
+class EvalConfig:
+    """Closed-loop evaluation of a trained policy: success per task with 95% intervals, videos, a report."""
+
+    policy: pathlib.Path
+    """Policy file written by training (save_policy)."""
+    out: pathlib.Path = pathlib.Path("runs/eval")
+    """Folder for report.json, report.md, success.png, loss.png and videos/."""
+    env_id: str | None = None
+    """Gymnasium env id; default: the one the policy was trained in (policy.info["env_id"])."""
+    tasks: tuple[str, ...] = ()
+    """Tasks to evaluate; default: the policy's training tasks (policy.info["tasks"])."""
+    episodes: int = 20
+    """Episodes per task."""
+    workers: int = 2
+    """Env processes (or Ray actors) per task; 1 local worker runs in this process."""
+    backend: Backend = "local"
+    """Where the workers run: processes on this machine, or actors on a Ray cluster (``pip install
+    "dust-rl[ray]"``); same episodes either way."""
+    ray_address: str | None = None
+    """Ray cluster to join with ``--backend ray`` (e.g. ``auto``); default: start a local one for the command."""
+    seed: int = HELDOUT_SEED
+    """Episode k of a task resets from seed + k (training data uses seeds from 0 on)."""
+    sampling: (Annotated[SamplerConfig, tyro.conf.subcommand("resample")]
+               | Annotated[None, tyro.conf.subcommand("as-saved")]) = None
+    """How chunks are sampled: as the policy file says (the default), or ``resample`` with other settings, given
+    after every other argument (``dust-rl eval --policy P resample --n-action-steps 8 --vision-step-ratio 4
+    --candidates 4``; fields not given take their defaults, not the file's)."""
+    execute_steps: int | None = None
+    """Actions executed per chunk before re-planning (1..H); default: the policy's (training's)."""
+    max_steps: int | None = None
+    """Time limit per episode in env steps; default: the task's."""
+    videos: int = 1
+    """Episodes per task recorded as MP4 (camera views beside the decoded predicted future)."""
+    train_dir: pathlib.Path | None = None
+    """Training run folder whose CSV logs give the loss curves; default: the policy file's folder."""
+    threads: int = 1
+    """Torch threads per process."""
+    device: str = "auto"
+    """Where the policy runs (:mod:`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
+    cuda:N, mps; the envs run on the CPU."""
+    precision: Precision = "fp32"
+    """The trunk's precision while sampling: fp32, or bf16 autocast (:mod:`dust_rl.agents.precision`)."""
+    compile: bool = False
+    """Compile the trunk's forward pass with ``torch.compile`` in every worker (each pays the compilation once)."""
+    progress: bool = True
+    """Show progress bars."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "episodes", "workers", "threads", "max_steps", "execute_steps")
+        check_at_least(self, 0, "videos", "seed")
+        resolve_device(self.device)
+        self.worker_pool()
+
+    def worker_pool(self) -> Workers:
+        """Where and how many workers run episodes."""
+        return Workers(self.workers, self.backend, self.threads, self.ray_address)
+
+
+def describe_sampler(sampler: SamplerConfig) -> dict:
+    """Name, N_A, N_o (vision Euler steps: q * N_A async, N_A sync, none action-only), the joint samples per
+    chunk and the initial noise's scale of a resolved sampler."""
+    vision = {"async": sampler.n_action_steps * sampler.vision_step_ratio, "sync": sampler.n_action_steps}
+    return {"name": sampler.sampler, "n_action_steps": sampler.n_action_steps,
+            "vision_steps": vision.get(sampler.sampler, 0), "candidates": sampler.candidates,
+            "noise_scale": sampler.noise_scale}
+
+
+@dataclass(frozen=True)
+class EvalSetup:
+    """What every worker needs to rebuild the evaluated env and policy; picklable."""
+
+    policy_path: pathlib.Path
+    env_id: str
+    env_kwargs: dict
+    tasks: tuple[str, ...]
+    sampler: SamplerConfig  # resolved: its name is set
+    execute_steps: int
+    fps: int  # of the env's control loop: the videos' frame rate
+    device: str  # where each worker's policy runs (resolved, e.g. "cuda:0")
+    precision: Precision = "fp32"
+    compile: bool = False
+
+
+def episode_digest(actions: torch.Tensor, final_state: torch.Tensor) -> str:
+    """A fingerprint of an episode (its executed actions [T, Da] and last state): equal digests, same episode."""
+    data = actions.detach().cpu().contiguous().numpy().tobytes() + final_state.detach().cpu().numpy().tobytes()
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
+class Episode(NamedTuple):
+    """One evaluated episode; equal ``digest`` (:func:`episode_digest`): same episode."""
+
+    seed: int
+    success: bool
+    length: int
+    digest: str
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a success rate (z = 1.96: 95%); (0, 1) when n = 0.
+
+    Unlike the normal approximation it stays inside [0, 1] and is not empty at 0/n or n/n,
+    which matters for the small episode counts of robot evaluations.
+    """
+    if n == 0:
+        return 0.0, 1.0
+    p, z2 = successes / n, z * z
+    center = (p + z2 / (2 * n)) / (1 + z2 / n)
+    half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+    return max(0.0, center - half), min(1.0, center + half)
+
+
+BASE_ROW = "base policy"  # the row a fine-tuning report compares every other row with, on the same seeds
+
+
+def paired_comparison(base: Sequence[Episode], other: Sequence[Episode]) -> dict:
+    """How ``other`` differs from ``base`` on the same seeds: the episodes it wins that ``base`` loses (``gained``),
+    the reverse (``lost``), and the exact two-sided McNemar p-value of that split.
+
+    Why: two policies run on the same seeds share each layout's difficulty, so the discordant episodes alone carry
+    the difference; the test on them tells a gain from noise where two overlapping Wilson intervals cannot.
+
+    Raises:
+        ValueError: the two runs were not on the same seeds.
+    """
+    outcome = {e.seed: e.success for e in base}
+    if sorted(outcome) != sorted(e.seed for e in other):
+        raise ValueError("a paired comparison needs both runs on the same seeds")
+    gained = sum(e.success and not outcome[e.seed] for e in other)
+    lost = sum(outcome[e.seed] and not e.success for e in other)
+    n = gained + lost
+    tail = sum(math.comb(n, k) for k in range(min(gained, lost) + 1)) / 2 ** n
+    return {"gained": gained, "lost": lost, "p_value": min(1.0, 2 * tail)}
+
+
+def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> TransformedEnv:
+    """A torchrl env (VLA keys) resetting from ``schedule``, with ``episode_seed``, ``is_success`` and ``is_init``."""
+    env = make_torchrl_env(EpisodeSeedWrapper(make_env(env_id, env_kwargs), schedule))
+    env.append_transform(InitTracker())
+    return env
+
+
+def make_eval_policy(setup: EvalSetup) -> ChunkExecutor:
+    """The policy of one worker process, built from the checkpoint file (a live policy is not pickled)."""
+    policy = unwrap(load_policy(setup.policy_path, execute_steps=setup.execute_steps)).to(setup.device)
+    policy.set_sampler(setup.sampler)
+    policy.set_runtime(setup.precision, setup.compile)
+    return seeded_executor(policy)
+
+
+def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
+    """Load the policy and resolve env, tasks and sampler, raising every input error before workers start.
+
+    Raises:
+        CheckpointError: missing or corrupt policy file, or a policy that does not fit the env.
+        ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
+    """
+    device = resolve_device(config.device)
+    policy = unwrap(load_policy(config.policy, execute_steps=config.execute_steps)).to(device)  # checks the range
+    env_id = config.env_id or policy.info.get("env_id")
+    tasks = tuple(config.tasks or policy.info.get("tasks", ()))
+    if not env_id or not tasks:
+        raise ConfigError(f"{config.policy} does not record its env id and tasks: give env_id and tasks")
+    env_kwargs = {k: v for k, v in policy.info.get("env_kwargs", {}).items() if k != "task"}
+    if config.max_steps is not None:
+        env_kwargs["max_episode_steps"] = config.max_steps
+    check_tasks(env_id, env_kwargs, tasks)
+    probe = make_eval_env(env_id, {**env_kwargs, "task": tasks[0]}, SeedSchedule(config.seed))
+    try:
+        check_fits_env(policy, probe, config.policy)
+        fps = probe.base_env.metadata["render_fps"]
+    finally:
+        probe.close()
+    try:
+        if config.sampling is not None:
+            policy.set_sampler(config.sampling)
+    except ValueError as err:  # the policy's own config check (e.g. async sampling of a shared-timestep variant)
+        raise ConfigError(f"{config.policy}: sampling {config_json(config.sampling)} does not apply: {err}") from err
+    sampler = replace(policy.config.sampler_settings, sampler=policy.config.sampler_name)
+    policy.set_runtime(config.precision, config.compile)
+    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps, str(device),
+                             config.precision, config.compile)
+
+
+def eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: Workers,
+                   seed: int) -> contextlib.AbstractContextManager[BaseCollector]:
+    """A collector yielding one whole episode of ``task`` at a time, seeds from ``seed`` on (a context).
+
+    One local worker runs in this process with ``policy``; other workers build theirs from the checkpoint.
+    """
+    env_fns = [functools.partial(make_eval_env, setup.env_id, {**setup.env_kwargs, "task": task},
+                                 SeedSchedule(seed, worker=worker, num_workers=workers.count))
+               for worker in range(workers.count)]
+    return episode_collector(env_fns, workers, policy=seeded_executor(policy),
+                             policy_factory=None if workers.count == 1 and workers.backend == "local"
+                             else functools.partial(make_eval_policy, setup), policy_device=setup.device)
+
+
+def episode_of(trajectory: TensorDictBase) -> Episode:
+    """Seed, success, length and digest of one collected trajectory ``[T]``; raises if it is not one whole episode."""
+    seeds = trajectory.get(SEED_KEY).reshape(-1)
+    done = trajectory.get(("next", "done")).reshape(-1)
+    if (seeds != seeds[0]).any() or not done[-1] or done[:-1].any():
+        raise RuntimeError(f"collector returned a trajectory that is not one whole episode (seeds {seeds.unique()})")
+    success = bool(trajectory.get(("next", SUCCESS_KEY))[-1].any())
+    digest = episode_digest(trajectory.get("action"), trajectory.get(("next", *STATE_KEY))[-1])
+    return Episode(int(seeds[0]), success, len(done), digest)
+
+
+def run_task(collector: BaseCollector, seeds: range, bar: tqdm,
+             keep: int = 0) -> tuple[list[Episode], dict[int, TensorDictBase]]:
+    """The episodes of exactly ``seeds``, in seed order, from a collector, and the trajectories of the first
+    ``keep`` seeds by seed (for videos)."""
+    episodes: dict[int, Episode] = {}
+    kept: dict[int, TensorDictBase] = {}
+    for trajectory in collector:
+        episode = episode_of(trajectory)
+        if episode.seed in seeds and episode.seed not in episodes:
+            episodes[episode.seed] = episode
+            if episode.seed in seeds[:keep]:
+                kept[episode.seed] = trajectory
+            bar.update(1)
+            bar.set_postfix(success=sum(e.success for e in episodes.values()))
+            if len(episodes) == len(seeds):
+                break
+    return [episodes[seed] for seed in seeds], kept
+
+
+def summary_row(name: str, episodes: Sequence[Episode]) -> dict:
+    """Episode count, successes, success rate with its 95% Wilson interval, mean lengths."""
+    successes = sum(e.success for e in episodes)
+    low, high = wilson_interval(successes, len(episodes))
+    success_lengths = [e.length for e in episodes if e.success]
+    return {"task": name, "episodes": len(episodes), "successes": successes,
+            "success_rate": successes / len(episodes), "ci95_low": low, "ci95_high": high,
+            "mean_length": sum(e.length for e in episodes) / len(episodes),
+            "mean_length_success": sum(success_lengths) / len(success_lengths) if success_lengths else None}
+
+
+def task_row(task: str, episodes: Sequence[Episode], videos: list[dict]) -> dict:
+    """:func:`summary_row` plus the seeds, each episode as ``[seed, success, length, digest]``, and the videos."""
+    return {**summary_row(task, episodes), "seeds": [e.seed for e in episodes],
+            "per_episode": [list(e) for e in episodes], "videos": videos}
+
+
+def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy,
+                  config: EvalConfig) -> tuple[list[Episode], dict[int, TensorDictBase], float, float]:
+    """The episodes of ``task``, the trajectories of the first ``config.videos`` of them, the collector's
+    start-up seconds and the seconds spent running episodes."""
+    start = time.perf_counter()
+    with (eval_collector(setup, task, policy, config.worker_pool(), config.seed) as collector,
+          tqdm(total=config.episodes, desc=f"eval {task}", disable=not config.progress) as bar):
+        started = time.perf_counter()
+        episodes, kept = run_task(collector, range(config.seed, config.seed + config.episodes), bar, config.videos)
+    # A multi-process collector's shutdown raises this process's thread count; more threads than
+    # cores next to the renderer's own threads slow torch down many times over.
+    torch.set_num_threads(config.threads)
+    return episodes, kept, started - start, time.perf_counter() - started
+
+
+def task_videos(task: str, episodes: Sequence[Episode], trajectories: dict[int, TensorDictBase],
+                policy: DustPolicy, config: EvalConfig, fps: int) -> list[dict]:
+    """``<out>/videos/<task>_seed<seed>.mp4`` of the kept evaluated episodes; one ``{"seed", "success", "length",
+    "digest", "path"}`` each."""
+    rows = []
+    for episode in episodes:
+        if episode.seed in trajectories:
+            path = config.out / "videos" / f"{task}_seed{episode.seed}.mp4"
+            write_episode_video(trajectories[episode.seed], policy, path, fps)
+            rows.append({**episode._asdict(), "path": str(path)})
+    return rows
+
+
+def evaluate(config: EvalConfig, command: str | None = None) -> dict:
+    """Evaluate a policy in closed loop and write the report, plots and videos to ``config.out``.
+
+    Args:
+        config: what to evaluate and how.
+        command: the command line that produced this run, quoted in the markdown report.
+
+    Returns:
+        The report (also ``config.out / "report.json"``). ``env_steps_per_s`` counts the time spent
+        running episodes; the collectors' start-up (worker processes loading the policy) is ``startup_s``.
+
+    Raises:
+        CheckpointError: missing or corrupt policy file, or a policy that does not fit the env.
+        ConfigError: bad settings (see :func:`prepare`).
+    """
+    start = time.perf_counter()
+    rows, startup, running = [], 0.0, 0.0
+    with torch_threads(config.threads), ray_runtime(config.worker_pool()):
+        policy, setup = prepare(config)
+        for task in setup.tasks:
+            episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config)
+            videos = task_videos(task, episodes, kept, policy, config, setup.fps)
+            rows.append(task_row(task, episodes, videos))
+            startup, running = startup + task_startup, running + task_running
+    steps = sum(e[2] for row in rows for e in row["per_episode"])
+    loss_plot = plot_loss_curves(config.train_dir or config.policy.parent, config.out / "loss.png")
+    report = {
+        "policy": str(config.policy), "variant": policy.config.variant,
+        "trainable_parameters": sum(p.numel() for p in policy.trainable_modules().parameters()),
+        "env_id": setup.env_id,
+        "env_kwargs": setup.env_kwargs, "sampler": describe_sampler(setup.sampler),
+        "execute_steps": setup.execute_steps, "command": command,
+        "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],
+        "noise_seeding": "the policy's sampling noise restarts from the episode seed at every reset",
+        "tasks": rows, "overall": summary_row("overall", [Episode(*e) for row in rows for e in row["per_episode"]]),
+        "env_steps": steps, "startup_s": startup, "episodes_time_s": running, "env_steps_per_s": steps / running,
+        "wall_time_s": time.perf_counter() - start, "loss_plot": str(loss_plot) if loss_plot else None,
+    }
+    write_report(report, config.out)
+    return report
+
+
+def evaluate_command(config: EvalConfig, command: str | None = None) -> dict:
+    """``dust-rl eval``: evaluate, print the success table, say where the report is."""
+    report = evaluate(config, command)
+    for row in [*report["tasks"], report["overall"]]:
+        print(f"{row['task']}: {row['successes']}/{row['episodes']} successful ({100 * row['success_rate']:.0f}%, "
+              f"95% CI {100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}%), mean length "
+              f"{row['mean_length']:.1f}")
+    print(f"report: {config.out / 'report.md'} (also report.json, success.png, loss.png, videos/)")
+    return report

@@ -1,0 +1,318 @@
+"""RL fine-tuning of a trained DUST policy with stable-baselines3: ``dust-rl finetune``.
+
+Read top to bottom, CleanRL style: arguments, the frozen policy and its env,
+the fine-tuning env (noise steering or residual, :mod:`dust_rl.rl.steering`,
+:mod:`dust_rl.rl.residual`), the SB3 agent and its training, then a closed-loop
+comparison with the base policy on the same held-out seeds.
+
+The imitation policy's weights never change (except with ``self_imitation``,
+which writes new policy files beside it), so the base policy stays one
+flag away. The RL agent's weights are saved as a plain state dict
+(``rl_agent.pt``, read with ``weights_only=True``) rather than SB3's zip,
+whose loader unpickles objects. The base row of the comparison is the base
+policy run through the same env with its own noise (steering; the bounded
+action space cannot hold every draw) or a zero residual, which reproduces its
+evaluated episodes exactly (tested).
+
+Every ``checkpoint_every`` RL steps the whole learning state (networks,
+optimisers, replay buffer, counters, RNG; :mod:`dust_rl.rl.checkpoint`) goes
+to a torchrl ``Checkpoint``; ``--resume`` continues from the newest one.
+
+``--method wm_select`` trains no RL agent: it fits a scorer of DUST's predicted futures on the policy's own
+rollouts and writes a policy that picks among K joint samples (:mod:`dust_rl.rl.wm_select`).
+``--method self_imitation`` trains no RL agent either: it fine-tunes the policy's own weights on its
+successful rollouts (:mod:`dust_rl.rl.self_imitation`). torchrl's SAC front-end is :mod:`dust_rl.rl.torchrl_sac`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.logger import configure as configure_logger
+from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
+from tqdm.auto import tqdm
+
+from dust_rl.agents import DustPolicy, load_policy, unwrap
+from dust_rl.agents.checkpoint_io import save_checkpoint
+from dust_rl.envs.factory import check_tasks, make_env
+from dust_rl.errors import ConfigError
+from dust_rl.evaluate.closed_loop import BASE_ROW, Episode, episode_digest, paired_comparison, summary_row
+from dust_rl.evaluate.report import plot_learning_curve
+from dust_rl.rl.checkpoint import SB3LearningState
+from dust_rl.rl.config import (
+    PPO_RESUMABLE_FIELDS,
+    RESUMABLE_FIELDS,
+    RL_AGENT_KIND,
+    FinetuneConfig,
+    is_dagger,
+)
+from dust_rl.rl.critic_limits import LayerNormReLU, bound_critic
+from dust_rl.rl.critic_warmup import CriticWarmup
+from dust_rl.rl.frozen_policy_env import FrozenPolicyEnv
+from dust_rl.rl.residual import ResidualEnv
+from dust_rl.rl.self_imitation import self_imitation
+from dust_rl.rl.start_at_base import WarmStartSAC, start_at_base
+from dust_rl.rl.steering import NoiseSteeringEnv
+from dust_rl.rl.wm_select import wm_select
+from dust_rl.runtime.device import resolve_device
+from dust_rl.runtime.episode_collector import torch_threads
+from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
+from dust_rl.storage.checkpoint_dirs import save_checkpoint_dir
+from dust_rl.storage.config_json import config_json
+from dust_rl.storage.run_folder import check_run_folder, locked_run_folder, restore
+
+ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
+
+
+def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
+    """Fine-tune, save the result, compare with the base policy; returns the report."""
+    resumable = PPO_RESUMABLE_FIELDS if config.algorithm == "ppo" else RESUMABLE_FIELDS
+    with torch_threads(config.threads):
+        check_run_folder(config, resumable)
+        policy = unwrap(load_policy(config.policy))
+        env_id, env_kwargs, task = policy_env(config, policy)
+        demos = config.demos or pathlib.Path(policy.info.get("dataset") or "")
+        if config.method == "self_imitation" and not (demos / "meta.json").is_file():
+            raise ConfigError(f"self_imitation trains on the policy's demonstrations too; {demos} is not a dataset: "
+                              "pass --demos")
+        with locked_run_folder(config, resumable, command):
+            return _finetune_in_folder(config, command, policy, env_id, env_kwargs, task, demos)
+
+
+def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: DustPolicy, env_id: str,
+                        env_kwargs: dict, task: str, demos: pathlib.Path) -> dict:
+    """The fine-tuning and its report, once the run folder is this run's."""
+    if config.method in ("wm_select", "self_imitation"):
+        result = (wm_select(config, task, policy) if config.method == "wm_select"
+                  else self_imitation(dataclasses.replace(config, demos=demos), task, env_id, env_kwargs))
+        episodes = {name: [Episode(*e) for e in row["per_episode"]] for name, row in result["rows"].items()}
+        extra = {k: v for k, v in result.items() if k not in ("rows", "train_seconds")}
+        trained_s = result["train_seconds"]
+    else:
+        policy.to(resolve_device(config.device))
+        episodes, trained_s = train_rl(config, finetune_env_factory(config, policy)[0])
+        extra = {"rl_agent": str(config.out / "rl_agent.pt")}
+    report = {
+        "policy": str(config.policy), "method": config.method, "algorithm": config.algorithm, "task": task,
+        "steps": config.steps, "command": command, "config": config_json(config),
+        "seeds": [config.eval_seed, config.eval_seed + config.eval_episodes - 1], "train_seconds": trained_s,
+        "rows": [summary_row(name, rows) | ({} if name == BASE_ROW else
+                                              {"vs_base": paired_comparison(episodes[BASE_ROW], rows)})
+                 for name, rows in episodes.items()],
+        "per_episode": {name: [list(e) for e in rows] for name, rows in episodes.items()}, **extra,
+    }
+    write_json_atomic(config.out / "report.json", report, indent=2)
+    write_text_atomic(config.out / "report.md", _markdown(report))
+    return report
+
+
+def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tuple[dict[str, list[Episode]], float]:
+    """Train the SB3 agent on the fine-tuning env (resuming from the newest checkpoint), save it, and run the
+    base and the fine-tuned policy on the evaluation seeds; returns their episodes by row name and the
+    training seconds."""
+    began = time.perf_counter()
+    env = make()
+    agent = build_agent(config, env)
+    agent.set_logger(configure_logger(str(config.out / "logs"), ["csv", "tensorboard"]))
+    checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=GlobalRNGState())
+    rotation = CheckpointRotation(config.out / "checkpoints", keep_last=2)
+    restored = restore(checkpoint, rotation)
+    env.env_steps = int(restored.get("env_steps", 0))
+    seconds_before = float(restored.get("train_seconds", 0.0))  # earlier processes' share of a resumed run
+
+    def trained_seconds() -> float:
+        return seconds_before + time.perf_counter() - began
+
+    curve_path = config.out / "learning_curve.json"
+    curve = [p for p in _read_curve(curve_path) if p["rl_steps"] <= agent.num_timesteps]  # none past the checkpoint
+    curve_seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
+    if config.eval_every and not curve:  # the curve starts at the base policy (the RL agent's "off" action)
+        curve.append({"rl_steps": 0, "env_steps": 0,
+                      **summary_row(BASE_ROW, _run_episodes(make, lambda obs, env: env.step_base(),
+                                                                 curve_seeds, config.progress))})
+    sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
+    warmup = CriticWarmup(config.critic_warmup) if config.critic_warmup else None
+    while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every (or eval_every) steps
+        agent.learn(total_timesteps=min(sitting, config.steps - agent.num_timesteps), reset_num_timesteps=False,
+                    progress_bar=config.progress, callback=warmup)
+        last_eval = curve[-1]["rl_steps"] if curve else 0
+        if config.eval_every and (agent.num_timesteps >= last_eval + config.eval_every
+                                  or agent.num_timesteps >= config.steps):
+            episodes = _run_episodes(make, _tuned_step(agent), curve_seeds, config.progress)
+            curve.append({"rl_steps": agent.num_timesteps, "env_steps": env.env_steps,
+                          **summary_row("fine-tuned", episodes)})
+            agent.logger.record("eval/curve_success_rate", curve[-1]["success_rate"])
+            write_json_atomic(curve_path, curve, indent=2)
+            title = f"{config.method} + {config.algorithm}, seeds {curve_seeds.start}..{curve_seeds.stop - 1}"
+            plot_learning_curve(curve, config.out / "learning_curve.png", title)
+        save_checkpoint_dir(checkpoint, rotation, agent.num_timesteps,
+                            {"step": agent.num_timesteps, "env_steps": env.env_steps,
+                             "train_seconds": trained_seconds()})
+    env.close()
+    trained_s = trained_seconds()
+    save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
+                    config.out / "rl_agent.pt", RL_AGENT_KIND)
+
+    # The base policy and the fine-tuned one on the same held-out seeds; when steering, also the base policy with
+    # the centre of its noise (the RL action 0), which a deterministic steering agent starts from.
+    seeds = range(config.eval_seed, config.eval_seed + config.eval_episodes)
+    step_functions = {"base": lambda obs, env: env.step_base()}
+    if config.method == "steer":
+        centre = np.zeros(env.action_space.shape, np.float32)
+        step_functions["centre"] = lambda obs, env: env.step(centre)
+    step_functions["fine_tuned"] = _tuned_step(agent)
+    names = {"base": BASE_ROW, "centre": f"{BASE_ROW}, noise at its centre",
+             "fine_tuned": f"fine-tuned ({config.method}, {config.algorithm})"}
+    rows = {}
+    for key, step in step_functions.items():
+        rows[names[key]] = episodes = _run_episodes(make, step, seeds, config.progress)
+        agent.logger.record(f"eval/success_rate_{key}", summary_row(key, episodes)["success_rate"])
+    agent.logger.dump(agent.num_timesteps)
+    return rows, trained_s
+
+
+def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
+    """The SB3 agent ``config`` asks for, on ``env`` (the same settings rebuild it to resume)."""
+    algorithm = ALGORITHMS[config.algorithm]
+    kwargs: dict = {"gamma": config.gamma, "learning_rate": config.learning_rate}
+    if algorithm is SAC:  # a replay buffer no larger than the run
+        kwargs |= {"learning_starts": config.learning_starts, "batch_size": config.batch_size,
+                   "buffer_size": config.steps, "gradient_steps": config.gradient_steps}
+        if config.initial_std is not None and config.target_entropy is None:
+            kwargs["ent_coef"] = 0.0  # the std is fixed: an entropy bonus would only swamp the reward (start_at_base)
+        else:
+            kwargs["ent_coef"] = f"auto_{config.initial_alpha}"
+            if config.target_entropy is not None:
+                kwargs["target_entropy"] = config.target_entropy
+    else:  # a rollout no longer than the run, minibatches no larger than a rollout
+        n_steps = min(config.n_steps, config.steps)
+        kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps), "n_epochs": config.n_epochs,
+                   "target_kl": config.target_kl}
+    if algorithm is SAC and config.initial_std is not None:
+        algorithm = WarmStartSAC
+    policy_kwargs = {"net_arch": list(config.net_arch)}
+    if config.layer_norm:
+        policy_kwargs["activation_fn"] = LayerNormReLU
+    agent = algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
+                      policy_kwargs=policy_kwargs, **kwargs)
+    if config.initial_std is not None:
+        start_at_base(agent, config.initial_std, learn_std=config.target_entropy is not None)
+    if config.q_bounds is not None:
+        bound_critic(agent, *config.q_bounds)
+    return agent
+
+
+def finetune_command(config: FinetuneConfig, command: str | None = None) -> dict:
+    """``dust-rl finetune``: fine-tune, print the comparison, say where the files are."""
+    report = finetune(config, command)
+    for row in report["rows"]:
+        print(f"{row['task']}: {row['successes']}/{row['episodes']} successful ({100 * row['success_rate']:.0f}%, "
+              f"95% CI {100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}%)")
+    print(f"{'policy' if 'policy_file' in report else 'RL agent'}: "
+          f"{report.get('policy_file', report.get('rl_agent'))}\nreport: {config.out / 'report.md'}")
+    return report
+
+
+def policy_env(config: FinetuneConfig, policy: DustPolicy) -> tuple[str, dict, str]:
+    """The env id, env kwargs (the policy's, with ``max_steps``) and task to fine-tune on, checked."""
+    env_id = policy.info.get("env_id")
+    if env_id is None:
+        raise ConfigError(f"{config.policy}: the policy does not name the env it was trained in (info['env_id'])")
+    task = config.task or (policy.info.get("tasks") or [None])[0]
+    if task is None:
+        raise ConfigError(f"{config.policy}: no training task recorded; pass --task")
+    env_kwargs = {k: v for k, v in policy.info.get("env_kwargs", {}).items() if k != "task"}
+    if config.max_steps:
+        env_kwargs["max_episode_steps"] = config.max_steps
+    check_tasks(env_id, env_kwargs, [task])
+    return env_id, env_kwargs, task
+
+
+def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Callable[[], FrozenPolicyEnv], str]:
+    """A factory of fresh fine-tuning envs for ``config``'s task (checked once, here), and the task."""
+    env_id, env_kwargs, task = policy_env(config, policy)
+    step_discount = config.gamma ** (1 / policy.execute_steps) if config.method == "steer" else config.gamma
+
+    def make() -> FrozenPolicyEnv:
+        env = make_env(env_id, {**env_kwargs, "task": task, "reward_type": config.reward,
+                                "shaping_discount": step_discount})
+        if config.method == "steer":
+            return NoiseSteeringEnv(env, policy, noise_bound=config.noise_bound, step_discount=step_discount,
+                                    finite_horizon=config.finite_horizon)
+        half_width = (env.action_space.high - env.action_space.low) / 2
+        return ResidualEnv(env, policy, residual_scale=config.residual_scale * half_width,
+                           world_model=config.world_model_obs, finite_horizon=config.finite_horizon)
+
+    return make, task
+
+
+def _tuned_step(agent: BaseAlgorithm) -> Callable[[dict, FrozenPolicyEnv], tuple]:
+    """An env step with the RL agent's deterministic action."""
+    return lambda obs, env: env.step(agent.predict(obs, deterministic=True)[0])
+
+
+def _read_curve(path: pathlib.Path) -> list[dict]:
+    """The learning curve written so far (a resumed run continues it); empty for a new run."""
+    return json.loads(path.read_text()) if path.is_file() else []
+
+
+def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, FrozenPolicyEnv], tuple],
+                  seeds: range, progress: bool) -> list[Episode]:
+    """Closed-loop episodes on ``seeds``; success is the env's ``is_success`` at the end, length and digest count
+    env steps, as :func:`dust_rl.evaluate.closed_loop.evaluate` does (equal digests: the same episode)."""
+    env, episodes = make(), []
+    for seed in tqdm(seeds, desc="episodes", disable=not progress):
+        obs, _ = env.reset(seed=seed)
+        done, info = False, {}
+        while not done:
+            obs, _, terminated, truncated, info = step(obs, env)
+            done = terminated or truncated
+        actions = torch.from_numpy(np.stack(env.executed))
+        digest = episode_digest(actions, torch.from_numpy(obs["robot_state"]))
+        episodes.append(Episode(seed, bool(info.get("is_success", False)), len(env.executed), digest))
+    env.close()
+    return episodes
+
+
+def _versus_base(row: dict) -> str:
+    paired = row.get("vs_base")
+    return "" if paired is None else f"+{paired['gained']} / -{paired['lost']} (p = {paired['p_value']:.2f})"
+
+
+def _markdown(report: dict) -> str:
+    if report["method"] == "wm_select":
+        scorer = report["scorer"]
+        auc = "n/a" if scorer["validation_auc"] is None else f"{scorer['validation_auc']:.2f}"
+        how = (f"a future scorer fitted on {report['config']['rollouts']} base-policy rollouts "
+               f"({report['rollout_env_steps']} env steps, {report['train_seconds']:.0f} s; validation ROC AUC {auc})")
+    elif report["method"] == "self_imitation":
+        config = report["config"]
+        taught = ("and the failures between them, taught the expert" if is_dagger(config["train"]["extra_action_key"])
+                  else "taught their actions")
+        how = (f"{config['rounds']} round(s) of {config['rollout_successes']} successful rollouts {taught} "
+               f"({', '.join(str(r['rollouts']) for r in report['rounds'])} episodes; {report['rollout_env_steps']} "
+               f"env steps), each followed by {config['train']['steps']} fine-tuning steps "
+               f"({report['train_seconds']:.0f} s in all)"
+               + ("; the control: as many steps on the demonstrations alone" if config.get("control") else ""))
+    else:
+        how = (f"{report['algorithm']}, {report['steps']} RL steps ({report['train_seconds']:.0f} s), "
+               f"{report['config']['reward']} reward")
+    lines = [f"# RL fine-tuning: {report['policy']}", "",
+             f"- task `{report['task']}`, method `{report['method']}`: {how}",
+             f"- seeds {report['seeds'][0]}..{report['seeds'][1]}; the imitation policy "
+             f"{'is fine-tuned' if report['method'] == 'self_imitation' else 'stays frozen'}", "",
+             "| policy | episodes | success | 95% CI | episodes won / lost against the base (McNemar p) |",
+             "|---|---|---|---|---|"]
+    lines += [f"| {row['task']} | {row['episodes']} | {100 * row['success_rate']:.0f}% | "
+              f"{100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}% | {_versus_base(row)} |"
+              for row in report["rows"]]
+    lines += ["", "Reproduce:", "", f"    {report['command']}", ""]
+    return "\n".join(lines)

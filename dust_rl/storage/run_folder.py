@@ -1,0 +1,123 @@
+"""A run folder's rules, shared by ``dust-rl train`` and ``dust-rl finetune``.
+
+A new run needs an unused folder; ``--resume`` needs a run there started with the same settings (only
+the fields a run may change between sittings, such as threads or progress bars, may differ; a field the
+stored run predates counts as its default, so a run started by an older version resumes). The run's
+``config.json`` records the full config, the command and package versions, and checkpoints are torchrl
+``Checkpoint`` directories kept by a ``CheckpointRotation``. One run writes into a folder at a time: it holds
+the folder's lock (:func:`~dust_rl.storage.lock.folder_lock`) from its ``config.json`` to its end.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+from collections.abc import Iterable, Iterator
+
+from torchrl.checkpoint import Checkpoint, CheckpointRotation
+from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
+
+from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.errors import ConfigError
+from dust_rl.storage.atomic_files import write_json_atomic
+from dust_rl.storage.checkpoint_dirs import check_checkpoint_dir, newest_checkpoint
+from dust_rl.storage.config_json import config_json, package_versions
+from dust_rl.storage.lock import LOCK_FILE, folder_lock
+
+
+def check_run_folder(config, resumable: Iterable[str]) -> None:
+    """Raise unless ``config.out`` suits ``config.resume`` (a dataclass with ``out`` and ``resume``).
+
+    Raises:
+        FileNotFoundError: ``resume`` without a run there.
+        FileExistsError: a new run in a folder that holds one.
+        ConfigError: ``resume`` with settings other than the stored run's (fields not in ``resumable``).
+    """
+    saved = config.out / "config.json"
+    if config.resume:
+        if not saved.is_file():
+            raise FileNotFoundError(f"{config.out}: nothing to resume (no config.json); drop --resume to start a run")
+        try:
+            stored = json.loads(saved.read_text())["config"]
+        except (ValueError, KeyError, TypeError) as err:
+            raise ConfigError(f"{saved}: unreadable run config ({err!r}); start a new run with another --out") from err
+        resumable = set(resumable)
+        defaults = _defaults(config)
+        changed = [k for k, v in config_json(config).items()
+                   if k not in resumable and stored.get(k, defaults.get(k)) != v]
+        if changed:
+            raise ConfigError(f"{config.out} was started with other settings ({', '.join(changed)}); "
+                              "resume with the same arguments or use a new --out")
+    elif (config.out / "checkpoints").exists() or saved.exists():
+        raise FileExistsError(f"{config.out} already holds a run; pass --resume to continue it or choose another --out")
+
+
+def _defaults(config) -> dict:
+    """The JSON values of ``config``'s fields that have defaults, at those defaults."""
+    values = {}
+    for field in dataclasses.fields(config):
+        if field.default is not dataclasses.MISSING:
+            value = field.default
+        elif field.default_factory is not dataclasses.MISSING:
+            value = field.default_factory()
+        else:
+            continue
+        values[field.name] = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
+    return json.loads(json.dumps(values, default=str))
+
+
+@contextlib.contextmanager
+def locked_run_folder(config, resumable: Iterable[str], command: str | None) -> Iterator[None]:
+    """Hold ``config.out``'s lock for the ``with`` body, a new run's ``config.json`` written first.
+
+    Two runs in one folder would interleave their logs and checkpoints. The folder is checked again under
+    the lock (another run may have started since :func:`check_run_folder`); a new run refused there leaves
+    no folder behind.
+
+    Raises:
+        FolderLockedError: another process holds the folder (the message names its pid).
+        FileExistsError, FileNotFoundError, ConfigError: as :func:`check_run_folder`.
+    """
+    created = not config.out.exists()
+    config.out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(config.out):
+        try:
+            check_run_folder(config, resumable)
+            if not config.resume:
+                write_run_config(config, command)
+        except BaseException:
+            if created:
+                (config.out / LOCK_FILE).unlink(missing_ok=True)
+                config.out.rmdir()
+            raise
+        yield
+
+
+def write_run_config(config, command: str | None) -> None:
+    """``config.json`` of a new run: the full config, the command and package versions."""
+    config.out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(config.out / "config.json",
+                      {"config": config_json(config), "command": command, "versions": package_versions()}, indent=2)
+
+
+def restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> dict:
+    """Load the newest checkpoint (if any) into the run's objects; returns its metadata (``step`` and whatever
+    the run saved with it; empty: no checkpoint).
+
+    Raises:
+        CheckpointError: the newest checkpoint is damaged, holds files this package does not write (which could
+            run code when loaded; nothing is loaded then) or does not load into these objects.
+    """
+    try:
+        latest = newest_checkpoint(rotation)
+        if latest is None:
+            return {}
+        check_checkpoint_dir(latest)
+    except CheckpointError as err:
+        raise CheckpointError(f"cannot resume from this checkpoint ({err})") from err
+    try:
+        checkpoint.load(latest)
+    except (TorchrlCheckpointError, KeyError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"{latest}: cannot resume from this checkpoint ({err})") from err
+    return dict(Checkpoint.manifest(latest)["metadata"])

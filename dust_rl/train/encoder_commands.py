@@ -1,0 +1,140 @@
+"""The image-encoder commands of ``dust-rl``: ``pretrain-encoder`` (a conv autoencoder on dataset frames) and
+``encoder check|info`` (linear probes of the frozen tokens, size and speed)."""
+
+from __future__ import annotations
+
+import pathlib
+from dataclasses import dataclass
+from typing import Annotated
+
+import tyro
+
+from dust_rl.errors import ConfigError, check_at_least
+from dust_rl.runtime.device import resolve_device
+
+
+@dataclass
+class PretrainEncoderCommand:
+    """Pretrain the frozen image encoder (conv autoencoder) on dataset frames and write it to one file."""
+
+    dataset: tuple[pathlib.Path, ...]
+    """Dataset folders."""
+    out: pathlib.Path
+    """Encoder file (written atomically)."""
+    steps: int = 3000
+    """Optimiser steps."""
+    batch_size: int = 64
+    """Frames per step."""
+    lr: float = 2e-3
+    """Learning rate."""
+    seed: int = 0
+    """Seed of the weights and batches."""
+    image_size: int = 128
+    """Frames are resized to this."""
+    grid: int = 4
+    """Latent token grid side."""
+    dim: int = 64
+    """Token size."""
+    width: int = 16
+    """Channels of the first conv stage."""
+    device: str = "auto"
+    """Where the autoencoder trains: auto | cpu | cuda | cuda:N | mps (:mod:`dust_rl.runtime.device`)."""
+
+    def __post_init__(self) -> None:
+        resolve_device(self.device)
+
+
+def run_pretrain_encoder(config: PretrainEncoderCommand, command_line: str) -> None:
+    from dust_rl.agents import AutoencoderConfig
+    from dust_rl.data import DemoDataset
+    from dust_rl.train.pretrain_encoder import pretrain_encoder
+
+    if not config.dataset:
+        raise ConfigError("give at least one --dataset folder")
+    encoder = AutoencoderConfig(image_size=config.image_size, latent_grid=config.grid, dim=config.dim,
+                                width=config.width)
+    report = pretrain_encoder([DemoDataset(d) for d in config.dataset], config.out, encoder, steps=config.steps,
+                              batch_size=config.batch_size, lr=config.lr, seed=config.seed, command=command_line,
+                              device=resolve_device(config.device))
+    heldout = "n/a" if report.heldout_loss is None else f"{report.heldout_loss:.5f}"
+    print(f"{report.path}: {report.steps} steps in {report.seconds:.0f} s on {report.train_frames} frames; "
+          f"pixel MSE train {report.train_loss:.5f}, held-out {heldout}")
+
+
+@dataclass
+class EncoderCheck:
+    """Linear probes: how well each camera's frozen tokens give the objects' positions (probe.json, probe.png)."""
+
+    dataset: pathlib.Path
+    """Dataset folder (its rows hold the objects' positions)."""
+    image_encoder: str | None = None
+    """Encoder name or file (default: the policies' default)."""
+    grid: tuple[int, int] | None = None
+    """Token grid (default: the encoder's own)."""
+    every: int = 8
+    """Probe every n-th row."""
+    out: pathlib.Path = pathlib.Path("runs/encoder_check")
+    """Folder for probe.json and probe.png."""
+
+    def run(self) -> None:
+        from dust_rl.agents.backbone import resolve_image_encoder
+        from dust_rl.data import DemoDataset
+        from dust_rl.train.encoder_check import probe_dataset, write_encoder_check
+
+        check_at_least(self, 1, "every")
+        dataset, encoder = DemoDataset(self.dataset), resolve_image_encoder(self.image_encoder)
+        grid = tuple(self.grid) if self.grid else encoder.native_grid()
+        results = probe_dataset(dataset, encoder, grid, every=self.every)
+        title = f"{self.image_encoder or 'default encoder'}, {grid[0]}x{grid[1]} tokens, {dataset.root.name}"
+        paths = write_encoder_check(results, self.out, title)
+        for camera, result in results.items():
+            values = " ".join(f"{v:.2f}" for v in result.r2.tolist())
+            print(f"{camera}: held-out R^2 per environment-state column [{values}] (mean {result.r2.mean():.2f})")
+        print(f"{paths['plot']}\n{paths['json']}")
+
+
+@dataclass
+class EncoderInfo:
+    """An image encoder's size, token grid, speed on this machine and feature-cache size per 1,000 frames."""
+
+    image_encoder: str | None = None
+    """Encoder name or file (default: the policies' default)."""
+    frames: int = 32
+    """Frames per timed batch (the median of 5 batches is reported)."""
+
+    def run(self) -> None:
+        import statistics
+        import time
+
+        import torch
+
+        from dust_rl.agents.backbone import resolve_image_encoder
+
+        check_at_least(self, 1, "frames")
+        encoder = resolve_image_encoder(self.image_encoder)
+        grid = encoder.native_grid()
+        images = torch.randint(0, 256, (self.frames, 3, encoder.image_size, encoder.image_size), dtype=torch.uint8)
+        seconds = []
+        with torch.no_grad():
+            for _ in range(6):  # the first call warms up and is not counted
+                began = time.perf_counter()
+                encoder.feature_map(images.float() / 255)
+                seconds.append(time.perf_counter() - began)
+        cache = 1000 * grid[0] * grid[1] * encoder.dim * 2  # float16 tokens of one camera
+        print(f"{self.image_encoder or 'default encoder'}: {sum(p.numel() for p in encoder.parameters()):,} "
+              f"parameters, {encoder.image_size} px -> {grid[0]}x{grid[1]} tokens of {encoder.dim}; "
+              f"{1e3 * statistics.median(seconds[1:]) / self.frames:.2f} ms/frame at {torch.get_num_threads()} "
+              f"threads; feature cache {cache / 2**20:.1f} MiB per 1,000 frames per camera")
+
+
+@dataclass
+class EncoderCommand:
+    """Diagnose frozen image encoders."""
+
+    action: (Annotated[EncoderCheck, tyro.conf.subcommand("check")]
+             | Annotated[EncoderInfo, tyro.conf.subcommand("info")])
+    """What to report."""
+
+
+def run_encoder(config: EncoderCommand, command_line: str) -> None:
+    config.action.run()

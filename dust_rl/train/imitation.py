@@ -1,0 +1,644 @@
+"""Imitation training of DUST (or a baseline) on a demonstration dataset: ``dust-rl train``.
+
+Read top to bottom, CleanRL style: arguments, run folder, policy and cached
+features, optimiser / schedule / EMA, resume, the loop, the saved policy.
+
+A run folder holds
+
+* ``config.json``: the full :class:`TrainConfig`, the command and package versions;
+* ``checkpoints/checkpoint-<step>/``: torchrl ``Checkpoint`` directories (trainable
+  weights, EMA, optimiser, schedule, global RNG state), published atomically with the
+  size and SHA-256 of every file (:mod:`dust_rl.storage.checkpoint_dirs`), the last two kept;
+  ``--resume`` continues from the newest one once it is checked (a damaged one, or one
+  holding anything that could run code when loaded, is refused), and a run killed at any
+  point and resumed ends with the same weights as one never interrupted;
+* ``logs/``: scalars through torchrl's ``get_logger`` (``--loggers``; by default CSV files
+  in ``logs/train/scalars/`` and TensorBoard events in ``logs/train/``);
+* ``policy.pt``: the EMA policy (:func:`dust_rl.agents.save_policy`), whose ``info``
+  names the env, tasks and dataset it was trained for; ``loss.png``.
+
+``--nproc N`` (or ``torchrun --nproc-per-node N -m dust_rl.train ...``) trains with
+``DistributedDataParallel`` over N processes, each on its slice of every global batch
+(:mod:`dust_rl.train.distributed`); rank 0 writes the run folder and holds its lock, so a second run into the
+same folder is refused, naming the first one's pid.
+
+The frozen backbone's features are cached once per dataset (:class:`~dust_rl.data.features.FeatureCache`).
+Every setting is checked when the config is built, and the dataset, env and model before the run
+folder is touched; a loss or gradient that stops being finite ends the run before it reaches the
+weights, so no checkpoint or ``policy.pt`` holds NaN weights.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import math
+import os
+import pathlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from typing import Literal, get_args
+
+import gymnasium as gym
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
+from torchrl.record.loggers import Logger, get_logger
+from tqdm.auto import tqdm
+
+from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy, unwrap
+from dust_rl.agents.config import PolicyConfig
+from dust_rl.agents.factory import IMAGE_SIZE_INFO, frame_size
+from dust_rl.agents.flow_matching import Shard
+from dust_rl.agents.precision import Precision, autocast
+from dust_rl.data import DatasetError, DemoDataset, DemoWindows
+from dust_rl.data.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
+from dust_rl.data.env_state_norm import PER_TASK, EnvStateNorm
+from dust_rl.data.features import FeatureCache, dataset_policy_kwargs, env_state_width, feature_key
+from dust_rl.diagnose.world_model import Windows, vision_skill, windows_of
+from dust_rl.envs.factory import make_env
+from dust_rl.envs.torchrl_env import make_torchrl_env
+from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction, no_space_left
+from dust_rl.runtime.device import resolve_device
+from dust_rl.storage.checkpoint_dirs import save_checkpoint_dir
+from dust_rl.storage.run_folder import check_run_folder, locked_run_folder, restore
+from dust_rl.train.action_free import ActionFreeBatches, with_action_free
+from dust_rl.train.dataset_batches import DatasetBatches
+from dust_rl.train.distributed import Ranks, data_parallel, join_process_group, leave_process_group, rank_device, spawn
+from dust_rl.train.optim import averaged_weights, warmup_cosine, weight_average
+from dust_rl.train.readout.aux_frame_cache import cached_aux_frames, cached_frame_tokens
+from dust_rl.train.readout.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches
+from dust_rl.train.readout.cache import readout_cache_path, warm_up_or_load
+from dust_rl.train.readout.warmup import warm_up_readout
+
+LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
+# Fields that may differ between a run and its resumption.
+RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "compile", "eval_every", "eval_episodes", "eval_workers",
+                    "loggers", "cache_dir")
+# Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
+NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset", "extra_dataset")
+SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
+
+
+@dataclass(kw_only=True)
+class TrainSettings:
+    """How to train a policy by imitation, wherever the data and the run folder are (``dust-rl quickstart
+    --train.*`` nests these)."""
+
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    """The policy to build: variant, trunk size, losses, image encoder (``--policy.d-model`` ...)."""
+    steps: int = 3000
+    """Optimiser steps."""
+    batch_size: int = 64
+    """Training windows per step (over all processes: each of ``nproc`` takes ``batch_size / nproc``)."""
+    lr: float = 1e-4
+    """Peak learning rate (paper: 1e-4)."""
+    betas: tuple[float, float] = (0.95, 0.999)
+    """AdamW betas (paper)."""
+    weight_decay: float = 1e-5
+    """AdamW weight decay (paper)."""
+    warmup: float = 0.05
+    """Fraction of the steps with a linear learning-rate warm-up; a cosine decay to 0 follows."""
+    grad_clip: float = 1.0
+    """Gradient-norm clipping threshold."""
+    ema_decay: float = 0.999
+    """Decay of the exponential moving average of the weights (the saved policy uses the average)."""
+    aux_frames: int = 0
+    """Frames of random resets and random arm motions (objects independent of the arm,
+    :mod:`.readout.aux_frames`) rendered once at the start (and kept in ``<dataset>/aux_frames/`` for any run
+    that asks for the same, :mod:`.readout.aux_frame_cache`); every step adds the read-out's error on a batch
+    of them to the loss (weight ``lambda_aux``), so the read-out cannot settle for "the target is where the
+    gripper is". Needs ``lambda_aux`` and ``readout tokens`` or ``keypoint_source pixels``; 0: off."""
+    aux_expert_fraction: float = 0.0
+    """Share of the aux frames taken from the scripted expert's motion (a random number of steps into an expert
+    episode on a fresh layout) instead of random actions, so the read-out also sees objects held and carried."""
+    aux_approach_fraction: float = 0.0
+    """Share of the aux frames taken where the expert is about to grasp, then nudged by 0..9 random arm motions
+    (:mod:`.readout.aux_frames`): the gripper beside its target at random offsets, nothing held."""
+    aux_approach_displacement: float = 0.0
+    """Metres: after each approach frame's motion, every free object is moved by its own random offset within
+    this radius on the table plane (:mod:`.readout.aux_frames`), so the read-out cannot take the gripper's place
+    for the target's; 0: off. Needs ``aux_approach_fraction``."""
+    aux_expert_displacement: float = 0.0
+    """Metres: after each expert frame's motion, every free object the gripper does not hold is moved by its own
+    random offset within this radius on the table plane (:mod:`.readout.aux_frames`), so the object below a carried
+    one is not always under the gripper; 0: off. Needs ``aux_expert_fraction``."""
+    readout_warmup: int = 0
+    """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
+    the policy trains; they are then frozen (:mod:`.readout.warmup`). Needs ``aux_frames``; 0: off."""
+    readout_lr: float = 1e-3
+    """Learning rate of that warm-up (constant unless ``readout_lr_decay``)."""
+    readout_lr_decay: bool = False
+    """Lower the warm-up's rate along a cosine to 0 at its last step: its held-out error was still falling at the
+    end of 4,000 and 8,000 constant-rate steps (docs/franka_results.md)."""
+    readout_demos: bool = True
+    """Also fit the warm-up on demonstration rows (half of each batch); without them it sees aux frames only."""
+    video_dataset: pathlib.Path | None = None
+    """A dataset of the same robot and cameras whose episodes train without their actions (action-free video,
+    :mod:`dust_rl.train.action_free`): the world-model stream learns from them, the action loss does not."""
+    video_fraction: float = 0.25
+    """Share of each batch taken from ``video_dataset``."""
+    extra_dataset: pathlib.Path | None = None
+    """A second dataset of the same robot and cameras whose windows join every batch with their actions
+    (:mod:`dust_rl.train.dataset_batches`), e.g. a policy's successful rollouts on fresh layouts (``dust-rl collect
+    --policy``)."""
+    extra_fraction: float = 0.5
+    """Share of each batch taken from ``extra_dataset``."""
+    extra_action_key: Literal["action", "expert_action"] = "action"
+    """The actions ``extra_dataset`` teaches: the executed ones (self-imitation of a policy's successes) or the
+    scripted expert's label at each state (DAgger)."""
+    init_policy: pathlib.Path | None = None
+    """Start from this trained policy (weights, normalisation, read-out) instead of a new one: fine-tuning.
+    Its own settings are kept (no ``--policy.*`` flags) and its frame read-out stays frozen (no warm-up)."""
+    augment_views: int = 1
+    """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
+    (:mod:`dust_rl.data.augment`); each training window conditions on one of them. Encoding costs that many times
+    more, once per dataset."""
+    start_rows: int = 0
+    """Rows at the start of every episode drawn more often (:mod:`dust_rl.data.windows`): the first frame is
+    where the policy must decide where to go, and uniform draws give it 1 window in an episode's length;
+    0: every row equally likely."""
+    start_fraction: float = 0.25
+    """Share of each batch drawn from those ``start_rows`` rows."""
+    seed: int = 0
+    """Seed of the initial weights, batch sampling and flow-matching noise."""
+    log_every: int = 50
+    """Steps between logged scalars."""
+    checkpoint_every: int = 500
+    """Steps between checkpoints (one is always written at the end)."""
+    eval_every: int = 0
+    """Steps between closed-loop evaluations of the EMA policy (0: none); with a vision stream each also logs
+    ``wm/skill``, the skill of the sampled future against the present frame on a fixed draw of training windows
+    (:mod:`dust_rl.diagnose.world_model`)."""
+    eval_episodes: int = 10
+    """Episodes per task of each periodic evaluation."""
+    eval_workers: int = 2
+    """Env processes of each periodic evaluation."""
+    threads: int | None = None
+    """torch threads, per process (default: torch's choice)."""
+    nproc: int = 1
+    """Processes training data-parallel (``DistributedDataParallel``; gloo on the CPU, NCCL with one GPU per
+    process on CUDA). Under ``torchrun`` leave it at 1 or give torchrun's ``--nproc-per-node``."""
+    device: str = "auto"
+    """Where the policy trains (:mod:`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
+    cuda:N, mps. The feature cache and the saved policy stay on the CPU."""
+    precision: Precision = "fp32"
+    """The trunk's precision while training: fp32, or bf16 autocast (:mod:`dust_rl.agents.precision`; weights,
+    optimiser and the saved policy stay float32)."""
+    compile: bool = False
+    """Compile the trunk's forward pass with ``torch.compile`` (the first steps pay the compilation; its
+    cost on this machine is in BENCHMARKS.md)."""
+    progress: bool = True
+    """Show a progress bar."""
+    loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
+    """Where the scalars go, each through torchrl's ``get_logger`` into ``out/logs`` (experiment ``train``);
+    ``wandb`` and ``mlflow`` need their package installed. ``loss.png`` is drawn from the CSV files."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
+                       "eval_episodes", "eval_workers", "threads", "nproc")
+        check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup", "start_rows")
+        check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
+        check_finite(self, "weight_decay")
+        readout_on_frames = self.policy.readout == "tokens" or self.policy.keypoint_source == "pixels"
+        if self.aux_frames and not (self.policy.lambda_aux and readout_on_frames):
+            raise ConfigError("aux_frames needs --policy.lambda-aux > 0 and a read-out frames can train: "
+                              "--policy.readout tokens, or --policy.keypoint-source pixels")
+        for name in ("aux_expert_fraction", "aux_approach_fraction"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+            if getattr(self, name) and not self.aux_frames:
+                raise ConfigError(f"{name} needs --aux-frames > 0: it is a share of those frames")
+        for kind in ("approach", "expert"):
+            check_finite(self, f"aux_{kind}_displacement")
+            if getattr(self, f"aux_{kind}_displacement") and not getattr(self, f"aux_{kind}_fraction"):
+                raise ConfigError(f"aux_{kind}_displacement moves the objects of {kind} frames: it needs "
+                                  f"--aux-{kind}-fraction > 0")
+        if self.aux_expert_fraction + self.aux_approach_fraction > 1:
+            raise ConfigError("aux_expert_fraction + aux_approach_fraction must be at most 1 (shares of the same "
+                              f"frames), got {self.aux_expert_fraction} + {self.aux_approach_fraction}")
+        if not 0 < self.start_fraction < 1:
+            raise ConfigError(f"start_fraction must be in (0, 1), got {self.start_fraction}")
+        for name in ("video_fraction", "extra_fraction"):
+            if not 0 < getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be in (0, 1), got {getattr(self, name)}")
+        mixed = [name for name in ("video_dataset", "extra_dataset") if getattr(self, name) is not None]
+        if self.batch_size < 1 + len(mixed):
+            raise ConfigError(f"{' and '.join(mixed)} need --batch-size >= {1 + len(mixed)}: each batch holds "
+                              "demonstrations and a share of each")
+        if len(mixed) == 2 and self.video_fraction + self.extra_fraction >= 1:
+            raise ConfigError(f"video_fraction + extra_fraction must be below 1 (the rest are demonstrations), got "
+                              f"{self.video_fraction} + {self.extra_fraction}")
+        if self.init_policy is not None and self.policy != PolicyConfig():
+            raise ConfigError("--policy.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
+                              "settings (and its read-out, so no aux frames or read-out warm-up either)")
+        if self.video_dataset is not None and self.policy.lambda_aux and not self.readout_warmup:
+            raise ConfigError("video_dataset with --policy.lambda-aux needs --readout-warmup: the read-out is then "
+                              "fitted first and frozen, so the action-free episodes never train it")
+        if self.readout_warmup and not self.aux_frames:
+            raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
+                              "is where the gripper is' (dust_rl.train.readout.aux_frames)")
+        check_fraction(self, "warmup", "ema_decay")
+        resolve_device(self.device)
+        unknown = set(self.loggers) - set(get_args(LoggerKind))
+        if unknown:
+            raise ConfigError(f"unknown loggers {sorted(unknown)}; choose from {list(get_args(LoggerKind))}")
+        if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
+            raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
+        self.check_data_parallel(self.nproc)
+        cores = os.cpu_count() or 1
+        if self.nproc > cores and resolve_device(self.device).type == "cpu":
+            raise ConfigError(f"--nproc {self.nproc} processes on the CPU of a machine with {cores} cores: each "
+                              f"would wait on the others; give --nproc at most {cores}")
+
+    def check_data_parallel(self, nproc: int) -> None:
+        """Raise unless these settings can train over ``nproc`` processes."""
+        if nproc == 1:
+            return
+        if self.batch_size % nproc:
+            raise ConfigError(f"--batch-size {self.batch_size} does not split evenly over {nproc} processes")
+        used = [name for name in NOT_DATA_PARALLEL if getattr(self, name)]
+        if used:
+            raise ConfigError(f"{', '.join(used)} cannot train over several processes yet; train them with one")
+
+
+@dataclass(kw_only=True)
+class TrainConfig(TrainSettings):
+    """Imitation training of a DUST policy on a demonstration dataset. ``--preset cpu-small|gpu-base`` starts
+    from a named policy size (``--policy.*`` flags override it)."""
+
+    dataset: pathlib.Path
+    """Dataset folder written by ``dust-rl collect`` (or ``dust-rl dataset import``)."""
+    out: pathlib.Path = pathlib.Path("runs/train")
+    """Run folder: config, checkpoints, logs, ``policy.pt``."""
+    resume: bool = False
+    """Continue the run in ``out`` from its newest checkpoint."""
+    cache_dir: pathlib.Path | None = None
+    """Where the caches derived from the datasets (features, aux frames, read-out fits) go, one subfolder per
+    dataset; default: inside each dataset, or the user's cache folder when it is read-only."""
+
+    @classmethod
+    def from_settings(cls, settings: TrainSettings, **where) -> TrainConfig:
+        """``settings`` with ``dataset``, ``out`` and ``resume`` (``where``) added."""
+        return cls(**{f.name: getattr(settings, f.name) for f in fields(TrainSettings)}, **where)
+
+
+class NonFiniteLossError(UserError):
+    """Training diverged: the loss or the gradient norm is no longer a finite number."""
+
+
+@dataclass
+class TrainResult:
+    """Where a finished run put things, and how it went."""
+
+    policy: pathlib.Path
+    out: pathlib.Path
+    steps: int
+    final_loss: float
+    seconds: float
+    samples_per_second: float
+
+
+def train(config: TrainConfig, command: str | None = None) -> TrainResult:
+    """Train (or resume training) a policy as described by ``config``; returns where it went.
+
+    With ``nproc`` > 1 it starts that many processes that train data-parallel (unless torchrun started this
+    one as one of them).
+
+    Raises:
+        DatasetError, CheckpointError, ConfigError: unusable dataset, encoder file or model settings.
+        FileExistsError, FileNotFoundError: ``out`` holds a run (without ``resume``), or none (with it).
+        FolderLockedError: another run is writing into ``out`` (the message names its pid).
+        ConfigError: ``resume`` with settings other than the stored run's.
+        NonFiniteLossError: training diverged (the message names the step).
+        RankFailedError: with ``nproc`` > 1, a process stopped with one of the errors above.
+    """
+    if config.nproc > 1 and "WORLD_SIZE" not in os.environ:  # not started by torchrun: start the processes
+        return spawn(config.nproc, _train_rank, config, command)
+    return _train_rank(config, command)
+
+
+def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
+    """:func:`train` in this process, as one rank of the run when there are several."""
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    ranks = _join(config)
+    check_run_folder(config, RESUMABLE_FIELDS)
+    ranks.barrier()  # every rank has seen the folder before rank 0 writes it
+
+    # Data, env check, policy (all checked before the run folder is written), cached frozen features.
+    dataset = DemoDataset(config.dataset, cache_dir=config.cache_dir)
+    env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
+    probe = make_env(env_id, {**env_kwargs, "task": dataset.tasks[0]})
+    dataset.check_env(probe)
+    torch.manual_seed(config.seed)
+    try:
+        policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.device), ranks))
+    finally:
+        probe.close()
+    with (no_space_left(f"training into {config.out}", "free some space and run again (with --resume once a "
+                        "checkpoint exists): checkpoints are only ever replaced whole"),
+          locked_run_folder(config, RESUMABLE_FIELDS, command) if ranks.is_main else contextlib.nullcontext()):
+        return _train_in_folder(config, ranks, dataset, policy)
+
+
+def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, policy: DustPolicy) -> TrainResult:
+    """The run itself, once its folder is this run's (rank 0 holds its lock)."""
+    out = config.out
+    env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
+    # A fine-tuned policy's read-out keeps the object-state units it was trained in (dust_rl.data.env_state_norm).
+    state_units = PER_TASK if config.init_policy is None else policy.info.get(ENV_STATE_NORM_INFO)
+    policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
+                   "dataset": str(config.dataset), "variant": policy.config.variant, "steps": config.steps,
+                   ENV_STATE_NORM_INFO: state_units, IMAGE_SIZE_INFO: frame_size(dataset.meta["spec"]["image_shape"]),
+                   **{name: str(getattr(config, name)) if getattr(config, name) else None
+                      for name in ("video_dataset", "extra_dataset", "init_policy")}}
+    features = _cached_features(config, dataset, policy, ranks)
+    start_rows = {"start_rows": config.start_rows,
+                  "start_fraction": config.start_fraction if config.start_rows else 0.0}
+    n_video, n_extra = (_share(config.batch_size, fraction) if path else 0 for path, fraction in
+                        ((config.video_dataset, config.video_fraction), (config.extra_dataset, config.extra_fraction)))
+    windows = DemoWindows(dataset, horizon=policy.config.horizon, batch_size=config.batch_size - n_video - n_extra,
+                          images=False, **start_rows)
+    if config.init_policy is None:  # a fine-tuned policy keeps the normalisation its weights were trained with
+        policy.normalizer.set_vision_stats(features.image_tokens)
+        if policy.config.has_vision and policy.config.future_target == "change":
+            policy.normalizer.set_future_change_scale(_future_change_rms(policy, features, windows))
+    # A fixed draw of windows on which every periodic evaluation also scores the world model (wm/skill).
+    skill_windows = (windows_of(policy, features, SKILL_WINDOWS, config.seed)
+                     if config.eval_every and policy.config.has_vision and ranks.is_main else None)
+    video = _action_free_batches(config, dataset, policy, n_video) if config.video_dataset else None
+    extra = (DatasetBatches(DemoDataset(config.extra_dataset, cache_dir=config.cache_dir), policy, n_extra,
+                            config.extra_action_key, progress=config.progress, **start_rows)
+             if config.extra_dataset else None)
+    rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
+    loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers] if ranks.is_main else []
+    progress = config.progress and ranks.is_main
+    policy.train()
+    if config.compile:
+        policy.model.compile()
+
+    # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it, so
+    # its aux frames are not rendered again), as is a fine-tuned policy's; otherwise the aux frames join every
+    # step's loss.
+    aux = None
+    if config.init_policy is not None and policy.config.aux_state_dim and policy.reads_frames_for_readout:
+        policy.readout_modules().requires_grad_(False)
+    elif config.readout_warmup:
+        if not (config.resume and rotation.latest() is not None):
+            _warm_up_readout(config, dataset, policy,
+                             (lambda: features.batch(windows.sample())) if config.readout_demos else None,
+                             lambda scalars, step: _log(loggers, scalars, step))
+        policy.readout_modules().requires_grad_(False)
+    elif config.aux_frames:
+        aux = _aux_frame_batches(config, dataset, policy)
+
+    # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
+    trained = policy.trainable_modules()
+    optimizer = torch.optim.AdamW([p for p in trained.parameters() if p.requires_grad], lr=config.lr,
+                                  betas=config.betas, weight_decay=config.weight_decay)
+    schedule = warmup_cosine(optimizer, config.steps, config.warmup)
+    ema = weight_average(trained, config.ema_decay)
+    checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
+    start = _resumed_step(restore(checkpoint, rotation), dataset) if config.resume else 0
+    loss_of = data_parallel(_ShardLoss(policy, ranks.shard), ranks)
+
+    # The loop.
+    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc="training", disable=not progress)
+    tick, samples, losses = time.perf_counter(), 0, None
+    began = tick
+    for step in bar:
+        batch = features.batch(windows.sample())[ranks.shard.rows(config.batch_size - n_video - n_extra)]
+        if extra is not None:
+            batch = torch.cat([batch, extra.sample()])
+        with autocast(policy.weights_device, config.precision):
+            losses = loss_of(batch if video is None else with_action_free(batch, video.sample()))
+        if aux is not None:
+            losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.batch_size)))
+            losses.set("loss", losses.get("loss") + policy.config.lambda_aux * losses.get("loss_aux_frames"))
+        optimizer.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.grad_clip)
+        done = step + 1
+        _check_finite(losses["loss"], grad_norm, done, rotation)
+        optimizer.step()
+        schedule.step()
+        ema.update_parameters(trained)
+        samples += config.batch_size
+        if done % config.log_every == 0 or done == config.steps:
+            speed = samples / (time.perf_counter() - tick)
+            scalars = {f"train/{k}": ranks.mean(v).item() for k, v in losses.items()}
+            scalars |= {"train/lr": schedule.get_last_lr()[0], "train/grad_norm": grad_norm.item(),
+                        "train/samples_per_second": speed}
+            _log(loggers, scalars, done)
+            bar.set_postfix(loss=f"{scalars['train/loss']:.4f}", samples_s=f"{speed:.0f}")
+            tick, samples = time.perf_counter(), 0
+        if ranks.is_main and (done % config.checkpoint_every == 0 or done == config.steps):
+            save_checkpoint_dir(checkpoint, rotation, done, {"step": done, "dataset": dataset.identity})
+        if ranks.is_main and config.eval_every and (done % config.eval_every == 0 or done == config.steps):
+            with averaged_weights(ema, trained):
+                _log(loggers, _periodic_eval(config, policy, done, skill_windows), done)
+    bar.close()
+    seconds = time.perf_counter() - began
+    ranks.check_same(nn.utils.parameters_to_vector(trained.parameters()).detach())
+    final = ranks.mean(losses["loss"]).item() if losses is not None else float("nan")
+    del loss_of, losses  # DistributedDataParallel's reducer (also held by the losses' graph) goes before its
+    gc.collect()         # process group: the other order can hang in the process group's destructor
+    ranks.barrier()  # rank 0's last checkpoint is written before any rank returns
+    leave_process_group()
+
+    path = out / "policy.pt"
+    if ranks.is_main:
+        with averaged_weights(ema, trained):
+            save_policy(policy, path)
+        _plot_losses(out)
+    trained_steps = config.steps - start
+    return TrainResult(path, out, config.steps, final, seconds,
+                       trained_steps * config.batch_size / seconds if seconds and trained_steps else 0.0)
+
+
+def train_command(config: TrainConfig, command: str | None = None) -> None:
+    """``dust-rl train``: train, then say where the policy and logs are."""
+    result = train(config, command)
+    if int(os.environ.get("RANK", "0")):  # torchrun's other ranks stay quiet
+        return
+    print(f"trained {result.steps} steps in {result.seconds:.0f} s ({result.samples_per_second:.0f} samples/s); "
+          f"final loss {result.final_loss:.4f}")
+    print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} ({', '.join(config.loggers)}); "
+          f"loss curve: {result.out / 'loss.png'}")
+
+
+def _join(config: TrainConfig) -> Ranks:
+    """This process's ranks; under torchrun, ``nproc`` must be 1 or torchrun's process count."""
+    ranks = join_process_group(resolve_device(config.device))
+    if config.nproc not in (1, ranks.world_size):
+        raise ConfigError(f"--nproc {config.nproc}, but this process is one of {ranks.world_size} (torchrun); "
+                          "give one of the two")
+    config.check_data_parallel(ranks.world_size)
+    return ranks
+
+
+def _cached_features(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, ranks: Ranks) -> FeatureCache:
+    """The dataset's frozen features: rank 0 encodes and stores them, the other ranks then read the file."""
+    if ranks.is_main:
+        features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
+    ranks.barrier()
+    if not ranks.is_main:
+        features = FeatureCache(dataset, policy, progress=False, store=True, views=config.augment_views)
+    return features
+
+
+class _ShardLoss(nn.Module):
+    """The policy's loss on one rank's shard of a batch, as a module's forward pass: what
+    ``DistributedDataParallel`` wraps (its gradient hooks are armed by its forward)."""
+
+    def __init__(self, policy: DustPolicy, shard: Shard) -> None:
+        super().__init__()
+        self.policy, self.shard = policy, shard
+
+    def forward(self, batch: TensorDictBase) -> TensorDict:
+        return self.policy.compute_loss(batch, shard=self.shard)
+
+
+def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkpoints: CheckpointRotation) -> None:
+    """Stop before a non-finite loss or gradient reaches the weights, so no saved state holds NaN."""
+    if torch.isfinite(torch.stack([loss.detach(), grad_norm])).all():
+        return
+    latest = checkpoints.latest()
+    kept = f"the newest checkpoint, {latest.name}, is intact" if latest else "no checkpoint was written"
+    raise NonFiniteLossError(f"training diverged at step {step}: loss {loss.item()}, gradient norm {grad_norm.item()}; "
+                             f"no policy.pt was written and {kept}; lower lr or check the dataset for "
+                             "non-finite values")
+
+
+def _resumed_step(metadata: dict, dataset: DemoDataset) -> int:
+    """The step a restored checkpoint (its ``metadata``) was saved at, if it was saved on this version of the
+    dataset (a checkpoint that predates the record passes).
+
+    Raises:
+        DatasetError: the dataset changed since (episodes collected, tasks added, another import).
+    """
+    saved = metadata.get("dataset")
+    if saved is not None and saved != dataset.identity:
+        changed = ", ".join(k for k in dataset.identity if saved.get(k) != dataset.identity[k])
+        raise DatasetError(f"{dataset.root} changed since this run's checkpoint ({changed}); resume needs the "
+                           "dataset it was trained on, or start a new run with another --out")
+    return int(metadata.get("step", 0))
+
+
+def _share(batch_size: int, fraction: float) -> int:
+    """Rows of a batch given to a mixed-in dataset: ``fraction`` of it, at least one, and one left for the
+    demonstrations."""
+    return min(max(1, round(fraction * batch_size)), batch_size - 1)
+
+
+def _build_policy(config: TrainConfig, dataset: DemoDataset, env: gym.Env) -> DustPolicy:
+    """A new policy for ``dataset``, or ``init_policy`` checked against the dataset's env."""
+    if config.init_policy is not None:
+        return unwrap(load_policy(config.init_policy, env=make_torchrl_env(env)))
+    try:
+        settings = config.policy
+        text_encoder = TransformersTextEncoder(settings.text_encoder) if settings.text_encoder else None
+        return unwrap(make_policy(**settings.model_settings(), image_encoder=settings.image_encoder,
+                                  text_encoder=text_encoder,
+                                  execute_steps=settings.execute_steps, future_camera=settings.future_camera,
+                                  aux_state_dim=env_state_width(dataset) if settings.lambda_aux else 0,
+                                  **dataset_policy_kwargs(dataset)))
+    except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)
+        raise ConfigError(f"invalid model settings: {err}") from err
+
+
+def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy,
+                     demo_batch: Callable[[], TensorDictBase] | None,
+                     log: Callable[[dict[str, float], int], None]) -> None:
+    """Fit the read-out alone (:mod:`.readout.warmup`), or load the same fit cached in the dataset folder
+    by an earlier run (:mod:`.readout.cache`; not with demonstration batches, ``demo_batch``, whose draws
+    depend on more)."""
+    path = None if demo_batch is not None else readout_cache_path(dataset.cache_root / "readout_cache", policy, config,
+                                                                feature_key(dataset, policy))
+
+    def warm_up(log_fit: Callable[[dict[str, float], int], None]) -> None:
+        heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.aux_frames),
+                                     HELDOUT_FIRST_SEED)
+        warm_up_readout(policy, demo_batch, _aux_frame_batches(config, dataset, policy), config.readout_warmup,
+                        config.readout_lr, log_fit, config.batch_size, decay=config.readout_lr_decay, heldout=heldout,
+                        progress=config.progress)
+
+    if warm_up_or_load(path, policy.readout_modules(), config.seed, warm_up, log):
+        print(f"read-out warm-up: the fit cached by an earlier run of the same read-out settings ({path})")
+
+
+def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, count: int | None = None,
+                       first_seed: int = FIRST_SEED) -> AuxFrameBatches:
+    """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed): ``aux_frames``
+    of them to fit, or ``count`` from ``first_seed`` on (frames that only measure)."""
+    stored = cached_aux_frames(dataset.cache_root / "aux_frames", dataset.meta["env_id"], dataset.meta["env_kwargs"],
+                               dataset.tasks, policy.cameras, count or config.aux_frames, env_state_width(dataset),
+                               seed=config.seed, expert_fraction=config.aux_expert_fraction,
+                               approach_fraction=config.aux_approach_fraction,
+                               approach_displacement=config.aux_approach_displacement,
+                               expert_displacement=config.aux_expert_displacement, first_seed=first_seed,
+                               progress=config.progress)
+    return AuxFrameBatches(stored.rows, stored.instructions, policy, EnvStateNorm.of_dataset(dataset),
+                           encode=lambda frames: cached_frame_tokens(stored.path, policy, frames))
+
+
+def _future_change_rms(policy: DustPolicy, features: FeatureCache, windows: DemoWindows) -> float:
+    """Root mean square of the standardised change from each row's frame to its t+H frame, over every window."""
+    total, count = 0.0, 0
+    with torch.random.fork_rng(devices=[]):  # a feature batch may draw cached views; training's draws stay put
+        for window in windows.iterate(1024):
+            change = policy.future_changes(features.batch(window)).double()
+            total, count = total + change.square().sum().item(), count + change.numel()
+    return math.sqrt(total / count) if count else 1.0
+
+
+def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy,
+                         batch_size: int) -> ActionFreeBatches:
+    """The action-free episodes' batches; with a read-out, only of the demonstrations' tasks, whose object state
+    (frozen read-out's loss, logged) means the same.
+
+    Raises:
+        DatasetError: a policy with a read-out and action-free episodes of other tasks.
+    """
+    video = DemoDataset(config.video_dataset, cache_dir=config.cache_dir)
+    if policy.config.aux_state_dim and set(video.tasks) - set(dataset.tasks):
+        raise DatasetError(f"{config.video_dataset}: action-free episodes of tasks {sorted(video.tasks)} beside a "
+                           f"read-out of {sorted(dataset.tasks)}: their object state means something else; use "
+                           "episodes of the demonstrations' tasks, or a policy without --policy.lambda-aux")
+    return ActionFreeBatches(video, policy, batch_size, progress=config.progress)
+
+
+def _log(loggers: list[Logger], scalars: dict[str, float], step: int) -> None:
+    for logger in loggers:
+        for name, value in scalars.items():
+            logger.log_scalar(name, value, step=step)
+
+
+def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int,
+                   skill_windows: Windows | None) -> dict[str, float]:
+    """Closed-loop success of ``policy`` (holding the averaged weights) and, with a vision stream, the skill of
+    its sampled future on ``skill_windows`` (:mod:`dust_rl.diagnose.world_model`), without touching the
+    training RNG."""
+    from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+
+    folder = config.out / "eval" / f"step-{step:07d}"
+    path = save_policy(policy, folder / "policy.pt")
+    with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
+        report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.eval_episodes,
+                                     workers=config.eval_workers, videos=0, progress=False, device=config.device))
+    scalars = {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
+        "eval/success_rate": report["overall"]["success_rate"]}
+    if skill_windows is not None:
+        skill = vision_skill(policy, skill_windows, buckets=1, seed=config.seed, batch_size=config.batch_size)
+        scalars["wm/skill"] = skill["joint_sample"]["skill"]
+    return scalars
+
+
+def _plot_losses(out: pathlib.Path) -> None:
+    from dust_rl.evaluate.report import plot_loss_curves
+
+    plot_loss_curves(out, out / "loss.png")
+
