@@ -20,12 +20,14 @@ if ! ldconfig -p | grep -qE 'libEGL\.so\.1|libOSMesa\.so'; then
 fi
 
 [ -x $VENV/bin/python ] || "$PYTHON" -m venv $VENV
-want=$(cat pyproject.toml | sha256sum | cut -d' ' -f1)
+# pyproject.toml asks for ranges; constraints.txt holds the exact versions the project is tested with.
+# A change to either reinstalls.
+want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
 if [ "$(cat $STAMP 2>/dev/null)" != "$want" ]; then
   echo "[setup] installing Python packages into $VENV (first run: ~2 minutes)"
-  # torch first and pinned: a loose requirement would pull a multi-GB CUDA build.
-  $VENV/bin/pip install -q --disable-pip-version-check torch==2.13.0
-  $VENV/bin/pip install -q --disable-pip-version-check -e ".[dev]"
+  # torch first, at its exact version from constraints.txt: a loose requirement would pull a multi-GB CUDA build.
+  $VENV/bin/pip install -q --disable-pip-version-check -c constraints.txt torch
+  $VENV/bin/pip install -q --disable-pip-version-check -c constraints.txt -e ".[dev]"
   $VENV/bin/python -c "import torch; assert torch.version.cuda is None, 'expected the CPU build of torch'" \
     || echo "[setup] note: a CUDA build of torch is installed" >&2
   echo "$want" > $STAMP
