@@ -10,11 +10,11 @@ import pytest
 import torch
 from conftest import DEMO_ENV_KWARGS
 
-from dust_rl import aux_frame_cache
 from dust_rl.agents import make_policy, unwrap
 from dust_rl.data import DatasetError, DemoDataset
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.storage.cache_files import record_cache
+from dust_rl.train.readout import aux_frame_cache
 from dust_rl.train.readout.aux_frame_cache import cached_aux_frames, cached_frame_tokens
 from dust_rl.train.readout.aux_frames import encode_frames, render_aux_frames
 
