@@ -24,7 +24,8 @@ from dust_rl.errors import ConfigError, UserError
 
 GROUPS = (tyro.conf.OmitSubcommandPrefixes,)  # "dust-rl dataset info", not "dust-rl dataset action:info"
 DESCRIPTION = ("DUST (dual-stream diffusion) for torchrl and gymnasium: collect demonstrations, train, evaluate, "
-               "fine-tune with RL. `dust-rl COMMAND --help` lists a command's arguments.")
+               "fine-tune with RL. `dust-rl COMMAND --help` lists a command's arguments; `dust-rl --version` prints "
+               "the version.")
 
 
 def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
@@ -62,6 +63,11 @@ def main(argv: list[str] | None = None) -> None:
     from dust_rl.agents.checkpoint_io import CheckpointError
 
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--version"]:
+        from dust_rl import __version__
+
+        print(f"dust-rl {__version__}")
+        return
     command_line = shlex.join(["dust-rl", *argv])  # provenance for files a command writes
     table = commands()
     name = " ".join(argv[:2]) if " ".join(argv[:2]) in table else argv[0] if argv else None

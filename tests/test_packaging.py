@@ -96,6 +96,11 @@ def _run(code: str) -> str:
                           timeout=120).stdout
 
 
+def test_version_flag_prints_the_installed_version():
+    assert _run("from dust_rl.cli import main; main(['--version'])").strip() == \
+        f"dust-rl {importlib.metadata.version('dust-rl')}"
+
+
 def test_version_falls_back_when_the_package_is_not_installed():
     code = """
 from importlib import metadata
