@@ -50,6 +50,8 @@ STATE_MODE_KEYS = {FLAT_STATE_KEY: "agent_pos", FLAT_ENV_STATE_KEY: "environment
 MAX_TRANSLATION = 0.02  # metres per control step at |action| = 1 (delta mode)
 MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
 ACTION_WIDTH = 7  # numbers per end effector: translation (3), rotation (3), closure (1)
+ACTION_PARTS = ("x", "y", "z", "rx", "ry", "rz", "closure")  # names of those ACTION_WIDTH numbers
+STATE_PARTS = ("x", "y", "z", "qw", "qx", "qy", "qz", "opening")  # per end effector, after the joints
 CLOSURE = 6  # index of the closure within an end effector's numbers
 # Position targets may dip this far below the robot's workspace box (to press on the table).
 _TARGET_BELOW_WORKSPACE = np.array([0.0, 0.0, 0.05])
@@ -64,6 +66,11 @@ class SimSnapshot:
     data: mujoco.MjData
     elapsed: int
     progress: float
+
+
+def environment_state_names(width: int) -> list[str]:
+    """Names of ``width`` privileged-state entries: their layout is the task's (see its ``environment_state``)."""
+    return [f"environment_state_{i}" for i in range(width)]
 
 
 class DustEnv(gym.Env):
@@ -200,8 +207,9 @@ class DustEnv(gym.Env):
         self._ee_opening = [np.array([self.model.joint(j).qposadr[0] for j in ee.opening_joints])
                             for ee in self.robot.end_effectors]
         self._workspace_low, self._workspace_high = (np.asarray(corner, float) for corner in self.robot.workspace)
-        robot_joints = [*self.robot.arm_joints, *(j for ee in self.robot.end_effectors for j in ee.opening_joints)]
-        self._state_qadr = np.array([self.model.joint(j).qposadr[0] for j in robot_joints])
+        self._state_joints = [*self.robot.arm_joints,
+                              *(j for ee in self.robot.end_effectors for j in ee.opening_joints)]
+        self._state_qadr = np.array([self.model.joint(j).qposadr[0] for j in self._state_joints])
         self._home_qpos = {self.model.joint(j).qposadr[0]: v for j, v in self.robot.home_qpos.items()}
 
     def _camera_names(self) -> list[str]:
@@ -209,7 +217,7 @@ class DustEnv(gym.Env):
 
     def _make_observation_space(self) -> gym.spaces.Dict:
         n_ee = len(self.robot.end_effectors)
-        state_dim = len(self._state_qadr) + 8 * n_ee  # joints + per-EE (pos, quat, opening)
+        state_dim = len(self._state_qadr) + len(STATE_PARTS) * n_ee  # joints + per-EE (pos, quat, opening)
         state_dim += self.task.environment_state_dim if self.privileged_state else 0
         spaces: dict[str, gym.spaces.Space] = {}
         if self.obs_mode == "rgb":
@@ -398,6 +406,17 @@ class DustEnv(gym.Env):
             mujoco.mju_mat2Quat(block[3:7], self.data.site_xmat[site])
             block[7] = ee.opening(self.data.qpos[opening])
         return state.astype(np.float32)
+
+    def state_names(self) -> list[str]:
+        """A name per ``observation.state`` entry, in :meth:`_state`'s order (then the appended privileged state):
+        what a LeRobot export lists as the feature's ``names``."""
+        ends = [f"{ee.site}.{part}" for ee in self.robot.end_effectors for part in STATE_PARTS]
+        privileged = environment_state_names(self.task.environment_state_dim) if self.privileged_state else []
+        return [*self._state_joints, *ends, *privileged]
+
+    def action_names(self) -> list[str]:
+        """A name per action entry: :data:`ACTION_PARTS` of each end effector, named by its site."""
+        return [f"{ee.site}.{part}" for ee in self.robot.end_effectors for part in ACTION_PARTS]
 
     def _render_camera(self, camera: str) -> np.ndarray:
         if self._renderer is None:

@@ -79,6 +79,55 @@ def test_import_round_trip(demo_dir, export_dir, tmp_path):
     assert back.meta["source"].startswith("lerobot:")
 
 
+def test_every_exported_feature_has_a_dtype_a_shape_and_names(export_dir):
+    features = json.loads((export_dir / "meta" / "info.json").read_text())["features"]
+    assert all({"dtype", "shape", "names"} <= set(feature) for feature in features.values())
+    state = features["observation.state"]["names"]
+    assert len(state) == features["observation.state"]["shape"][0] == 17
+    assert state[:1] + state[7:10] + state[-1:] == ["panda/joint1", "panda/finger_joint1", "panda/finger_joint2",
+                                                    "pinch.x", "pinch.opening"]
+    expected_action = ["pinch.x", "pinch.y", "pinch.z", "pinch.rx", "pinch.ry", "pinch.rz", "pinch.closure"]
+    assert features["action"]["names"] == features["expert_action"]["names"] == expected_action
+    env_state = features["observation.environment_state"]
+    assert env_state["names"] == [f"environment_state_{i}" for i in range(env_state["shape"][0])]
+    for camera in ("front", "wrist"):  # LeRobot's key, the frame's layout named dimension by dimension
+        image = features[f"observation.images.{camera}"]
+        assert (image["shape"], image["names"]) == ([32, 32, 3], ["height", "width", "channels"])
+    assert features["next.reward"]["names"] is None  # scalars, as LeRobot's own index columns
+
+
+def _rename_videos(root, old: str, new: str) -> None:
+    """Move every video feature of the LeRobot folder ``root`` from the key prefix ``old`` to ``new``."""
+    info = json.loads((root / "meta" / "info.json").read_text())
+    info["features"] = {name.replace(old, new, 1): feature for name, feature in info["features"].items()}
+    (root / "meta" / "info.json").write_text(json.dumps(info))
+    for folder in list((root / "videos").iterdir()):
+        folder.rename(folder.with_name(folder.name.replace(old, new, 1)))
+    episodes = pq.read_table(root / EPISODES_FILE)
+    pq.write_table(episodes.rename_columns([name.replace(f"videos/{old}", f"videos/{new}", 1)
+                                            for name in episodes.column_names]), root / EPISODES_FILE)
+
+
+@pytest.mark.parametrize("edit", ["env-image-keys", "previous-version"])
+def test_import_reads_the_env_image_keys_and_exports_without_names(demo_dir, export_dir, tmp_path, edit):
+    """Video features under the env's ``observation.image.<camera>`` keys, and an export of the previous version
+    (no feature names), import as the export itself does."""
+    copy = shutil.copytree(export_dir, tmp_path / "copy")
+    if edit == "env-image-keys":
+        _rename_videos(copy, "observation.images.", "observation.image.")
+    else:
+        info = json.loads((copy / "meta" / "info.json").read_text())
+        for feature in info["features"].values():
+            feature["names"] = ["height", "width", "channels"] if feature["dtype"] == "video" else None
+        (copy / "meta" / "info.json").write_text(json.dumps(info))
+    import_lerobot(copy, tmp_path / "back", progress=False)
+    original, back = DemoDataset(demo_dir), DemoDataset(tmp_path / "back")
+    assert torch.equal(back.data["observation", "state"], original.data["observation", "state"])
+    for camera in ("front", "wrist"):
+        key = ("observation", "image", camera)
+        assert (back.data[key].float() - original.data[key].float()).abs().mean() < 8
+
+
 def test_export_refuses_an_existing_folder_and_import_a_damaged_one(demo_dir, export_dir, tmp_path):
     with pytest.raises(SystemExit, match="already exists"):
         main(["dataset", "export", str(demo_dir), "--out", str(export_dir)])

@@ -99,7 +99,8 @@ def _write(dataset: DemoDataset, root: pathlib.Path, crf: int, progress: bool) -
     _write_parquet(root / DATA_FILE, pa.table(columns))
     _write_parquet(root / EPISODES_FILE, _episodes_table(meta, video_keys, fps))
     _write_parquet(root / "meta/tasks.parquet", _tasks_table(dataset.instructions))
-    features = {name: _feature(columns[name]) for name in columns}
+    names = _feature_names(meta, dataset.tasks, columns["observation.environment_state"])
+    features = {name: _feature(columns[name], names.get(name)) for name in columns}
     features.update({key: _video_feature(meta["spec"]["image_shape"], fps) for key in video_keys})
     write_json_atomic(root / "meta/info.json", {
         "codebase_version": CODEBASE_VERSION, "robot_type": meta["env_id"],
@@ -120,10 +121,24 @@ def _arrow_column(values: torch.Tensor) -> pa.Array:
     return pa.FixedSizeListArray.from_arrays(pa.array(array.reshape(-1)), array.shape[1])
 
 
-def _feature(column: pa.Array) -> dict:
-    """LeRobot feature entry of a column: scalars have shape ``[1]``, vectors ``[D]``."""
+def _feature_names(meta: dict, tasks: list[str], env_state: pa.Array) -> dict[str, list[str]]:
+    """A name per entry of the vector features, from the env the data was recorded in (built without cameras)."""
+    from dust_rl.envs.env import environment_state_names
+    from dust_rl.envs.factory import make_env
+
+    env = make_env(meta["env_id"], {**meta["env_kwargs"], "task": tasks[0], "obs_mode": "state"})
+    state, action = env.unwrapped.state_names(), env.unwrapped.action_names()
+    env.close()
+    width = env_state.type.list_size if pa.types.is_fixed_size_list(env_state.type) else 1
+    return {"observation.state": state, "observation.environment_state": environment_state_names(width),
+            "action": action, EXPERT_ACTION_KEY: action}
+
+
+def _feature(column: pa.Array, names: list[str] | None) -> dict:
+    """LeRobot feature entry of a column: vectors have shape ``[D]`` and a name per entry, scalars shape ``[1]``
+    and no names (as LeRobot's own index columns)."""
     if pa.types.is_fixed_size_list(column.type):
-        return {"dtype": _DTYPES[column.type.value_type], "shape": [column.type.list_size], "names": None}
+        return {"dtype": _DTYPES[column.type.value_type], "shape": [column.type.list_size], "names": names}
     return {"dtype": _DTYPES[column.type], "shape": [1], "names": None}
 
 

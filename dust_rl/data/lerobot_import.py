@@ -9,8 +9,10 @@ data belongs to comes from one of two places:
 * the caller (``env_id``, ``task``, ``env_kwargs``) for any other LeRobot v3
   dataset. The env is built once and the dataset must fit its spaces:
   ``observation.state`` and ``action`` of its sizes, a video feature
-  ``observation.images.<camera>`` of its image shape for each of its cameras
-  (other video features are left out), and ``fps`` equal to its control rate.
+  ``observation.images.<camera>`` (LeRobot's name; the env's own
+  ``observation.image.<camera>`` is read too) of its image shape for each of
+  its cameras (other video features are left out), and ``fps`` equal to its
+  control rate.
   Columns such a dataset lacks are filled in: ``expert_action`` is the action,
   the privileged ``observation.environment_state`` is empty, the reward 0, and
   each episode counts as a successful demonstration that ends (terminated) at
@@ -71,6 +73,8 @@ DUST_META_TYPES = {"env_id": str, "env_kwargs": dict, "spec": dict, "start_seed"
 _VIDEO_FIELDS = ("video_key", "chunk_index", "file_index")
 _INDEX_FORMAT = re.compile(r"\d*d?")
 _FLAGS = ("next.done", "next.terminated", "next.truncated", "next.success")
+# A camera's video feature: LeRobot's name (what the export writes), else the env's observation key.
+VIDEO_PREFIXES = (IMAGE_PREFIX, flat_name(IMAGE_KEY) + ".")
 
 
 def import_lerobot(source: str | pathlib.Path, out: str | pathlib.Path, env_id: str | None = None,
@@ -264,13 +268,14 @@ class _LeRobotFolder:
             problems.append(f"cameras: {against} names {cameras!r}, not a list of camera names")
             cameras = []
         for camera in cameras:
-            feature = features.get(IMAGE_PREFIX + camera)
+            key = self._video_key(camera)
+            feature = features.get(key)
             if not isinstance(feature, dict) or feature.get("dtype") != "video":
                 found = "missing" if feature is None else f"{feature!r}, not a video"
-                problems.append(f"{IMAGE_PREFIX}{camera}: {found} ({against} has cameras {cameras}; "
+                problems.append(f"{key}: {found} ({against} has cameras {cameras}; "
                                 "choose others with the env's cameras argument)")
             elif _image_shape(feature) != list(spec.get("image_shape") or []):
-                problems.append(f"{IMAGE_PREFIX}{camera}: shape {_image_shape(feature)}, {against} renders "
+                problems.append(f"{key}: shape {_image_shape(feature)}, {against} renders "
                                 f"{spec.get('image_shape')} (set the env's image_size)")
         if self.fps != spec.get("fps") or float(self.fps) != spec.get("control_hz"):
             problems.append(f"fps: dataset records {self.fps} frames/s, {against} has fps {spec.get('fps')!r} "
@@ -300,8 +305,8 @@ class _LeRobotFolder:
         where = self.root / EPISODES_DIR
         needed = ["episode_index", "length", "dataset_from_index", "dataset_to_index"]
         for camera in self.spec["cameras"]:
-            needed += [f"videos/{IMAGE_PREFIX}{camera}/{name}" for name in ("chunk_index", "file_index",
-                                                                           "from_timestamp")]
+            needed += [f"videos/{self._video_key(camera)}/{name}" for name in ("chunk_index", "file_index",
+                                                                              "from_timestamp")]
         table = self._read_table(EPISODES_DIR)
         missing = [name for name in needed if name not in table.column_names]
         if missing:
@@ -380,8 +385,14 @@ class _LeRobotFolder:
                 "data": None, "versions": package_versions()}
 
     # -- rows -------------------------------------------------------------------
+    def _video_key(self, camera: str) -> str:
+        """The feature holding ``camera``'s video: the first of :data:`VIDEO_PREFIXES` the dataset has (LeRobot's
+        name when it has neither, for the message that it is missing)."""
+        keys = [prefix + camera for prefix in VIDEO_PREFIXES]
+        return next((key for key in keys if key in self.info["features"]), keys[0])
+
     def _video_file(self, camera: str, episode: dict) -> pathlib.Path:
-        key = IMAGE_PREFIX + camera
+        key = self._video_key(camera)
         chunk, file = episode[f"videos/{key}/chunk_index"], episode[f"videos/{key}/file_index"]
         try:
             relative = self._video_template.format(video_key=key, chunk_index=chunk, file_index=file)
@@ -402,7 +413,7 @@ class _LeRobotFolder:
         rows.set(ENV_STATE_KEY, env_state)
         rows.set("frame_index", self.frames["frame_index"][start:end])
         for camera, stream in self._videos.items():
-            key = IMAGE_PREFIX + camera
+            key = self._video_key(camera)
             first = round(episode[f"videos/{key}/from_timestamp"] * self.fps)
             images = np.stack(stream.read(video_files[camera], first, end - start,
                                           f"episode {episode['episode_index']}"))
