@@ -367,7 +367,7 @@ class GpuCheck:
     def _torchrun(self, args: list[str]) -> float:
         log = self.config.out / "logs" / f"torchrun{'_resume' if '--resume' in args else ''}.log"
         return _run_python(["-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "1",
-                            "-m", "dust_rl.train.imitation", *args], log)
+                            "-m", "dust_rl.train", *args], log)
 
     def run(self) -> list[Row]:
         sections = {"train": self.train_rows, "latency": self.latency_rows, "ddp": self.ddp_rows,
