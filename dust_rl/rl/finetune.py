@@ -44,7 +44,7 @@ from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.agents.checkpoint_io import save_checkpoint
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate.closed_loop import BASE_ROW, Episode, episode_digest, paired_comparison, summary_row
+from dust_rl.evaluate.closed_loop import BASE_ROW, Episode, paired_comparison, summary_row
 from dust_rl.evaluate.report import plot_learning_curve
 from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
@@ -284,8 +284,8 @@ def _read_curve(path: pathlib.Path) -> list[dict]:
 
 def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, FrozenPolicyEnv], tuple],
                   seeds: range, progress: bool) -> list[Episode]:
-    """Closed-loop episodes on ``seeds``; success is the env's ``is_success`` at the end, length and digest count
-    env steps, as :func:`dust_rl.evaluate.closed_loop.evaluate` does (equal digests: the same episode)."""
+    """Closed-loop episodes on ``seeds``; success is the env's ``is_success`` at the end, recorded as
+    :func:`dust_rl.evaluate.closed_loop.evaluate` records its own (equal records: the same episode)."""
     env, episodes = make(), []
     for seed in tqdm(seeds, desc="episodes", disable=not progress):
         obs, _ = env.reset(seed=seed)
@@ -293,9 +293,8 @@ def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, Fro
         while not done:
             obs, _, terminated, truncated, info = step(obs, env)
             done = terminated or truncated
-        actions = torch.from_numpy(np.stack(env.executed))
-        digest = episode_digest(actions, torch.from_numpy(obs["robot_state"]))
-        episodes.append(Episode(seed, bool(info.get("is_success", False)), len(env.executed), digest))
+        episodes.append(Episode.of(seed, info.get("is_success", False), torch.from_numpy(np.stack(env.executed)),
+                                   torch.from_numpy(obs["robot_state"])))
     env.close()
     return episodes
 
