@@ -326,23 +326,24 @@ class FinetuneCommand:
     """The fine-tuning method (``dust-rl finetune METHOD --help`` lists its settings)."""
 
 
-CONFIGS: dict[str, type] = {c.method: c for c in (SteerConfig, ResidualConfig, WmSelectConfig, SelfImitationConfig)}
-ALGORITHMS: dict[str, type] = {"sac": SacSettings, "ppo": PpoSettings}
+METHOD_CONFIGS: dict[str, type] = {config.method: config for config in (SteerConfig, ResidualConfig, WmSelectConfig,
+                                                                      SelfImitationConfig)}
+ALGORITHM_CONFIGS: dict[str, type] = {"sac": SacSettings, "ppo": PpoSettings}
 
 
 def rl_config_from_json(values: dict, **changes) -> RLConfig:
     """The config of an SB3 run as its ``config.json`` (or ``rl_agent.pt``) records it, with ``changes``; fields the
     run predates keep their defaults, and a run from before the algorithm had its own settings (``"algorithm":
     "sac"``, its settings beside the others) reads too."""
-    cls = CONFIGS[values["method"]]
+    cls = METHOD_CONFIGS[values["method"]]
     kwargs = {f.name: values[f.name] for f in dataclasses.fields(cls) if f.init and f.name in values}
     kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in kwargs.items()}
     kwargs["policy"], kwargs["out"] = pathlib.Path(kwargs["policy"]), pathlib.Path(kwargs["out"])
     settings = values.get("algorithm", "sac")
     if isinstance(settings, str):
-        algorithm, settings = ALGORITHMS[settings], values
+        algorithm, settings = ALGORITHM_CONFIGS[settings], values
     else:
-        algorithm = ALGORITHMS[settings["name"]]
+        algorithm = ALGORITHM_CONFIGS[settings["name"]]
     settings = {f.name: settings[f.name] for f in dataclasses.fields(algorithm) if f.init and f.name in settings}
     settings = {k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
     return cls(**{**kwargs, "algorithm": algorithm(**settings), **changes})
