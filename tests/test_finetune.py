@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import pathlib
 import time
 
 import numpy as np
@@ -343,13 +344,14 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
 
 
 def test_the_control_is_the_base_fine_tuned_as_long_on_its_demonstrations_alone(policy_path, demo_dir, tmp_path):
-    config = SelfImitationConfig(policy=policy_path, out=tmp_path / "ft", demos=demo_dir, rounds=2,
+    config = SelfImitationConfig(policy=policy_path, out=tmp_path / "ft", demos=demo_dir, rounds=2, seed=3,
                             train=RoundTraining(steps=2, lr=1e-4, batch_size=4, log_every=1),
                             eval_episodes=1, max_steps=EPISODE_STEPS, progress=False)
     name, row = control_row(config)
     assert name == "demonstrations alone (4 steps, the control)"  # two rounds of two steps
     trained = json.loads((tmp_path / "ft" / "control" / "steps-4" / "config.json").read_text())["config"]
     assert (trained["steps"], trained["init_policy"], trained["extra_dataset"]) == (4, str(policy_path), None)
+    assert trained["seed"] == 3  # the run's --seed: the rounds' own is not offered
     assert trained["dataset"] == str(demo_dir)
     assert row["episodes"] == 1 and row["seeds"] == [config.eval_seed]
     assert control_row(config) == (name, row)  # cached: read back, not trained or evaluated again
@@ -404,3 +406,13 @@ def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
     rounds = help_of("self-imitation")
     assert "--train.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
     assert "--steps" not in help_of("wm-select")
+
+
+def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own_settings():
+    old = {"method": "residual", "policy": "p.pt", "out": "runs/ft", "algorithm": "ppo", "n_steps": 512,
+           "target_kl": 0.01, "gradient_steps": 1, "net_arch": [16], "world_model_obs": True}
+    config = rl_config_from_json(old, device="cpu")
+    assert isinstance(config, ResidualConfig) and config.world_model_obs and config.device == "cpu"
+    assert config.algorithm == PpoSettings(n_steps=512, target_kl=0.01) and config.net_arch == (16,)
+    new = SteerConfig(policy=pathlib.Path("p.pt"), algorithm=SacSettings(q_bounds=(0.0, 1.0)))
+    assert rl_config_from_json(json.loads(json.dumps(dataclasses.asdict(new), default=str))) == new

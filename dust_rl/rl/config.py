@@ -49,7 +49,8 @@ class FinetuneSettings:
     max_steps: int | None = None
     """Time limit per episode in env steps; default: the task's."""
     seed: int = 0
-    """Seed of the fine-tuning (the RL agent and its first training episode's reset; the scorer)."""
+    """Seed of the fine-tuning: the RL agent's and its first training episode's reset, the scorer's, or each
+    self-imitation round's training (initial weights aside: the policy's)."""
     eval_episodes: int = 20
     """Closed-loop episodes of the base and the fine-tuned policy, on seeds eval_seed, eval_seed + 1, ..."""
     eval_seed: int = HELDOUT_SEED
@@ -270,11 +271,13 @@ class WmSelectConfig(FinetuneSettings):
 @dataclass
 class RoundTraining(TrainSettings):
     """How each self-imitation round fine-tunes (``dust-rl train``'s settings): the policy's architecture is the
-    starting policy's, and the starting policy, the rollouts, threads, device and progress bars are the round's."""
+    starting policy's, and the starting policy, the rollouts, the seed, threads, device and progress bars are the
+    round's."""
 
     policy: tyro.conf.Suppress[PolicyConfig] = field(default_factory=PolicyConfig)
     init_policy: tyro.conf.Suppress[pathlib.Path | None] = None
     extra_dataset: tyro.conf.Suppress[pathlib.Path | None] = None
+    seed: tyro.conf.Suppress[int] = 0
     threads: tyro.conf.Suppress[int | None] = None
     device: tyro.conf.Suppress[str] = "auto"
     progress: tyro.conf.Suppress[bool] = True

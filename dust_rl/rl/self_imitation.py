@@ -101,7 +101,7 @@ def _fine_tune(config: SelfImitationConfig, policy: pathlib.Path, rollouts: path
     """``policy`` trained further on its demonstrations and ``rollouts`` (none: the demonstrations alone); a
     finished run is not trained again."""
     if not (out / "policy.pt").is_file():
-        settings = dataclasses.replace(config.train, init_policy=policy, extra_dataset=rollouts,
+        settings = dataclasses.replace(config.train, init_policy=policy, extra_dataset=rollouts, seed=config.seed,
                                        threads=config.threads, device=config.device, progress=config.progress)
         resume = (out / "config.json").is_file()
         train(TrainConfig.from_settings(settings, dataset=config.demos, out=out, resume=resume))
