@@ -305,7 +305,7 @@ class DustConfig(ModelConfig, SamplerConfig):
     Needs ``lambda_aux``."""
     scorer_hidden: int = 0
     """Hidden width of the future scorer (:mod:`.future_scorer`, fitted after training by ``dust-rl finetune
-    --method wm_select``); 0: no scorer."""
+    wm-select``); 0: no scorer."""
 
     def __post_init__(self) -> None:
         SamplerConfig.__post_init__(self)
@@ -325,7 +325,7 @@ class DustConfig(ModelConfig, SamplerConfig):
             raise ValueError(f"variant {self.variant!r} shares one timestep: only synchronous sampling applies")
         if self.candidates > 1 and not (self.scorer_hidden and self.has_vision and sampler != "action_only"):
             raise ValueError(f"candidates={self.candidates} needs a future scorer (scorer_hidden > 0, fitted by "
-                             "dust-rl finetune --method wm_select) and a sampler that predicts the future")
+                             "dust-rl finetune wm-select) and a sampler that predicts the future")
         if sampler != "async" and self.vision_step_ratio != 1:
             raise ValueError(f"vision_step_ratio (N_o = q * N_A) applies to the async sampler only; the sampler is "
                              f"{sampler!r}")

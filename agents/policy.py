@@ -453,7 +453,7 @@ class DustPolicy(VLAWrapperBase):
             ValueError: the policy has no future scorer.
         """
         if not self.config.scorer_hidden:
-            raise ValueError("this policy has no future scorer (fit one with dust-rl finetune --method wm_select)")
+            raise ValueError("this policy has no future scorer (fit one with dust-rl finetune wm-select)")
         return self.future_scorer(future_tokens)
 
     def forward(self, tensordict: TensorDictBase, *, tensordict_out: TensorDictBase | None = None,

@@ -37,7 +37,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose_world_model_command
     from dust_rl.evaluate.closed_loop import EvalConfig, evaluate_command
     from dust_rl.quickstart import QuickstartConfig, quickstart
-    from dust_rl.rl.finetune import FinetuneConfig, finetune_command
+    from dust_rl.rl.finetune import FinetuneCommand, finetune_command
     from dust_rl.train import encoder_commands as encoders
     from dust_rl.train.imitation import TrainConfig, train_command
 
@@ -51,7 +51,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "encoder": (encoders.EncoderCommand, encoders.run_encoder),
         "train": (TrainConfig, train_command),
         "eval": (EvalConfig, evaluate_command),
-        "finetune": (FinetuneConfig, finetune_command),
+        "finetune": (FinetuneCommand, finetune_command),
         "bench suite": (SuiteConfig, suite_command),
         "bench average": (AverageConfig, average_command),
         "bench gpu": (GpuCheckConfig, gpu_check_command),

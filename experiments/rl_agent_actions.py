@@ -11,7 +11,6 @@ deterministic action shows how far it has moved from the base policy (0 is the b
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import pathlib
 
 import numpy as np
@@ -20,15 +19,8 @@ from stable_baselines3 import SAC
 
 from dust_rl.agents import load_policy, unwrap
 from dust_rl.agents.checkpoint_io import load_checkpoint
-from dust_rl.rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune_env_factory
-
-
-def run_config(saved: dict) -> FinetuneConfig:
-    """The run's config from the JSON it saved (fields it predates keep their defaults, as when it ran)."""
-    fields = {f.name for f in dataclasses.fields(FinetuneConfig)} - {"train"}
-    values = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items() if k in fields}
-    return FinetuneConfig(**{**values, "policy": pathlib.Path(values["policy"]), "out": pathlib.Path(values["out"]),
-                             "device": "cpu", "progress": False})
+from dust_rl.rl.config import rl_config_from_json
+from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune_env_factory
 
 
 def main() -> None:
@@ -38,7 +30,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     saved = load_checkpoint(args.run / "rl_agent.pt", RL_AGENT_KIND)
-    config = run_config(saved["config"])
+    config = rl_config_from_json(saved["config"], device="cpu", progress=False)
     env = finetune_env_factory(config, unwrap(load_policy(config.policy)))[0]()
     agent = build_agent(config, env)
     agent.policy.load_state_dict(saved["state_dict"])

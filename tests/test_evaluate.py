@@ -8,6 +8,7 @@ import pathlib
 
 import numpy as np
 import pytest
+from tqdm import tqdm
 
 from dust_rl.agents import (
     AutoencoderConfig,
@@ -20,6 +21,7 @@ from dust_rl.agents import (
     unwrap,
 )
 from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
+from dust_rl.agents.execution import replans
 from dust_rl.agents.factory import POLICY_KIND
 from dust_rl.data.video import read_mp4, write_mp4
 from dust_rl.errors import ConfigError
@@ -27,12 +29,16 @@ from dust_rl.evaluate.closed_loop import (
     Episode,
     EvalConfig,
     describe_sampler,
+    eval_collector,
     evaluate,
     paired_comparison,
+    prepare,
+    run_task,
     wilson_interval,
 )
 from dust_rl.evaluate.report import plot_loss_curves, read_scalar_csv
 from dust_rl.evaluate.video import LABEL_HEIGHT, future_decoder
+from dust_rl.keys import ACTION_CHUNK_KEY
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -232,3 +238,14 @@ def test_loss_curves_keep_the_last_value_of_a_repeated_step(tmp_path):
         assert out is not None and out.read_bytes()[:4] == b"\x89PNG"
     assert plot_loss_curves(tmp_path / "empty", tmp_path / "none.png") is None
     assert not (tmp_path / "none.png").exists()
+
+
+def test_the_executor_samples_a_chunk_where_the_replanning_rule_says(policy_path, tmp_path):
+    config = EvalConfig(policy=policy_path, out=tmp_path, episodes=1, workers=1, max_steps=10, videos=0,
+                        execute_steps=4, progress=False)
+    policy, setup = prepare(config)
+    with eval_collector(setup, "press_button", policy, config.worker_pool(), config.seed) as collector:
+        (episode,), kept = run_task(collector, range(config.seed, config.seed + 1), tqdm(disable=True), keep=1)
+    chunks = kept[episode.seed].get(ACTION_CHUNK_KEY)
+    sampled = [t == 0 or not chunks[t].equal(chunks[t - 1]) for t in range(episode.length)]
+    assert sampled == [replans(t, 4) for t in range(episode.length)] and sum(sampled) == 3  # steps 0, 4 and 8

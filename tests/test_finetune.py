@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import pathlib
 import time
 
 import numpy as np
@@ -21,17 +22,27 @@ from dust_rl.data.episodes import scan_episodes
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 from dust_rl.rl.checkpoint import SB3LearningState
+from dust_rl.rl.config import (
+    PpoSettings,
+    ResidualConfig,
+    RoundTraining,
+    SacSettings,
+    SelfImitationConfig,
+    SteerConfig,
+    WmSelectConfig,
+    rl_config_from_json,
+)
 from dust_rl.rl.critic_limits import LayerNormReLU
 from dust_rl.rl.critic_warmup import CriticWarmup
-from dust_rl.rl.finetune import RL_AGENT_KIND, FinetuneConfig, build_agent, finetune, finetune_env_factory
+from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune, finetune_env_factory
 from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
 from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import restore
-from dust_rl.train.imitation import TrainSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 EPISODE_STEPS = 10
+METHODS = {"steer": SteerConfig, "residual": ResidualConfig}
 
 
 @pytest.fixture(scope="module")
@@ -52,9 +63,10 @@ def policy_path(tmp_path_factory, minilm):
 @pytest.mark.parametrize("method,algorithm,reward", [("steer", "sac", "sparse"), ("residual", "ppo", "dense")])
 def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, algorithm, reward, policy_path,
                                                                         tmp_path):
-    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method=method, algorithm=algorithm, steps=8,
-                            reward=reward, learning_starts=4, batch_size=4, net_arch=(16,), eval_episodes=2,
-                            max_steps=EPISODE_STEPS, eval_every=4, curve_episodes=1, progress=False)
+    settings = SacSettings(learning_starts=4) if algorithm == "sac" else PpoSettings()
+    config = METHODS[method](policy=policy_path, out=tmp_path / "ft", algorithm=settings, steps=8, reward=reward,
+                             batch_size=4, net_arch=(16,), eval_episodes=2, max_steps=EPISODE_STEPS, eval_every=4,
+                             curve_episodes=1, progress=False)
     report = finetune(config, command="dust-rl finetune ...")
     # Steering also runs the base policy at the centre of its noise, where a deterministic steering agent starts.
     assert [row["episodes"] for row in report["rows"]] == [2] * (3 if method == "steer" else 2)
@@ -73,14 +85,20 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
     assert report["per_episode"]["base policy"] == [list(e) for e in evaluated["tasks"][0]["per_episode"]]
     agent = load_checkpoint(tmp_path / "ft" / "rl_agent.pt", RL_AGENT_KIND)
     assert agent["config"]["method"] == method and all(torch.isfinite(v).all() for v in agent["state_dict"].values())
+    assert rl_config_from_json(agent["config"]) == config  # the saved config rebuilds the run's
+    saved = json.loads((tmp_path / "ft" / "config.json").read_text())["config"]
+    assert (saved["method"], saved["algorithm"]["name"]) == (method, algorithm)
     assert "| base policy | 2 |" in (tmp_path / "ft" / "report.md").read_text()
-    assert "eval/success_rate_fine_tuned" in (tmp_path / "ft" / "logs" / "progress.csv").read_text()
+    # SB3's scalars go through torchrl's CSV logger, one file per scalar of (step, value) rows.
+    scalars = tmp_path / "ft" / "logs" / "finetune" / "scalars"
+    fine_tuned = (scalars / "eval" / "success_rate_fine_tuned.csv").read_text().splitlines()
+    assert [float(v) for v in fine_tuned[-1].split(",")] == [8, report["rows"][-1]["success_rate"]]
+    assert (scalars / "train" / "learning_rate.csv").is_file()
 
 
 def test_wm_select_writes_a_policy_eval_loads_and_compares_on_the_same_seeds(policy_path, tmp_path):
-    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method="wm_select", candidates=(2,), rollouts=5,
-                            scorer_hidden=8, scorer_steps=3, eval_episodes=2, max_steps=EPISODE_STEPS,
-                            progress=False)
+    config = WmSelectConfig(policy=policy_path, out=tmp_path / "ft", candidates=(2,), rollouts=5, scorer_hidden=8,
+                            scorer_steps=3, eval_episodes=2, max_steps=EPISODE_STEPS, progress=False)
     report = finetune(config, command="dust-rl finetune ...")
     assert [row["task"] for row in report["rows"]] == ["base policy", "wm_select (K = 2)"]
     assert report["rollout_env_steps"] == 5 * EPISODE_STEPS and report["scorer"]["validation_rows"] > 0
@@ -106,8 +124,9 @@ def test_wm_select_writes_a_policy_eval_loads_and_compares_on_the_same_seeds(pol
 
 @pytest.mark.parametrize("algorithm", ["sac", "ppo"])
 def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path):
-    config = FinetuneConfig(policy=policy_path, method="residual", algorithm=algorithm, steps=16, learning_starts=8,
-                            batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS, initial_std=0.05, progress=False)
+    settings = SacSettings(learning_starts=8) if algorithm == "sac" else PpoSettings()
+    config = ResidualConfig(policy=policy_path, algorithm=settings, steps=16, batch_size=4, net_arch=(16,),
+                            max_steps=EPISODE_STEPS, initial_std=0.05, progress=False)
     env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
@@ -124,9 +143,9 @@ def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path)
 
 
 def test_critic_warmup_holds_the_actor_at_the_base_policy_while_the_critic_learns(policy_path):
-    config = FinetuneConfig(policy=policy_path, method="residual", algorithm="ppo", steps=16, batch_size=4,
-                            net_arch=(16,), max_steps=EPISODE_STEPS, initial_std=0.05, learning_rate=1e-3,
-                            n_steps=8, n_epochs=2, target_kl=0.5, critic_warmup=8, progress=False)
+    config = ResidualConfig(policy=policy_path, steps=16, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
+                            initial_std=0.05, learning_rate=1e-3, progress=False,
+                            algorithm=PpoSettings(n_steps=8, n_epochs=2, target_kl=0.5, critic_warmup=8))
     env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
     agent = build_agent(config, env)
     assert (agent.learning_rate, agent.n_steps, agent.n_epochs, agent.target_kl) == (1e-3, 8, 2, 0.5)
@@ -137,7 +156,7 @@ def test_critic_warmup_holds_the_actor_at_the_base_policy_while_the_critic_learn
     actor, critic = (torch.nn.ModuleList([agent.policy.mlp_extractor.policy_net, agent.policy.action_net]),
                      torch.nn.ModuleList([agent.policy.mlp_extractor.value_net, agent.policy.value_net]))
     actor_start, critic_start = weights(actor), weights(critic)
-    warmup = CriticWarmup(config.critic_warmup)
+    warmup = CriticWarmup(config.algorithm.critic_warmup)
     agent.learn(total_timesteps=8, callback=warmup)  # one rollout of 8 steps, inside the warm-up
     assert all(torch.equal(a, b) for a, b in zip(weights(actor), actor_start))
     assert not all(torch.equal(a, b) for a, b in zip(weights(critic), critic_start))
@@ -147,9 +166,10 @@ def test_critic_warmup_holds_the_actor_at_the_base_policy_while_the_critic_learn
 
 
 def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_path):
-    config = FinetuneConfig(policy=policy_path, method="steer", steps=12, learning_starts=4, batch_size=4,
-                            net_arch=(16,), max_steps=EPISODE_STEPS, initial_std=0.5, target_entropy=0.0,
-                            initial_alpha=0.01, gradient_steps=3, progress=False)
+    config = SteerConfig(policy=policy_path, steps=12, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
+                         initial_std=0.5, progress=False,
+                         algorithm=SacSettings(learning_starts=4, target_entropy=0.0, initial_alpha=0.01,
+                                               gradient_steps=3))
     env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
@@ -165,8 +185,8 @@ def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_pa
 
 
 def test_layer_norm_caps_the_critic_off_its_data(policy_path):
-    config = FinetuneConfig(policy=policy_path, method="steer", steps=8, net_arch=(16, 16), layer_norm=True,
-                            max_steps=EPISODE_STEPS, progress=False)
+    config = SteerConfig(policy=policy_path, steps=8, net_arch=(16, 16), layer_norm=True, max_steps=EPISODE_STEPS,
+                         progress=False)
     env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
@@ -185,8 +205,8 @@ def test_layer_norm_caps_the_critic_off_its_data(policy_path):
 
 
 def test_q_bounds_hold_the_critic_and_its_target_within_the_returns(policy_path):
-    config = FinetuneConfig(policy=policy_path, method="steer", steps=8, net_arch=(16,), q_bounds=(0.0, 1.0),
-                            max_steps=EPISODE_STEPS, progress=False)
+    config = SteerConfig(policy=policy_path, steps=8, net_arch=(16,), algorithm=SacSettings(q_bounds=(0.0, 1.0)),
+                         max_steps=EPISODE_STEPS, progress=False)
     env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
     agent = build_agent(config, env)
     obs_t, _ = agent.policy.obs_to_tensor(env.reset(seed=0)[0])
@@ -200,48 +220,46 @@ def test_q_bounds_hold_the_critic_and_its_target_within_the_returns(policy_path)
         q, _ = agent.critic(obs_t, far)
         _, q_target = agent.critic_target(obs_t, far)
     assert 0.0 <= q.item() <= 1.0 and 0.0 <= q_target.item() <= 1.0
-    assert set(agent.policy.state_dict()) == set(build_agent(dataclasses.replace(config, q_bounds=None),
+    assert set(agent.policy.state_dict()) == set(build_agent(dataclasses.replace(config, algorithm=SacSettings()),
                                                              env).policy.state_dict())  # loads as before
     env.close()
 
 
 def test_bad_finetune_settings_are_named(policy_path, tmp_path):
     with pytest.raises(ConfigError, match="noise_bound"):
-        FinetuneConfig(policy=policy_path, noise_bound=0.0)
+        SteerConfig(policy=policy_path, noise_bound=0.0)
+    with pytest.raises(ConfigError, match="residual_scale"):
+        ResidualConfig(policy=policy_path, residual_scale=float("inf"))
     with pytest.raises(ConfigError, match="initial_std must be a finite number > 0"):
-        FinetuneConfig(policy=policy_path, initial_std=0.0)
+        SteerConfig(policy=policy_path, initial_std=0.0)
     with pytest.raises(ConfigError, match="q_bounds must be two finite numbers LO < HI"):
-        FinetuneConfig(policy=policy_path, q_bounds=(1.0, 0.0))
-    with pytest.raises(ConfigError, match="target_entropy and q_bounds are SAC settings; --algorithm is ppo"):
-        FinetuneConfig(policy=policy_path, algorithm="ppo", target_entropy=0.0)
+        SacSettings(q_bounds=(1.0, 0.0))
     with pytest.raises(ConfigError, match="target_entropy must be a finite number"):
-        FinetuneConfig(policy=policy_path, target_entropy=float("nan"))
+        SacSettings(target_entropy=float("nan"))
     with pytest.raises(ConfigError, match="gradient_steps"):
-        FinetuneConfig(policy=policy_path, gradient_steps=0)
-    with pytest.raises(ConfigError, match="critic_warmup are PPO settings; --algorithm is sac"):
-        FinetuneConfig(policy=policy_path, critic_warmup=2048)
+        SacSettings(gradient_steps=0)
     with pytest.raises(ConfigError, match="target_kl must be a finite number > 0"):
-        FinetuneConfig(policy=policy_path, algorithm="ppo", target_kl=0.0)
+        PpoSettings(target_kl=0.0)
     with pytest.raises(ConfigError, match="learning_rate must be a finite number > 0"):
-        FinetuneConfig(policy=policy_path, learning_rate=float("nan"))
+        SteerConfig(policy=policy_path, learning_rate=float("nan"))
     with pytest.raises(ConfigError, match="net_arch"):
-        FinetuneConfig(policy=policy_path, net_arch=())
-    with pytest.raises(ConfigError, match="world_model_obs applies to --method residual, not steer"):
-        FinetuneConfig(policy=policy_path, world_model_obs=True)
+        SteerConfig(policy=policy_path, net_arch=())
+    with pytest.raises(ConfigError, match="rollouts >= 5"):
+        WmSelectConfig(policy=policy_path, rollouts=4)
     with pytest.raises(ConfigError, match="unknown device 'tpu'"):
-        FinetuneConfig(policy=policy_path, device="tpu")
+        WmSelectConfig(policy=policy_path, device="tpu")
     with pytest.raises(ConfigError, match="no_such_task"):
-        finetune(FinetuneConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
+        finetune(SteerConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
     busy = tmp_path / "busy"
     busy.mkdir()
     with folder_lock(busy), pytest.raises(FolderLockedError, match=f"pid {os.getpid()}"):  # as a run holds it
-        finetune(FinetuneConfig(policy=policy_path, out=busy, steps=8, progress=False))
+        finetune(SteerConfig(policy=policy_path, out=busy, steps=8, progress=False))
     assert [p.name for p in busy.iterdir()] == [".lock"]
 
 
 def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_path, tmp_path):
-    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ppo", method="residual", algorithm="ppo", steps=8,
-                            n_steps=8, batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
+    config = ResidualConfig(policy=policy_path, out=tmp_path / "ppo", algorithm=PpoSettings(n_steps=8), steps=8,
+                            batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
                             checkpoint_every=8, progress=False)
     first = finetune(config)
     saved = Checkpoint.manifest(CheckpointRotation(config.out / "checkpoints", keep_last=2).latest())["metadata"]
@@ -257,21 +275,23 @@ def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_pa
     restore(Checkpoint(agent=state, rng=GlobalRNGState()), CheckpointRotation(config.out / "checkpoints", keep_last=2))
     env.close()
     assert state.agent.num_timesteps == 16 and report["steps"] == 16
-    sac = dataclasses.replace(config, out=tmp_path / "sac", algorithm="sac", n_steps=2048, learning_starts=4)
+    sac = dataclasses.replace(config, out=tmp_path / "sac", algorithm=SacSettings(learning_starts=4))
     finetune(sac)
     with pytest.raises(ConfigError, match=r"other settings \(steps\)"):
         finetune(dataclasses.replace(sac, steps=16, resume=True))
 
 
 def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path):
-    settings = {"steps": 120, "checkpoint_every": 8, "learning_starts": 4, "batch_size": 4, "net_arch": (16,),
-                "eval_episodes": 1, "max_steps": EPISODE_STEPS}
-    reference = FinetuneConfig(policy=policy_path, out=tmp_path / "ref", progress=False, **settings)
+    settings = {"steps": 120, "checkpoint_every": 8, "batch_size": 4, "net_arch": (16,), "eval_episodes": 1,
+                "max_steps": EPISODE_STEPS}
+    reference = SteerConfig(policy=policy_path, out=tmp_path / "ref", progress=False,
+                            algorithm=SacSettings(learning_starts=4), **settings)
     finetune(reference)
     out = tmp_path / "killed"
-    args = ["finetune", "--policy", str(policy_path), "--out", str(out), "--no-progress", "--threads", "1"]
+    args = ["finetune", "steer", "--policy", str(policy_path), "--out", str(out), "--no-progress", "--threads", "1"]
     for key, value in settings.items():
         args += [f"--{key.replace('_', '-')}", *map(str, value if isinstance(value, tuple) else (value,))]
+    args += ["sac", "--learning-starts", "4"]
     kill_after_first_checkpoint(args, out)
     assert not (out / "rl_agent.pt").exists()
 
@@ -296,8 +316,8 @@ def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path):
 
 
 def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_dir, tmp_path):
-    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method="self_imitation", rollout_successes=1,
-                            max_steps=EPISODE_STEPS, curve_episodes=1, progress=False)
+    config = SelfImitationConfig(policy=policy_path, out=tmp_path / "ft", rollout_successes=1, max_steps=EPISODE_STEPS,
+                                 curve_episodes=1, progress=False)
     with pytest.raises(ConfigError, match="pass --demos"):  # the policy file names no training dataset
         finetune(config)
     # An untrained policy never succeeds: the first round's collection gives up, its rollouts kept on disk.
@@ -324,13 +344,14 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
 
 
 def test_the_control_is_the_base_fine_tuned_as_long_on_its_demonstrations_alone(policy_path, demo_dir, tmp_path):
-    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ft", method="self_imitation", demos=demo_dir, rounds=2,
-                            train=TrainSettings(steps=2, lr=1e-4, batch_size=4, log_every=1),
+    config = SelfImitationConfig(policy=policy_path, out=tmp_path / "ft", demos=demo_dir, rounds=2, seed=3,
+                            train=RoundTraining(steps=2, lr=1e-4, batch_size=4, log_every=1),
                             eval_episodes=1, max_steps=EPISODE_STEPS, progress=False)
     name, row = control_row(config)
     assert name == "demonstrations alone (4 steps, the control)"  # two rounds of two steps
     trained = json.loads((tmp_path / "ft" / "control" / "steps-4" / "config.json").read_text())["config"]
     assert (trained["steps"], trained["init_policy"], trained["extra_dataset"]) == (4, str(policy_path), None)
+    assert trained["seed"] == 3  # the run's --seed: the rounds' own is not offered
     assert trained["dataset"] == str(demo_dir)
     assert row["episodes"] == 1 and row["seeds"] == [config.eval_seed]
     assert control_row(config) == (name, row)  # cached: read back, not trained or evaluated again
@@ -343,8 +364,8 @@ def test_a_rounds_time_adds_up_over_resumed_invocations(tmp_path):
 
 
 def test_a_pickle_grafted_into_a_finetune_checkpoint_never_runs_on_resume(policy_path, tmp_path):
-    config = FinetuneConfig(policy=policy_path, out=tmp_path / "ppo", method="residual", algorithm="ppo", steps=8,
-                            n_steps=8, batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
+    config = ResidualConfig(policy=policy_path, out=tmp_path / "ppo", algorithm=PpoSettings(n_steps=8), steps=8,
+                            batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
                             checkpoint_every=8, progress=False)
     finetune(config)
     agent_file = (config.out / "rl_agent.pt").read_bytes()
@@ -355,3 +376,43 @@ def test_a_pickle_grafted_into_a_finetune_checkpoint_never_runs_on_resume(policy
         finetune(dataclasses.replace(config, resume=True))
     assert not marker.exists()
     assert (config.out / "rl_agent.pt").read_bytes() == agent_file
+
+
+def test_a_logger_whose_package_is_missing_is_refused_before_anything_is_written(policy_path, tmp_path, capsys):
+    from dust_rl.cli import main
+
+    out = tmp_path / "ft"
+    with pytest.raises(SystemExit, match=r"^dust-rl: error: --loggers wandb needs the wandb package: pip install "
+                                         r"wandb$"):
+        main(["finetune", "residual", "--policy", str(policy_path), "--out", str(out), "--loggers", "csv", "wandb"])
+    assert not out.exists()
+    with pytest.raises(ConfigError, match="unknown loggers"):
+        SteerConfig(policy=policy_path, loggers=("csv", "stdout"))
+
+
+def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
+    from dust_rl.cli import main
+
+    def help_of(*words: str) -> str:
+        with pytest.raises(SystemExit):
+            main(["finetune", *words, "--help"])
+        return capsys.readouterr().out
+
+    assert all(method in help_of() for method in ("steer", "residual", "wm-select", "self-imitation"))
+    steer, sac, ppo = help_of("steer"), help_of("steer", "sac"), help_of("steer", "ppo")
+    assert "--noise-bound" in steer and "--residual-scale" not in steer and "--candidates" not in steer
+    assert "--gradient-steps" in sac and "--n-steps" not in sac
+    assert "--n-steps" in ppo and "--gradient-steps" not in ppo
+    rounds = help_of("self-imitation")
+    assert "--train.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
+    assert "--steps" not in help_of("wm-select")
+
+
+def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own_settings():
+    old = {"method": "residual", "policy": "p.pt", "out": "runs/ft", "algorithm": "ppo", "n_steps": 512,
+           "target_kl": 0.01, "gradient_steps": 1, "net_arch": [16], "world_model_obs": True}
+    config = rl_config_from_json(old, device="cpu")
+    assert isinstance(config, ResidualConfig) and config.world_model_obs and config.device == "cpu"
+    assert config.algorithm == PpoSettings(n_steps=512, target_kl=0.01) and config.net_arch == (16,)
+    new = SteerConfig(policy=pathlib.Path("p.pt"), algorithm=SacSettings(q_bounds=(0.0, 1.0)))
+    assert rl_config_from_json(json.loads(json.dumps(dataclasses.asdict(new), default=str))) == new

@@ -153,6 +153,13 @@ class Episode(NamedTuple):
     length: int
     digest: str
 
+    @classmethod
+    def of(cls, seed: int, success: bool, actions: torch.Tensor, final_state: torch.Tensor) -> Episode:
+        """The record of an episode reset from ``seed`` that executed ``actions`` [T, Da] and ended in
+        ``final_state``: its length counts env steps, however they were run (a torchrl rollout here, an RL agent's
+        env in :mod:`dust_rl.rl.finetune`), so equal records mean the same episode."""
+        return cls(int(seed), bool(success), len(actions), episode_digest(actions, final_state))
+
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """Wilson score interval of a success rate (z = 1.96: 95%); (0, 1) when n = 0.
@@ -260,9 +267,8 @@ def episode_of(trajectory: TensorDictBase) -> Episode:
     done = trajectory.get(("next", "done")).reshape(-1)
     if (seeds != seeds[0]).any() or not done[-1] or done[:-1].any():
         raise RuntimeError(f"collector returned a trajectory that is not one whole episode (seeds {seeds.unique()})")
-    success = bool(trajectory.get(("next", SUCCESS_KEY))[-1].any())
-    digest = episode_digest(trajectory.get("action"), trajectory.get(("next", *STATE_KEY))[-1])
-    return Episode(int(seeds[0]), success, len(done), digest)
+    success = trajectory.get(("next", SUCCESS_KEY))[-1].any()
+    return Episode.of(seeds[0], success, trajectory.get("action"), trajectory.get(("next", *STATE_KEY))[-1])
 
 
 def run_task(collector: BaseCollector, seeds: range, bar: tqdm,

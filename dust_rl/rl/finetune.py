@@ -1,4 +1,4 @@
-"""RL fine-tuning of a trained DUST policy with stable-baselines3: ``dust-rl finetune``.
+"""RL fine-tuning of a trained DUST policy: ``dust-rl finetune steer|residual|wm-select|self-imitation``.
 
 Read top to bottom, CleanRL style: arguments, the frozen policy and its env,
 the fine-tuning env (noise steering or residual, :mod:`dust_rl.rl.steering`,
@@ -16,11 +16,12 @@ evaluated episodes exactly (tested).
 
 Every ``checkpoint_every`` RL steps the whole learning state (networks,
 optimisers, replay buffer, counters, RNG; :mod:`dust_rl.rl.checkpoint`) goes
-to a torchrl ``Checkpoint``; ``--resume`` continues from the newest one.
+to a torchrl ``Checkpoint``; ``--resume`` continues from the newest one. The agent's scalars go through
+torchrl's loggers (``--loggers``, :mod:`dust_rl.rl.sb3_logger`), as training's do.
 
-``--method wm_select`` trains no RL agent: it fits a scorer of DUST's predicted futures on the policy's own
+``wm-select`` trains no RL agent: it fits a scorer of DUST's predicted futures on the policy's own
 rollouts and writes a policy that picks among K joint samples (:mod:`dust_rl.rl.wm_select`).
-``--method self_imitation`` trains no RL agent either: it fine-tunes the policy's own weights on its
+``self-imitation`` trains no RL agent either: it fine-tunes the policy's own weights on its
 successful rollouts (:mod:`dust_rl.rl.self_imitation`). torchrl's SAC front-end is :mod:`dust_rl.rl.torchrl_sac`.
 """
 
@@ -36,7 +37,6 @@ import numpy as np
 import torch
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.logger import configure as configure_logger
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from tqdm.auto import tqdm
 
@@ -44,20 +44,28 @@ from dust_rl.agents import DustPolicy, load_policy, unwrap
 from dust_rl.agents.checkpoint_io import save_checkpoint
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate.closed_loop import BASE_ROW, Episode, episode_digest, paired_comparison, summary_row
+from dust_rl.evaluate.closed_loop import BASE_ROW, Episode, paired_comparison, summary_row
 from dust_rl.evaluate.report import plot_learning_curve
 from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
     PPO_RESUMABLE_FIELDS,
     RESUMABLE_FIELDS,
     RL_AGENT_KIND,
+    FinetuneCommand,
     FinetuneConfig,
+    PpoSettings,
+    RLConfig,
+    SacSettings,
+    SelfImitationConfig,
+    SteerConfig,
+    WmSelectConfig,
     is_dagger,
 )
 from dust_rl.rl.critic_limits import LayerNormReLU, bound_critic
 from dust_rl.rl.critic_warmup import CriticWarmup
 from dust_rl.rl.frozen_policy_env import FrozenPolicyEnv
 from dust_rl.rl.residual import ResidualEnv
+from dust_rl.rl.sb3_logger import sb3_logger
 from dust_rl.rl.self_imitation import self_imitation
 from dust_rl.rl.start_at_base import WarmStartSAC, start_at_base
 from dust_rl.rl.steering import NoiseSteeringEnv
@@ -74,35 +82,39 @@ ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
 
 def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     """Fine-tune, save the result, compare with the base policy; returns the report."""
-    resumable = PPO_RESUMABLE_FIELDS if config.algorithm == "ppo" else RESUMABLE_FIELDS
+    is_ppo = not isinstance(config, (WmSelectConfig, SelfImitationConfig)) and config.algorithm.name == "ppo"
+    resumable = PPO_RESUMABLE_FIELDS if is_ppo else RESUMABLE_FIELDS
     with torch_threads(config.threads):
         check_run_folder(config, resumable)
         policy = unwrap(load_policy(config.policy))
         env_id, env_kwargs, task = policy_env(config, policy)
-        demos = config.demos or pathlib.Path(policy.info.get("dataset") or "")
-        if config.method == "self_imitation" and not (demos / "meta.json").is_file():
-            raise ConfigError(f"self_imitation trains on the policy's demonstrations too; {demos} is not a dataset: "
-                              "pass --demos")
+        if isinstance(config, SelfImitationConfig):
+            demos = config.demos or pathlib.Path(policy.info.get("dataset") or "")
+            if not (demos / "meta.json").is_file():
+                raise ConfigError(f"self-imitation trains on the policy's demonstrations too; {demos} is not a "
+                                  "dataset: pass --demos")
+            config = dataclasses.replace(config, demos=demos)
         with locked_run_folder(config, resumable, command):
-            return _finetune_in_folder(config, command, policy, env_id, env_kwargs, task, demos)
+            return _finetune_in_folder(config, command, policy, env_id, env_kwargs, task)
 
 
 def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: DustPolicy, env_id: str,
-                        env_kwargs: dict, task: str, demos: pathlib.Path) -> dict:
+                        env_kwargs: dict, task: str) -> dict:
     """The fine-tuning and its report, once the run folder is this run's."""
-    if config.method in ("wm_select", "self_imitation"):
-        result = (wm_select(config, task, policy) if config.method == "wm_select"
-                  else self_imitation(dataclasses.replace(config, demos=demos), task, env_id, env_kwargs))
+    if isinstance(config, (WmSelectConfig, SelfImitationConfig)):
+        result = (wm_select(config, task, policy) if isinstance(config, WmSelectConfig)
+                  else self_imitation(config, task, env_id, env_kwargs))
         episodes = {name: [Episode(*e) for e in row["per_episode"]] for name, row in result["rows"].items()}
         extra = {k: v for k, v in result.items() if k not in ("rows", "train_seconds")}
         trained_s = result["train_seconds"]
     else:
         policy.to(resolve_device(config.device))
         episodes, trained_s = train_rl(config, finetune_env_factory(config, policy)[0])
-        extra = {"rl_agent": str(config.out / "rl_agent.pt")}
+        extra = {"algorithm": config.algorithm.name, "steps": config.steps,
+                 "rl_agent": str(config.out / "rl_agent.pt")}
     report = {
-        "policy": str(config.policy), "method": config.method, "algorithm": config.algorithm, "task": task,
-        "steps": config.steps, "command": command, "config": config_json(config),
+        "policy": str(config.policy), "method": config.method, "task": task, "command": command,
+        "config": config_json(config),
         "seeds": [config.eval_seed, config.eval_seed + config.eval_episodes - 1], "train_seconds": trained_s,
         "rows": [summary_row(name, rows) | ({} if name == BASE_ROW else
                                               {"vs_base": paired_comparison(episodes[BASE_ROW], rows)})
@@ -114,14 +126,14 @@ def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: Dus
     return report
 
 
-def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tuple[dict[str, list[Episode]], float]:
+def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv]) -> tuple[dict[str, list[Episode]], float]:
     """Train the SB3 agent on the fine-tuning env (resuming from the newest checkpoint), save it, and run the
     base and the fine-tuned policy on the evaluation seeds; returns their episodes by row name and the
     training seconds."""
     began = time.perf_counter()
     env = make()
     agent = build_agent(config, env)
-    agent.set_logger(configure_logger(str(config.out / "logs"), ["csv", "tensorboard"]))
+    agent.set_logger(sb3_logger(config.loggers, config.out / "logs"))
     checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=GlobalRNGState())
     rotation = CheckpointRotation(config.out / "checkpoints", keep_last=2)
     restored = restore(checkpoint, rotation)
@@ -139,7 +151,8 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
                       **summary_row(BASE_ROW, _run_episodes(make, lambda obs, env: env.step_base(),
                                                                  curve_seeds, config.progress))})
     sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
-    warmup = CriticWarmup(config.critic_warmup) if config.critic_warmup else None
+    warmup = (CriticWarmup(config.algorithm.critic_warmup)
+              if isinstance(config.algorithm, PpoSettings) and config.algorithm.critic_warmup else None)
     while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every (or eval_every) steps
         agent.learn(total_timesteps=min(sitting, config.steps - agent.num_timesteps), reset_num_timesteps=False,
                     progress_bar=config.progress, callback=warmup)
@@ -151,7 +164,7 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
                           **summary_row("fine-tuned", episodes)})
             agent.logger.record("eval/curve_success_rate", curve[-1]["success_rate"])
             write_json_atomic(curve_path, curve, indent=2)
-            title = f"{config.method} + {config.algorithm}, seeds {curve_seeds.start}..{curve_seeds.stop - 1}"
+            title = f"{config.method} + {config.algorithm.name}, seeds {curve_seeds.start}..{curve_seeds.stop - 1}"
             plot_learning_curve(curve, config.out / "learning_curve.png", title)
         save_checkpoint_dir(checkpoint, rotation, agent.num_timesteps,
                             {"step": agent.num_timesteps, "env_steps": env.env_steps,
@@ -165,12 +178,12 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     # the centre of its noise (the RL action 0), which a deterministic steering agent starts from.
     seeds = range(config.eval_seed, config.eval_seed + config.eval_episodes)
     step_functions = {"base": lambda obs, env: env.step_base()}
-    if config.method == "steer":
+    if isinstance(config, SteerConfig):
         centre = np.zeros(env.action_space.shape, np.float32)
         step_functions["centre"] = lambda obs, env: env.step(centre)
     step_functions["fine_tuned"] = _tuned_step(agent)
     names = {"base": BASE_ROW, "centre": f"{BASE_ROW}, noise at its centre",
-             "fine_tuned": f"fine-tuned ({config.method}, {config.algorithm})"}
+             "fine_tuned": f"fine-tuned ({config.method}, {config.algorithm.name})"}
     rows = {}
     for key, step in step_functions.items():
         rows[names[key]] = episodes = _run_episodes(make, step, seeds, config.progress)
@@ -179,39 +192,43 @@ def train_rl(config: FinetuneConfig, make: Callable[[], FrozenPolicyEnv]) -> tup
     return rows, trained_s
 
 
-def build_agent(config: FinetuneConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
+def build_agent(config: RLConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
     """The SB3 agent ``config`` asks for, on ``env`` (the same settings rebuild it to resume)."""
-    algorithm = ALGORITHMS[config.algorithm]
+    settings = config.algorithm
+    algorithm = ALGORITHMS[settings.name]
     kwargs: dict = {"gamma": config.gamma, "learning_rate": config.learning_rate}
-    if algorithm is SAC:  # a replay buffer no larger than the run
-        kwargs |= {"learning_starts": config.learning_starts, "batch_size": config.batch_size,
-                   "buffer_size": config.steps, "gradient_steps": config.gradient_steps}
-        if config.initial_std is not None and config.target_entropy is None:
+    target_entropy = None
+    if isinstance(settings, SacSettings):  # a replay buffer no larger than the run
+        target_entropy = settings.target_entropy
+        kwargs |= {"learning_starts": settings.learning_starts, "batch_size": config.batch_size,
+                   "buffer_size": config.steps, "gradient_steps": settings.gradient_steps}
+        if config.initial_std is not None and target_entropy is None:
             kwargs["ent_coef"] = 0.0  # the std is fixed: an entropy bonus would only swamp the reward (start_at_base)
         else:
-            kwargs["ent_coef"] = f"auto_{config.initial_alpha}"
-            if config.target_entropy is not None:
-                kwargs["target_entropy"] = config.target_entropy
+            kwargs["ent_coef"] = f"auto_{settings.initial_alpha}"
+            if target_entropy is not None:
+                kwargs["target_entropy"] = target_entropy
+        if config.initial_std is not None:
+            algorithm = WarmStartSAC
     else:  # a rollout no longer than the run, minibatches no larger than a rollout
-        n_steps = min(config.n_steps, config.steps)
-        kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps), "n_epochs": config.n_epochs,
-                   "target_kl": config.target_kl}
-    if algorithm is SAC and config.initial_std is not None:
-        algorithm = WarmStartSAC
+        n_steps = min(settings.n_steps, config.steps)
+        kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps), "n_epochs": settings.n_epochs,
+                   "target_kl": settings.target_kl}
     policy_kwargs = {"net_arch": list(config.net_arch)}
     if config.layer_norm:
         policy_kwargs["activation_fn"] = LayerNormReLU
     agent = algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
                       policy_kwargs=policy_kwargs, **kwargs)
     if config.initial_std is not None:
-        start_at_base(agent, config.initial_std, learn_std=config.target_entropy is not None)
-    if config.q_bounds is not None:
-        bound_critic(agent, *config.q_bounds)
+        start_at_base(agent, config.initial_std, learn_std=target_entropy is not None)
+    if isinstance(settings, SacSettings) and settings.q_bounds is not None:
+        bound_critic(agent, *settings.q_bounds)
     return agent
 
 
-def finetune_command(config: FinetuneConfig, command: str | None = None) -> dict:
-    """``dust-rl finetune``: fine-tune, print the comparison, say where the files are."""
+def finetune_command(command_config: FinetuneCommand, command: str | None = None) -> dict:
+    """``dust-rl finetune METHOD``: fine-tune, print the comparison, say where the files are."""
+    config = command_config.method
     report = finetune(config, command)
     for row in report["rows"]:
         print(f"{row['task']}: {row['successes']}/{row['episodes']} successful ({100 * row['success_rate']:.0f}%, "
@@ -236,15 +253,16 @@ def policy_env(config: FinetuneConfig, policy: DustPolicy) -> tuple[str, dict, s
     return env_id, env_kwargs, task
 
 
-def finetune_env_factory(config: FinetuneConfig, policy: DustPolicy) -> tuple[Callable[[], FrozenPolicyEnv], str]:
+def finetune_env_factory(config: RLConfig, policy: DustPolicy) -> tuple[Callable[[], FrozenPolicyEnv], str]:
     """A factory of fresh fine-tuning envs for ``config``'s task (checked once, here), and the task."""
     env_id, env_kwargs, task = policy_env(config, policy)
-    step_discount = config.gamma ** (1 / policy.execute_steps) if config.method == "steer" else config.gamma
+    steer = isinstance(config, SteerConfig)
+    step_discount = config.gamma ** (1 / policy.execute_steps) if steer else config.gamma
 
     def make() -> FrozenPolicyEnv:
         env = make_env(env_id, {**env_kwargs, "task": task, "reward_type": config.reward,
                                 "shaping_discount": step_discount})
-        if config.method == "steer":
+        if steer:
             return NoiseSteeringEnv(env, policy, noise_bound=config.noise_bound, step_discount=step_discount,
                                     finite_horizon=config.finite_horizon)
         half_width = (env.action_space.high - env.action_space.low) / 2
@@ -266,8 +284,8 @@ def _read_curve(path: pathlib.Path) -> list[dict]:
 
 def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, FrozenPolicyEnv], tuple],
                   seeds: range, progress: bool) -> list[Episode]:
-    """Closed-loop episodes on ``seeds``; success is the env's ``is_success`` at the end, length and digest count
-    env steps, as :func:`dust_rl.evaluate.closed_loop.evaluate` does (equal digests: the same episode)."""
+    """Closed-loop episodes on ``seeds``; success is the env's ``is_success`` at the end, recorded as
+    :func:`dust_rl.evaluate.closed_loop.evaluate` records its own (equal records: the same episode)."""
     env, episodes = make(), []
     for seed in tqdm(seeds, desc="episodes", disable=not progress):
         obs, _ = env.reset(seed=seed)
@@ -275,9 +293,8 @@ def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, Fro
         while not done:
             obs, _, terminated, truncated, info = step(obs, env)
             done = terminated or truncated
-        actions = torch.from_numpy(np.stack(env.executed))
-        digest = episode_digest(actions, torch.from_numpy(obs["robot_state"]))
-        episodes.append(Episode(seed, bool(info.get("is_success", False)), len(env.executed), digest))
+        episodes.append(Episode.of(seed, info.get("is_success", False), torch.from_numpy(np.stack(env.executed)),
+                                   torch.from_numpy(obs["robot_state"])))
     env.close()
     return episodes
 

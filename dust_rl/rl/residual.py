@@ -22,6 +22,7 @@ import numpy as np
 from gymnasium import spaces
 
 from dust_rl.agents import DustPolicy
+from dust_rl.agents.execution import replans
 from dust_rl.rl.frozen_policy_env import FrozenPolicyEnv
 
 
@@ -60,10 +61,6 @@ class ResidualEnv(FrozenPolicyEnv):
         self.observation_space = spaces.Dict(entries)
         self.chunk, self.index = None, 0
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        self.chunk = None
-        return super().reset(seed=seed, options=options)
-
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
         """Execute the base action plus ``residual_scale * action``, clipped to the action box.
 
@@ -81,9 +78,10 @@ class ResidualEnv(FrozenPolicyEnv):
         return self.step(np.zeros(self.action_space.shape, np.float32))
 
     def observe(self, obs: dict) -> dict:
-        """Also re-plan when the chunk's executed part is used up, and show the next base action."""
+        """Also re-plan at the reset and when the chunk's executed part is used up (the evaluation's rule), and show
+        the next base action."""
         view = super().observe(obs)
-        if self.chunk is None or self.index >= self.execute_steps:
+        if replans(len(self.executed), self.execute_steps):
             self.chunk, self.index = self.plan().numpy(), 0
         view["base_action"] = self.base_action
         if "predicted_future" in self.observation_space.spaces:

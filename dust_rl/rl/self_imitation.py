@@ -1,4 +1,4 @@
-"""Success-filtered self-imitation: ``dust-rl finetune --method self_imitation``.
+"""Success-filtered self-imitation: ``dust-rl finetune self-imitation``.
 
 Why: an imitation policy trained on 200 demonstrations has seen 200 layouts, and most of its failures are
 layouts it has not learnt to read (docs/franka_results.md, "The token read-out"); noise steering and a residual could
@@ -36,7 +36,7 @@ from dust_rl.data import collect_demos
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.evaluate.closed_loop import BASE_ROW, EvalConfig, evaluate
 from dust_rl.evaluate.report import plot_learning_curve
-from dust_rl.rl.config import FinetuneConfig, is_dagger
+from dust_rl.rl.config import SelfImitationConfig, is_dagger
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.train.imitation import TrainConfig, train
 
@@ -45,7 +45,7 @@ ROUND_SEEDS = 10_000
 ROUND_SECONDS = "seconds.json"  # in each round's folder: its collecting and fine-tuning time
 
 
-def self_imitation(config: FinetuneConfig, task: str, env_id: str, env_kwargs: dict) -> dict:
+def self_imitation(config: SelfImitationConfig, task: str, env_id: str, env_kwargs: dict) -> dict:
     """Run (or resume) every round, then evaluate the base, the control (``config.control``: the base fine-tuned as
     long on its demonstrations alone) and the last round's policy on the held-out seeds; returns the report's parts."""
     dagger = is_dagger(config.train.extra_action_key)
@@ -85,7 +85,7 @@ def _add_seconds(folder: pathlib.Path, seconds: float) -> float:
     return total
 
 
-def control_row(config: FinetuneConfig) -> tuple[str, dict]:
+def control_row(config: SelfImitationConfig) -> tuple[str, dict]:
     """The base policy fine-tuned on its demonstrations alone, for as many steps as all rounds together, and its row
     on the held-out seeds (both cached in the run folder, by step count: a run resumed with more rounds gets its own
     control)."""
@@ -96,30 +96,30 @@ def control_row(config: FinetuneConfig) -> tuple[str, dict]:
     return f"demonstrations alone ({steps} steps, the control)", row
 
 
-def _fine_tune(config: FinetuneConfig, policy: pathlib.Path, rollouts: pathlib.Path | None,
+def _fine_tune(config: SelfImitationConfig, policy: pathlib.Path, rollouts: pathlib.Path | None,
                out: pathlib.Path) -> pathlib.Path:
     """``policy`` trained further on its demonstrations and ``rollouts`` (none: the demonstrations alone); a
     finished run is not trained again."""
     if not (out / "policy.pt").is_file():
-        settings = dataclasses.replace(config.train, init_policy=policy, extra_dataset=rollouts,
+        settings = dataclasses.replace(config.train, init_policy=policy, extra_dataset=rollouts, seed=config.seed,
                                        threads=config.threads, device=config.device, progress=config.progress)
         resume = (out / "config.json").is_file()
         train(TrainConfig.from_settings(settings, dataset=config.demos, out=out, resume=resume))
     return out / "policy.pt"
 
 
-def _curve_point(config: FinetuneConfig, policy: pathlib.Path, name: str, env_steps: int) -> dict:
+def _curve_point(config: SelfImitationConfig, policy: pathlib.Path, name: str, env_steps: int) -> dict:
     """Success of ``policy`` on the validation seeds, at ``env_steps`` env steps of rollouts."""
     report = _report(config, policy, config.out / "curve" / name, config.curve_episodes, config.curve_seed, 0)
     return {"round": name, "env_steps": env_steps, **report["overall"]}
 
 
-def _evaluate(config: FinetuneConfig, policy: pathlib.Path, out: pathlib.Path) -> dict:
+def _evaluate(config: SelfImitationConfig, policy: pathlib.Path, out: pathlib.Path) -> dict:
     """``policy``'s row on the held-out seeds, as ``dust-rl eval`` reports it."""
     return _report(config, policy, out, config.eval_episodes, config.eval_seed, 1)["tasks"][0]
 
 
-def _report(config: FinetuneConfig, policy: pathlib.Path, out: pathlib.Path, episodes: int, seed: int,
+def _report(config: SelfImitationConfig, policy: pathlib.Path, out: pathlib.Path, episodes: int, seed: int,
             videos: int) -> dict:
     """The evaluation report of ``policy`` in ``out``: read back if that evaluation already ran."""
     if (out / "report.json").is_file():

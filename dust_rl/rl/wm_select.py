@@ -1,4 +1,4 @@
-"""World-model selection, ``dust-rl finetune --method wm_select``: DUST's predicted future picks the chunk.
+"""World-model selection, ``dust-rl finetune wm-select``: DUST's predicted future picks the chunk.
 
 DUST samples every action chunk jointly with the frozen embedding of the
 frame after it. This method puts that prediction to work without changing a
@@ -25,9 +25,10 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, SamplerConfig, save_policy
+from dust_rl.agents.execution import replans
 from dust_rl.evaluate.closed_loop import BASE_ROW, EvalConfig, eval_collector, evaluate, prepare, run_task
 from dust_rl.keys import PREDICTED_FUTURE_KEY
-from dust_rl.rl.config import VALIDATION_EVERY, FinetuneConfig
+from dust_rl.rl.config import VALIDATION_EVERY, WmSelectConfig
 
 SCORER_BATCH = 256
 SCORER_LR = 1e-3
@@ -45,7 +46,7 @@ class Rollouts:
     env_steps: int
 
 
-def collect_rollouts(config: FinetuneConfig, task: str) -> Rollouts:
+def collect_rollouts(config: WmSelectConfig, task: str) -> Rollouts:
     """The base policy's own episodes on the rollout seeds, one row per re-plan."""
     seeds = range(config.rollout_seed, config.rollout_seed + config.rollouts)
     eval_config = EvalConfig(policy=config.policy, out=config.out, tasks=(task,), episodes=config.rollouts,
@@ -58,7 +59,7 @@ def collect_rollouts(config: FinetuneConfig, task: str) -> Rollouts:
     futures, success, episode = [], [], []
     for index, record in enumerate(episodes):
         trajectory = trajectories[record.seed]
-        plans = trajectory[:: setup.execute_steps]  # the executor re-plans at the reset and every execute_steps
+        plans = trajectory[torch.tensor([replans(t, setup.execute_steps) for t in range(record.length)])]
         futures.append(policy.normalizer.normalize_vision(plans.get(PREDICTED_FUTURE_KEY)))
         success.append(torch.full((plans.shape[0],), float(record.success)))
         episode.append(torch.full((plans.shape[0],), index))
@@ -116,7 +117,7 @@ def with_scorer(policy: DustPolicy, hidden: int, candidates: int) -> DustPolicy:
     return scored
 
 
-def wm_select(config: FinetuneConfig, task: str, base: DustPolicy) -> dict:
+def wm_select(config: WmSelectConfig, task: str, base: DustPolicy) -> dict:
     """Roll out, fit the scorer on a copy of ``base`` (the loaded ``config.policy``), write ``policy.pt``, evaluate
     base and each K; returns the report's parts."""
     began = time.perf_counter()
