@@ -7,7 +7,7 @@ then one end-to-end ``collect_demos`` run (collector, episode writes,
 consolidation) with one worker, whose consolidated memmap copy gives the disk
 size per 1,000 transitions.
 
-    python -m dust_rl.benchmarks.collect_speed [--task pick_place] [--episodes 8] [--image-size 128] \
+    python -m dust_rl.bench.collect_speed [--task pick_place] [--episodes 8] [--image-size 128] \
         [--workers 1 2] [--backends local ray]
 """
 

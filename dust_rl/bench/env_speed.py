@@ -6,7 +6,7 @@ checks, observation dicts, success tests), so ``env / bare`` is the
 wrapper's overhead. Any number of end effectors (7 action numbers each).
 Pinned to one CPU core by default, as the targets ask.
 
-    python -m dust_rl.benchmarks.env_speed [--env DustHumanoid-v0] [--steps 600] [--tasks pick_place ...]
+    python -m dust_rl.bench.env_speed [--env DustHumanoid-v0] [--steps 600] [--tasks pick_place ...]
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ the task's staged dense reward (potential-based) by default. Success is counted 
 it: the agent's deterministic action, the env's ``is_success``, on held-out seeds from 10,000 (validation seeds
 from 5,000 for the learning curve). Not resumable: a run is minutes to an hour; rerun it whole.
 
-    python -m dust_rl.benchmarks.sb3_scratch --task press_button --algorithm sac --steps 100000 \
+    python -m dust_rl.bench.sb3_scratch --task press_button --algorithm sac --steps 100000 \
         --eval-every 20000 --out runs/bench/sb3_scratch/press_button_sac
 """
 

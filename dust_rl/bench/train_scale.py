@@ -7,7 +7,7 @@ which the OS can drop under pressure). Samples/s is the run's last logged ``trai
 (every process together). Encode the dataset's features once beforehand (any run with the same policy
 settings) so that encoding is not timed.
 
-    python -m dust_rl.benchmarks.train_scale --dataset runs/data/pick_place [--nproc 1 2] [--steps 100] \\
+    python -m dust_rl.bench.train_scale --dataset runs/data/pick_place [--nproc 1 2] [--steps 100] \\
         [-- --policy.image-encoder efficientnet-lite0-s8 --policy.cond-grid 8 8]
 """
 
