@@ -10,10 +10,11 @@ A checkpoint folder follows the Hugging Face / LeRobot convention:
 ``config.json`` (everything that is not a tensor, with the kind and version)
 and ``model.safetensors`` (the tensors), so reading it parses JSON and raw
 tensor bytes only. It is written to a temp folder beside the target, fsynced,
-and renamed into place (an old folder is first renamed aside, then removed: a
-killed writer leaves the old folder or the new one, never half of one). An
-existing folder is replaced only if it holds a checkpoint of the same kind or
-nothing, so a mistyped path never deletes data.
+and renamed into place; an old folder is first renamed aside, then removed.
+A killed writer leaves no half folder at the target: the old folder or the new
+one (killed between the two renames, the old one is kept beside it under a
+hidden name). An existing folder is replaced only if it holds a checkpoint of
+the same kind or nothing, so a mistyped path never deletes data.
 """
 
 from __future__ import annotations
@@ -94,11 +95,17 @@ def save_folder(config: dict, tensors: dict[str, Tensor], path: str | pathlib.Pa
             _fsync(tmp / name)
         if path.exists():
             os.rename(path, old)
-        os.rename(tmp, path)
+            try:
+                os.rename(tmp, path)
+            except OSError:
+                os.rename(old, path)  # the old folder goes back; nothing is lost
+                raise
+            shutil.rmtree(old)
+        else:
+            os.rename(tmp, path)
         _fsync(path.parent)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(old, ignore_errors=True)
     return path
 
 

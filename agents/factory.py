@@ -26,7 +26,7 @@ from torchrl.envs import EnvBase
 
 from dust_rl.keys import IMAGE_KEY, STATE_KEY, flat_name
 
-from .backbone import FrozenBackbone, resolve_image_encoder
+from .backbone import FrozenBackbone, resolve_image_encoder, stores_image_weights
 from .checkpoint_io import CheckpointError, load_checkpoint, load_folder, one_line, save_checkpoint, save_folder
 from .config import MAX_CAMERAS, DustConfig, check_size
 from .image_encoder import ImageEncoder
@@ -164,8 +164,7 @@ def _read_policy(path: pathlib.Path) -> dict:
         return load_checkpoint(path, POLICY_KIND)
     entries, tensors = load_folder(path, POLICY_KIND)
     backbone = entries.get("backbone")
-    image = backbone.get("image") if isinstance(backbone, dict) else None
-    stores_image = isinstance(image, dict) and not image.get("path")  # as FrozenBackbone.image_weights decides
+    stores_image = stores_image_weights(backbone.get("image") if isinstance(backbone, dict) else None)
     image_weights = {k.removeprefix(IMAGE_WEIGHTS_PREFIX): v for k, v in tensors.items()
                      if stores_image and k.startswith(IMAGE_WEIGHTS_PREFIX)}
     state_dict = {k: v for k, v in tensors.items() if not (stores_image and k.startswith(IMAGE_WEIGHTS_PREFIX))}
