@@ -7,7 +7,7 @@ from .checkpoint_io import CheckpointError
 from .config import VARIANTS, DustConfig, ModelConfig, PolicyConfig, SamplerConfig
 from .dust_model import ChunkContext, DustModel
 from .execution import ChunkExecutor, seeded_executor
-from .factory import env_spec, load_policy, make_policy, save_policy, unwrap
+from .factory import env_spec, load_policy, make_policy, save_policy
 from .flow_matching import action_validity, decoupled_loss, interpolate, masked_mse, sample_tau, velocity_target
 from .hf_vision import TransformersImageEncoder
 from .image_encoder import ImageEncoder
@@ -53,6 +53,5 @@ __all__ = [
     "schedule_for",
     "seeded_executor",
     "sync_schedule",
-    "unwrap",
     "velocity_target",
 ]

@@ -77,13 +77,18 @@ class FrozenBackbone(nn.Module):
         return {"image": self.image.reference(), "text": self.text.reference()}
 
     def image_weights(self) -> dict[str, Tensor] | None:
-        """Image encoder weights a policy checkpoint must store: None when its reference points to a path."""
-        return None if self.image.reference().get("path") else self.image.state_dict()
+        """Image encoder weights a policy checkpoint must store (:func:`stores_image_weights`), else None."""
+        return self.image.state_dict() if stores_image_weights(self.image.reference()) else None
 
     @classmethod
     def from_reference(cls, reference: dict, image_weights: dict[str, Tensor] | None = None) -> FrozenBackbone:
         """Rebuild a backbone from :meth:`reference` (and :meth:`image_weights`)."""
         return cls(build_image_encoder(reference["image"], image_weights), build_text_encoder(reference["text"]))
+
+
+def stores_image_weights(reference: object) -> bool:
+    """Whether a policy checkpoint holds the weights of the image encoder of ``reference``: unless it names a path."""
+    return isinstance(reference, dict) and not reference.get("path")
 
 
 # Caps on the sizes an encoder reference may ask for, by config field, checked before building

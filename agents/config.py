@@ -191,6 +191,7 @@ class ModelConfig:
                 raise ValueError(f"{name} must be a (rows, cols) pair, got {grid!r}")
             for side in grid:
                 check_size(name, side, MAX_GRID_SIDE)
+            object.__setattr__(self, name, tuple(grid))  # one form, whether built here or read from JSON
         for name, low, high in (("mlp_ratio", 0.0, MAX_MLP_RATIO), ("tau_s", 0.0, 1.0), ("tau_alpha", 0.0, math.inf),
                                 ("lambda_wm", None, math.inf), ("lambda_aux", None, math.inf)):
             value = getattr(self, name)

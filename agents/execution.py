@@ -22,11 +22,10 @@ from __future__ import annotations
 import torch
 from tensordict import NestedKey, TensorDictBase
 from torchrl.modules import MultiStepActorWrapper
+from torchrl.modules.vla import VLAWrapperBase
 
 from dust_rl.errors import UserError
 from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, FUTURE_CHUNK_KEY, PREDICTED_FUTURE_KEY, SEED_KEY
-
-from .policy import DustPolicy
 
 
 def replans(step: int, execute_steps: int) -> bool:
@@ -43,19 +42,22 @@ def episode_generator(seed: int) -> torch.Generator:
 
 
 class ChunkExecutor(MultiStepActorWrapper):
-    """``MultiStepActorWrapper`` over a :class:`DustPolicy` that also accepts unbatched envs.
+    """``MultiStepActorWrapper`` over a chunk policy that also accepts unbatched envs.
+
+    Built by :meth:`~dust_rl.agents.DustPolicy.executor`; it reads the policy's ``chunk_size`` and
+    ``writes_future`` only, so this module does not import the policy.
 
     torchrl 0.14.1's wrapper assumes a leading batch dim: with an unbatched env (batch size ``[]``)
     it would emit a ``[1, action_dim]`` action. Unbatched inputs get a batch dim of one here.
 
     Args:
-        policy: the chunk policy.
+        policy: the chunk policy (a :class:`~dust_rl.agents.DustPolicy`).
         execute_steps: actions executed per chunk before re-planning, in [1, H].
         seed_key: where the env writes its episode seed (e.g. ``"episode_seed"``); at every reset the noise
             then restarts from it. None: the noise comes from torch's global generator.
     """
 
-    def __init__(self, policy: DustPolicy, execute_steps: int, seed_key: NestedKey | None = None) -> None:
+    def __init__(self, policy: VLAWrapperBase, execute_steps: int, seed_key: NestedKey | None = None) -> None:
         keys = {}
         if policy.writes_future:  # the predicted future travels with the chunk (see DustPolicy.forward)
             keys = {"action_keys": [ACTION_KEY, PREDICTED_FUTURE_KEY],
@@ -67,10 +69,6 @@ class ChunkExecutor(MultiStepActorWrapper):
     @property
     def in_keys(self) -> list[NestedKey]:
         return super().in_keys + ([] if self.seed_key is None else [self.seed_key])
-
-    @property
-    def policy(self) -> DustPolicy:
-        return self.actor
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self.init_key not in tensordict.keys(include_nested=True):  # torchrl's own error names no fix
@@ -92,7 +90,7 @@ class ChunkExecutor(MultiStepActorWrapper):
         return tensordict.update(super().forward(tensordict.unsqueeze(0)).squeeze(0))
 
 
-def seeded_executor(policy: DustPolicy) -> ChunkExecutor:
+def seeded_executor(policy: VLAWrapperBase) -> ChunkExecutor:
     """``policy`` as the envs' collectors run it: chunks executed receding-horizon, the sampling noise restarted
     from each episode's seed (``episode_seed``), so an episode depends on its seed only."""
     return ChunkExecutor(policy, policy.execute_steps, SEED_KEY)

@@ -2,10 +2,17 @@
 
 ``make_policy`` reads only specs from the env it is given (action size and
 bounds, state size, cameras), so ``dust_rl.agents`` never imports the envs.
-A policy checkpoint is one file (see :mod:`.checkpoint_io`) holding the
-config, the trainable weights with the normalisation statistics (buffers),
-and the backbone reference: the image encoder's recipe and, unless it comes
-from a local path, its weights; the text encoder by package or path.
+Both return the :class:`DustPolicy` itself; ``policy.executor()`` is the
+receding-horizon torchrl policy a rollout runs.
+
+A saved policy holds the config, the trainable weights with the
+normalisation statistics (buffers), and the backbone reference: the image
+encoder's recipe and, unless it comes from a local path, its weights; the
+text encoder by package or path. It is one ``.pt`` file or a folder of
+``config.json`` and ``model.safetensors`` (:mod:`.checkpoint_io`): the same
+entries, the tensors (weights named as in the policy's ``state_dict``, the
+stored image encoder's under ``backbone.image.``) in the safetensors file and
+the rest in the JSON.
 """
 
 from __future__ import annotations
@@ -14,14 +21,14 @@ import dataclasses
 import pathlib
 from collections.abc import Mapping, Sequence
 
+import torch
 from torchrl.envs import EnvBase
 
 from dust_rl.keys import IMAGE_KEY, STATE_KEY, flat_name
 
-from .backbone import FrozenBackbone, resolve_image_encoder
-from .checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
+from .backbone import FrozenBackbone, resolve_image_encoder, stores_image_weights
+from .checkpoint_io import CheckpointError, load_checkpoint, load_folder, one_line, save_checkpoint, save_folder
 from .config import MAX_CAMERAS, DustConfig, check_size
-from .execution import ChunkExecutor
 from .image_encoder import ImageEncoder
 from .normalizer import Normalizer
 from .policy import DustPolicy
@@ -31,6 +38,11 @@ POLICY_KIND = "dust-rl-policy"
 # ``info`` entry of a trained policy: [height, width] of the frames it was trained on, checked against an env's.
 IMAGE_SIZE_INFO = "image_size"
 LEGACY_TRUNK_PREFIX = "agent.model."
+# A policy folder stores the image encoder's weights (when its reference has no path) among the tensors, under the
+# name the policy's state_dict gives them.
+IMAGE_WEIGHTS_PREFIX = "backbone.image."
+# Suffix of a path that save_policy writes as one torch file; any other path becomes a folder.
+FILE_SUFFIX = ".pt"
 
 
 def frame_size(shape: Sequence[int]) -> list[int]:
@@ -74,8 +86,9 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
                 image_encoder: ImageEncoder | str | pathlib.Path | None = None,
                 text_encoder: TextEncoder | None = None, cameras: Sequence[str] | None = None,
                 future_camera: str | None = None, stats: Mapping | None = None,
-                execute_steps: int | None = None, **config) -> ChunkExecutor:
-    """A torchrl policy: DUST or one of its baselines with a frozen backbone, executing chunks receding-horizon.
+                execute_steps: int | None = None, **config) -> DustPolicy:
+    """A torchrl policy: DUST or one of its baselines with a frozen backbone (``policy.executor()`` executes its
+    chunks receding-horizon).
 
     Args:
         variant: ``"dust"``, ``"action_only"``, ``"joint"``, ``"decoupled"`` or ``"mmdit_shared"``.
@@ -98,7 +111,7 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
         ValueError: ``env`` has no robot state, its sizes contradict ``config``, or no camera is given or found.
 
     Returns:
-        A :class:`ChunkExecutor` (torchrl ``MultiStepActorWrapper``) around a :class:`DustPolicy`.
+        The :class:`DustPolicy`.
     """
     spec = env_spec(env) if env is not None else {}
     for key in ("action_dim", "state_dim"):
@@ -119,31 +132,51 @@ def make_policy(variant: str = "dust", env: EnvBase | None = None, *,
         policy.set_action_bounds(spec["action_low"], spec["action_high"])
     if stats is not None:
         policy.normalizer.set_stats(stats)
-    return ChunkExecutor(policy, policy.execute_steps)
+    return policy
 
 
-def unwrap(policy: ChunkExecutor | DustPolicy) -> DustPolicy:
-    """The :class:`DustPolicy` inside an executor (or the policy itself)."""
-    return policy.policy if isinstance(policy, ChunkExecutor) else policy
+def save_policy(policy: DustPolicy, path: str | pathlib.Path) -> pathlib.Path:
+    """Write config, trainable weights, normalisation stats, backbone reference and ``info``, atomically.
 
+    Args:
+        policy: the policy.
+        path: a ``.pt`` file (one torch file), or any other path: a folder of ``config.json`` and
+            ``model.safetensors`` (no pickle), replacing an existing policy folder there.
 
-def save_policy(policy: ChunkExecutor | DustPolicy, path: str | pathlib.Path) -> pathlib.Path:
-    """Write config, trainable weights, normalisation stats, backbone reference and ``info`` to one file, atomically."""
-    policy = unwrap(policy)
+    Raises:
+        CheckpointError: ``path`` is an existing folder that is neither empty nor a policy folder.
+        TypeError: a folder is asked for and ``policy.info`` holds something JSON cannot.
+    """
     weights = {k: v for k, v in policy.state_dict().items() if not k.startswith("backbone.")}
-    return save_checkpoint({
-        "config": dataclasses.asdict(policy.config), "cameras": policy.cameras, "future_camera": policy.future_camera,
-        "execute_steps": policy.execute_steps, "backbone": policy.backbone.reference(),
-        "image_weights": policy.backbone.image_weights(), "state_dict": weights, "info": policy.info,
-    }, path, POLICY_KIND)
+    entries = {"config": dataclasses.asdict(policy.config), "cameras": policy.cameras,
+               "future_camera": policy.future_camera, "execute_steps": policy.execute_steps,
+               "backbone": policy.backbone.reference(), "info": policy.info}
+    image_weights = policy.backbone.image_weights()
+    if pathlib.Path(path).suffix == FILE_SUFFIX:
+        return save_checkpoint({**entries, "image_weights": image_weights, "state_dict": weights}, path, POLICY_KIND)
+    stored_image = {IMAGE_WEIGHTS_PREFIX + k: v for k, v in (image_weights or {}).items()}
+    return save_folder(entries, {**weights, **stored_image}, path, POLICY_KIND)
+
+
+def _read_policy(path: pathlib.Path) -> dict:
+    """The entries of a policy file or folder, in the file's form (``state_dict``, ``image_weights``)."""
+    if not path.is_dir():
+        return load_checkpoint(path, POLICY_KIND)
+    entries, tensors = load_folder(path, POLICY_KIND)
+    backbone = entries.get("backbone")
+    stores_image = stores_image_weights(backbone.get("image") if isinstance(backbone, dict) else None)
+    image_weights = {k.removeprefix(IMAGE_WEIGHTS_PREFIX): v for k, v in tensors.items()
+                     if stores_image and k.startswith(IMAGE_WEIGHTS_PREFIX)}
+    state_dict = {k: v for k, v in tensors.items() if not (stores_image and k.startswith(IMAGE_WEIGHTS_PREFIX))}
+    return {**entries, "image_weights": image_weights if stores_image else None, "state_dict": state_dict}
 
 
 def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
-                execute_steps: int | None = None) -> ChunkExecutor:
-    """Read a policy written by :func:`save_policy`.
+                execute_steps: int | None = None) -> DustPolicy:
+    """Read a policy written by :func:`save_policy` (a ``.pt`` file or a folder).
 
     Args:
-        path: the checkpoint file.
+        path: the policy file or folder.
         env: if given, the checkpoint must fit its action size, state size, cameras and (for a trained policy)
             frame size.
         execute_steps: override the stored receding-horizon step count.
@@ -152,9 +185,10 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
         CheckpointError: missing or corrupt file, another kind of checkpoint, weights that do not
             fit the stored config, sizes above the caps of :mod:`.config` (checked before anything is
             allocated), an encoder that is not a local folder (loading never downloads), or a
-            checkpoint that does not fit ``env``.
+            checkpoint that does not fit ``env``; for a folder also a file linking out of it.
     """
-    payload = load_checkpoint(path, POLICY_KIND)
+    path = pathlib.Path(path)
+    payload = _read_policy(path)
     try:
         config = DustConfig(**payload["config"])
         cameras = payload["cameras"]
@@ -164,18 +198,34 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
         backbone = FrozenBackbone.from_reference(payload["backbone"], payload["image_weights"])
         policy = DustPolicy(config, backbone, cameras, payload["future_camera"],
                             execute_steps or payload["execute_steps"])
-        missing, unexpected = policy.load_state_dict(_current_names(payload["state_dict"]), strict=False)
+        weights = _current_names(payload["state_dict"])
+        _check_weights(policy, weights)
+        policy.load_state_dict(weights, strict=False)
         policy.info = dict(payload.get("info", {}))
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
-        raise CheckpointError(f"{path}: policy does not load ({type(err).__name__}: {err})") from err
-    optional = {f"normalizer.{name}" for name in Normalizer.OPTIONAL_BUFFERS}  # older files: identity stats
-    missing = [k for k in missing if not k.startswith("backbone.") and k not in optional]
-    if missing or unexpected:
-        raise CheckpointError(f"{path}: weights do not match the stored config (missing {missing}, "
-                              f"unexpected {unexpected})")
+        raise CheckpointError(f"{path}: policy does not load ({one_line(err)})") from err
     if env is not None:
         check_fits_env(policy, env, path)
-    return ChunkExecutor(policy, policy.execute_steps)
+    return policy
+
+
+def _check_weights(policy: DustPolicy, weights: dict) -> None:
+    """Raise ``ValueError`` unless ``weights`` are exactly the trainable weights and buffers of ``policy``
+    (the frozen backbone's are not among them), each of its shape; only the optional normaliser buffers of older
+    files may be missing (identity stats)."""
+    expected = {k: v.shape for k, v in policy.state_dict().items() if not k.startswith("backbone.")}
+    optional = {f"normalizer.{name}" for name in Normalizer.OPTIONAL_BUFFERS}
+    missing = sorted(k for k in expected.keys() - weights.keys() if k not in optional)
+    unexpected = sorted(weights.keys() - expected.keys())
+    misshapen = [f"{k} {_shape(weights[k])} (the config makes {list(expected[k])})" for k in sorted(weights)
+                 if k in expected and _shape(weights[k]) != list(expected[k])]
+    if missing or unexpected or misshapen:
+        raise ValueError(f"weights do not match the stored config (missing {missing}, unexpected {unexpected}, "
+                         f"wrong shape {misshapen})")
+
+
+def _shape(value: object) -> list[int] | str:
+    return list(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
 
 
 def _current_names(state_dict: dict) -> dict:

@@ -5,9 +5,12 @@
 ``language_instruction``) and writes ``("vla_action", "chunk")`` (env units)
 and ``action`` (the chunk's first step). It also reads the flat gymnasium
 names that a plain torchrl ``GymEnv`` keeps (``"observation.image.front"`` as
-``[H, W, 3]``, ``"observation.state"``). Receding-horizon execution is
-torchrl's :class:`~torchrl.modules.MultiStepActorWrapper` (see
-:mod:`.execution`).
+``[H, W, 3]``, ``"observation.state"``). It is the one object users and the
+training, evaluation and RL code hold (``make_policy`` and ``load_policy``
+return it); a rollout that executes ``execute_steps`` of each chunk before
+re-planning runs :meth:`DustPolicy.executor`, torchrl's
+:class:`~torchrl.modules.MultiStepActorWrapper` around it (see
+:mod:`.execution`). Run as it is, the policy re-plans at every step.
 
 Training runs on features, so the frozen backbone runs once per dataset row.
 Feature batches (B = batch size), built by :meth:`DustPolicy.feature_batch` from
@@ -58,6 +61,7 @@ from .backbone import FrozenBackbone
 from .condition import ConditionProjector
 from .config import DustConfig, SamplerConfig
 from .dust_model import DustModel
+from .execution import ChunkExecutor, seeded_executor
 from .flow_matching import WHOLE_BATCH, Shard
 from .future_scorer import FutureScorer
 from .image_encoder import pool_tokens
@@ -150,6 +154,12 @@ class DustPolicy(VLAWrapperBase):
         self.out_keys = [*self.out_keys, ACTION_KEY]
         if self.writes_future:
             self.out_keys += [PREDICTED_FUTURE_KEY, FUTURE_CHUNK_KEY]
+
+    def executor(self, seeded: bool = False) -> ChunkExecutor:
+        """The torchrl policy that executes ``execute_steps`` of each chunk before re-planning (for ``env.rollout``
+        and collectors); ``seeded``: the sampling noise restarts from each episode's ``episode_seed`` (the env's
+        :class:`~dust_rl.data.seeding.EpisodeSeedWrapper` writes it), so an episode depends on its seed only."""
+        return seeded_executor(self) if seeded else ChunkExecutor(self, self.execute_steps)
 
     def set_action_bounds(self, low: Tensor, high: Tensor) -> None:
         """Clamp sampled actions to the env's action box."""

@@ -41,7 +41,6 @@ from dust_rl.agents import (
     make_policy,
     random_batch,
     schedule_for,
-    unwrap,
 )
 from dust_rl.agents.precision import Precision, autocast
 
@@ -175,11 +174,11 @@ def main() -> None:
     for name, config, target in rows:
         median, best, cpu, first = chunk_latency_ms(config, args.repeats, args.compile, args.precision)
         print(f"| {name:<44} | {median:8.2f} | {best:8.2f} | {cpu:8.2f} | {first:9.2f} | {target:>8} |", flush=True)
-    policies = [(encoder, unwrap(make_policy("dust", image_encoder=encoder, cameras=CAMERAS, action_dim=7,
-                                              state_dim=17)), DEFAULT_POLICY_SAMPLERS)
+    policies = [(encoder, make_policy("dust", image_encoder=encoder, cameras=CAMERAS, action_dim=7,
+                                      state_dim=17), DEFAULT_POLICY_SAMPLERS)
                 for encoder in args.image_encoders.split(",") if encoder]
     for path in args.policies:
-        policy = unwrap(load_policy(path))
+        policy = load_policy(path)
         sampler = policy.config.sampler_settings
         name = f"{policy.config.variant}, N_A={sampler.n_action_steps}, q={sampler.vision_step_ratio}"
         policies.append((pathlib.Path(path).parent.name, policy, [(name, sampler)]))

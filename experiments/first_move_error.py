@@ -22,7 +22,7 @@ from dataclasses import replace
 
 import torch
 
-from dust_rl.agents import load_policy, unwrap
+from dust_rl.agents import load_policy
 from dust_rl.data import DemoDataset
 from dust_rl.envs.env import MAX_TRANSLATION
 from dust_rl.keys import EXPERT_ACTION_KEY, IMAGE_KEY
@@ -41,7 +41,7 @@ def main() -> None:
     parser.add_argument("--n-action-steps", type=int, default=None, help="denoising steps (default: the policy's)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    policy = unwrap(load_policy(args.policy)).eval()
+    policy = load_policy(args.policy).eval()
     if args.n_action_steps is not None:
         policy.set_sampler(replace(policy.config.sampler_settings, n_action_steps=args.n_action_steps))
     dataset = DemoDataset(args.dataset)

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor, nn
 from tqdm import trange
 
-from dust_rl.agents import load_policy, unwrap
+from dust_rl.agents import load_policy
 from dust_rl.agents.attention_pooling import WIDTH, AttentionProbe, standardise
 from dust_rl.agents.policy import DustPolicy
 from dust_rl.agents.text_encoder import pooled_text
@@ -58,7 +58,7 @@ def main() -> None:
     args = parser.parse_args()
     began = time.perf_counter()
     torch.manual_seed(args.seed)
-    policy = unwrap(load_policy(args.policy)).eval()
+    policy = load_policy(args.policy).eval()
     x, text, move = first_moves(policy, args.dataset)
     x_val, text_val, move_val = first_moves(policy, args.val_dataset)
     x, x_val = standardise(x, x_val)

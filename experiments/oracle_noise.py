@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 
-from dust_rl.agents import load_policy, save_policy, unwrap
+from dust_rl.agents import load_policy, save_policy
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 
 
@@ -26,7 +26,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=5000, help="first evaluation seed (validation: 5000)")
     args = parser.parse_args()
-    policy = unwrap(load_policy(args.policy))
+    policy = load_policy(args.policy)
     if not policy.info.get("env_kwargs", {}).get("privileged_state"):
         raise SystemExit(f"{args.policy} was not trained on privileged-state data")
     out = pathlib.Path(args.out)

@@ -23,7 +23,7 @@ from in_process_eval import add_eval_arguments, prepare_in_process, success_line
 from tensordict import TensorDictBase
 from torch import nn
 
-from dust_rl.agents import DustPolicy, load_policy, unwrap
+from dust_rl.agents import DustPolicy, load_policy
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.evaluate.closed_loop import evaluate_task
 from dust_rl.keys import STATE_KEY
@@ -56,7 +56,7 @@ def main() -> None:
     parser.add_argument("--readout", type=pathlib.Path, required=True, help="a policy with a state read-out")
     args = parser.parse_args()
     policy, setup, config = prepare_in_process(args)
-    readout = unwrap(load_policy(args.readout)).eval()
+    readout = load_policy(args.readout).eval()
     if not setup.env_kwargs.get("privileged_state") or not readout.config.aux_state_dim:
         raise SystemExit("--policy must be trained with --privileged-state and --readout must have a state read-out")
     if tuple(readout.info.get("tasks", ())) != setup.tasks:

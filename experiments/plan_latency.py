@@ -16,7 +16,7 @@ import gymnasium as gym
 import torch
 from tensordict import TensorDict
 
-from dust_rl.agents import load_policy, unwrap
+from dust_rl.agents import load_policy
 from dust_rl.keys import INSTRUCTION_KEY
 
 WARMUP, CALLS = 5, 25
@@ -28,7 +28,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=5000, help="reset seed of the observation")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    policy = unwrap(load_policy(args.policy)).eval()
+    policy = load_policy(args.policy).eval()
     env = gym.make("DustFranka-v0", task="pick_place")
     obs, _ = env.reset(seed=args.seed)
     env.close()

@@ -11,7 +11,7 @@ import argparse
 
 import torch
 
-from dust_rl.agents import load_policy, unwrap
+from dust_rl.agents import load_policy
 from dust_rl.data import DemoDataset
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.train.readout.error import readout_error_table
@@ -24,7 +24,7 @@ def main() -> None:
     parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    policy = unwrap(load_policy(args.policy))
+    policy = load_policy(args.policy)
     print(readout_error_table(policy, DemoDataset(args.dataset), EnvStateNorm.of_policy(policy), args.columns))
 
 

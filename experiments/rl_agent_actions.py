@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from stable_baselines3 import SAC
 
-from dust_rl.agents import load_policy, unwrap
+from dust_rl.agents import load_policy
 from dust_rl.agents.checkpoint_io import load_checkpoint
 from dust_rl.rl.config import rl_config_from_json
 from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune_env_factory
@@ -31,7 +31,7 @@ def main() -> None:
     torch.set_num_threads(1)
     saved = load_checkpoint(args.run / "rl_agent.pt", RL_AGENT_KIND)
     config = rl_config_from_json(saved["config"], device="cpu", progress=False)
-    env = finetune_env_factory(config, unwrap(load_policy(config.policy)))[0]()
+    env = finetune_env_factory(config, load_policy(config.policy))[0]()
     agent = build_agent(config, env)
     agent.policy.load_state_dict(saved["state_dict"])
     for seed in args.seeds:

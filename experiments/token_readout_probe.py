@@ -17,7 +17,7 @@ import time
 
 import torch
 
-from dust_rl.agents import make_policy, unwrap
+from dust_rl.agents import make_policy
 from dust_rl.data import DemoDataset
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
@@ -60,10 +60,10 @@ def main() -> None:
     torch.manual_seed(0)
     dataset = DemoDataset(args.dataset)
     width = env_state_width(dataset)
-    policy = unwrap(make_policy(image_encoder=args.image_encoder, cond_grid=(args.cond_grid, args.cond_grid),
-                                variant="action_only", readout="tokens", readout_heads=args.heads,
-                                readout_coords=args.coords,
-                                aux_state_dim=width, lambda_aux=1.0, **dataset_policy_kwargs(dataset)))
+    policy = make_policy(image_encoder=args.image_encoder, cond_grid=(args.cond_grid, args.cond_grid),
+                         variant="action_only", readout="tokens", readout_heads=args.heads,
+                         readout_coords=args.coords,
+                         aux_state_dim=width, lambda_aux=1.0, **dataset_policy_kwargs(dataset))
     norm = EnvStateNorm.of_dataset(dataset, per_task=not args.pooled_stats)
 
     def frames(count: int, first_seed: int) -> AuxFrameBatches:

@@ -17,7 +17,6 @@ from dust_rl.agents import (
     make_policy,
     random_batch,
     save_image_encoder,
-    unwrap,
 )
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -101,8 +100,8 @@ def test_minilm_tokens_masks_and_cache(tiny_encoder, minilm, monkeypatch):
 
 
 def test_backbone_stays_frozen_through_training(tiny_encoder, minilm):
-    policy = unwrap(make_policy("dust", image_encoder=tiny_encoder, text_encoder=minilm, cameras=["front"],
-                                action_dim=3, state_dim=5, horizon=4, d_model=32, n_heads=2, n_mmdit=2, n_dit=0))
+    policy = make_policy("dust", image_encoder=tiny_encoder, text_encoder=minilm, cameras=["front"],
+                         action_dim=3, state_dim=5, horizon=4, d_model=32, n_heads=2, n_mmdit=2, n_dit=0)
     backbone = policy.backbone
     before = {k: v.clone() for k, v in backbone.state_dict().items()}
     assert not any(p.requires_grad for p in backbone.parameters())

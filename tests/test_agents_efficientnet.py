@@ -8,7 +8,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from dust_rl.agents import load_policy, make_policy, save_policy, unwrap
+from dust_rl.agents import load_policy, make_policy, save_policy
 from dust_rl.agents.backbone import NAMED_IMAGE_ENCODERS, build_image_encoder, resolve_image_encoder
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.agents.efficientnet_lite import (
@@ -98,8 +98,8 @@ def test_named_encoders_resolve():
 
 
 def test_encoder_is_frozen_in_a_policy_and_rebuilds_from_stored_weights(one_thread):
-    policy = unwrap(make_policy("dust", image_encoder="efficientnet-lite0", action_dim=7, state_dim=17,
-                                cameras=["front"], d_model=32, n_heads=2, n_mmdit=2, n_dit=0, horizon=4))
+    policy = make_policy("dust", image_encoder="efficientnet-lite0", action_dim=7, state_dim=17,
+                         cameras=["front"], d_model=32, n_heads=2, n_mmdit=2, n_dit=0, horizon=4)
     assert policy.config.cond_grid == (8, 8) and policy.config.vision_dim == 112
     assert not any(p.requires_grad for p in policy.backbone.parameters())
     frames = torch.randint(0, 256, (2, 3, 128, 128), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
@@ -147,7 +147,7 @@ def test_policy_files_from_before_the_condition_grid_still_load(tmp_path, one_th
         del payload["state_dict"][name]
     old = save_checkpoint({k: v for k, v in payload.items() if k not in ("kind", "format_version")},
                           tmp_path / "old.pt", POLICY_KIND)
-    loaded = unwrap(load_policy(old))
+    loaded = load_policy(old)
     assert loaded.config.condition_grid == (4, 4)
     assert torch.equal(loaded.normalizer.vision_std, torch.ones(64))
-    assert torch.equal(loaded.condition.image_in.weight, unwrap(policy).condition.image_in.weight)
+    assert torch.equal(loaded.condition.image_in.weight, policy.condition.image_in.weight)

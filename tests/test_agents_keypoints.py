@@ -6,7 +6,7 @@ import pytest
 import torch
 from test_agents_policy import observation, perturb, tiny_policy
 
-from dust_rl.agents import DustConfig, load_policy, make_policy, save_policy, unwrap
+from dust_rl.agents import DustConfig, load_policy, make_policy, save_policy
 from dust_rl.agents.condition import ConditionProjector
 from dust_rl.agents.keypoints import SpatialKeypoints
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
@@ -98,8 +98,8 @@ def test_config_checks_keypoint_settings():
 @pytest.mark.parametrize(("source", "aux_state_input"), [("features", False), ("features", True), ("pixels", True)])
 def test_keypoint_policy_round_trips_and_its_heads_get_gradients(source, aux_state_input, tiny_encoder, minilm,
                                                                  tmp_path):
-    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm, keypoints=3, keypoint_source=source, aux_state_dim=4,
-                                lambda_aux=1.0, aux_state_input=aux_state_input))
+    policy = tiny_policy("dust", tiny_encoder, minilm, keypoints=3, keypoint_source=source, aux_state_dim=4,
+                         lambda_aux=1.0, aux_state_input=aux_state_input)
     perturb(policy)
     features = policy.observation_features(observation())
     batch = features.set("action_chunk", torch.randn(2, 6, 3)).set(
@@ -117,7 +117,7 @@ def test_keypoint_policy_round_trips_and_its_heads_get_gradients(source, aux_sta
     # Training optimises exactly the trainable parameters, the read-out among them.
     trained = {id(p) for p in policy.trainable_modules().parameters()}
     assert trained == {id(p) for p in policy.trainable_parameters()}
-    loaded = unwrap(load_policy(save_policy(policy, tmp_path / "policy.pt")))
+    loaded = load_policy(save_policy(policy, tmp_path / "policy.pt"))
     assert (loaded.config.keypoints, loaded.config.keypoint_source, loaded.config.aux_state_dim) == (3, source, 4)
     obs = observation()
     expected_plan = policy.plan(obs, torch.Generator().manual_seed(1))
@@ -133,9 +133,9 @@ def test_keypoint_policy_round_trips_and_its_heads_get_gradients(source, aux_sta
 def test_feature_batches_carry_the_normalised_environment_state(demo_dir, tiny_encoder, minilm):
     dataset = DemoDataset(demo_dir)
     width = len(dataset.meta["stats"]["observation.environment_state"]["mean"])
-    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                aux_state_dim=width, lambda_aux=1.0))
+    policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                         horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
+                         aux_state_dim=width, lambda_aux=1.0)
     cache = FeatureCache(dataset, policy, progress=False)
     windows = DemoWindows(dataset, horizon=6, batch_size=5).sample()
     raw = windows.get(("observation", "environment_state")).float()
@@ -145,7 +145,7 @@ def test_feature_batches_carry_the_normalised_environment_state(demo_dir, tiny_e
     dataset.meta["stats"].pop("observation.environment_state")  # as in a LeRobot dataset from elsewhere
     with pytest.raises(DatasetError, match="no observation.environment_state"):
         FeatureCache(dataset, policy, progress=False)
-    without = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                 horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0))
+    without = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                          horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0)
     with pytest.raises(ValueError, match="no state read-out"):
         without.estimate_env_state(cache.batch(windows))

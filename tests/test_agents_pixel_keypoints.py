@@ -6,7 +6,7 @@ import pytest
 import torch
 from test_agents_policy import observation, tiny_policy
 
-from dust_rl.agents import make_policy, unwrap
+from dust_rl.agents import make_policy
 from dust_rl.agents.pixel_keypoints import MAX_SHIFT, PixelKeypoints, random_shift
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.data.features import FeatureCache, dataset_policy_kwargs
@@ -39,7 +39,7 @@ def test_network_shifts_only_when_asked_and_reproducibly():
 
 
 def test_pixel_keypoints_need_the_frames(tiny_encoder, minilm):
-    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm, keypoints=2, keypoint_source="pixels"))
+    policy = tiny_policy("dust", tiny_encoder, minilm, keypoints=2, keypoint_source="pixels")
     features = policy.observation_features(observation())
     assert features.get("pixels").shape == (2, 2, 3, 32, 32) and features.get("pixels").dtype == torch.uint8
     batch = features.set("action_chunk", torch.randn(2, 6, 3)).set(
@@ -48,15 +48,15 @@ def test_pixel_keypoints_need_the_frames(tiny_encoder, minilm):
     assert all(p.grad is not None for p in policy.condition.keypoints.parameters())
     with pytest.raises(ValueError, match="no 'pixels'"):
         policy.compute_loss(batch.exclude("pixels"))
-    frozen_source = unwrap(tiny_policy("dust", tiny_encoder, minilm, keypoints=2))
+    frozen_source = tiny_policy("dust", tiny_encoder, minilm, keypoints=2)
     assert "pixels" not in frozen_source.observation_features(observation()).keys()
 
 
 def test_feature_batches_carry_the_window_frames(demo_dir, tiny_encoder, minilm):
     dataset = DemoDataset(demo_dir)
-    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                keypoint_source="pixels"))
+    policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                         horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
+                         keypoint_source="pixels")
     windows = DemoWindows(dataset, horizon=6, batch_size=5, images=False).sample()
     pixels = FeatureCache(dataset, policy, progress=False).batch(windows).get("pixels")
     rows = windows.get("index")

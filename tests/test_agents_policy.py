@@ -11,14 +11,12 @@ from torchrl.envs import GymEnv, InitTracker, TransformedEnv
 from dust_rl.agents import (
     VARIANTS,
     CheckpointError,
-    ChunkExecutor,
     DustPolicy,
     SamplerConfig,
     env_spec,
     load_policy,
     make_policy,
     save_policy,
-    unwrap,
 )
 from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.factory import POLICY_KIND
@@ -47,7 +45,7 @@ def observation(batch: tuple[int, ...] = (2,), state_dim: int = 5, seed: int = 0
     return td
 
 
-def tiny_policy(variant: str, encoder, text, **overrides) -> ChunkExecutor:
+def tiny_policy(variant: str, encoder, text, **overrides) -> DustPolicy:
     sizes = {**TINY, "action_dim": 3, "state_dim": 5, **overrides}
     return make_policy(variant, image_encoder=encoder, text_encoder=text, cameras=CAMERAS, **sizes)
 
@@ -62,7 +60,7 @@ def perturb(policy: DustPolicy) -> None:
 
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_every_variant_writes_a_chunk_and_an_action(variant, tiny_encoder, minilm):
-    policy = unwrap(tiny_policy(variant, tiny_encoder, minilm))
+    policy = tiny_policy(variant, tiny_encoder, minilm)
     assert isinstance(policy, DustPolicy) and policy.config.variant == variant
     assert policy.in_keys[:2] == [("observation", "image", "front"), ("observation", "image", "wrist")]
     for batch in [(2,), (), (2, 3)]:
@@ -81,7 +79,7 @@ def test_every_variant_writes_a_chunk_and_an_action(variant, tiny_encoder, minil
 
 @pytest.mark.parametrize("variant", ["dust", "action_only"])
 def test_the_initial_action_noise_steers_the_chunk(variant, tiny_encoder, minilm):
-    policy = unwrap(tiny_policy(variant, tiny_encoder, minilm))
+    policy = tiny_policy(variant, tiny_encoder, minilm)
     perturb(policy)
     obs = observation((2,))
     shape = (2, policy.config.horizon, policy.config.action_dim)
@@ -104,7 +102,7 @@ def test_the_initial_action_noise_steers_the_chunk(variant, tiny_encoder, minilm
 
 def test_normalisation_and_bounds_map_chunks_to_env_units(tiny_encoder, minilm):
     stats = {"state": {"mean": [0.0] * 5, "std": [1.0] * 5}, "action": {"mean": [10.0, 0, 0], "std": [0.0, 1, 1]}}
-    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm, stats=stats))
+    policy = tiny_policy("dust", tiny_encoder, minilm, stats=stats)
     chunk = policy(observation())["vla_action", "chunk"]
     assert torch.all((chunk[..., 0] - 10).abs() < 0.1)  # std 0 is floored, so dim 0 sits at its mean
     policy.set_action_bounds(torch.tensor([-1.0, -0.5, -0.5]), torch.tensor([1.0, 0.5, 0.5]))
@@ -115,13 +113,13 @@ def test_normalisation_and_bounds_map_chunks_to_env_units(tiny_encoder, minilm):
 @pytest.mark.parametrize("sampler,n_action_steps,ratio,evaluations", [
     ("async", 2, 4, 8), ("sync", 3, 1, 3), ("action_only", 4, 1, 4)])
 def test_sampler_options(sampler, n_action_steps, ratio, evaluations, tiny_encoder, minilm):
-    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm))
+    policy = tiny_policy("dust", tiny_encoder, minilm)
     policy.set_sampler(SamplerConfig(sampler, n_action_steps, ratio))
     calls = []
     policy.model.register_forward_hook(lambda *args: calls.append(1))
     policy(observation())
     assert len(calls) == evaluations and policy.config.sampler == sampler
-    joint = unwrap(tiny_policy("joint", tiny_encoder, minilm))
+    joint = tiny_policy("joint", tiny_encoder, minilm)
     if sampler != "sync":
         with pytest.raises(ValueError, match="shares one timestep"):
             joint.set_sampler(SamplerConfig(sampler, n_action_steps, ratio))
@@ -129,33 +127,32 @@ def test_sampler_options(sampler, n_action_steps, ratio, evaluations, tiny_encod
 
 def test_checkpoint_round_trip_gives_identical_outputs(tiny_encoder, minilm, tmp_path):
     policy = tiny_policy("dust", tiny_encoder, minilm, execute_steps=3)
-    inner = unwrap(policy)
-    perturb(inner)
+    perturb(policy)
     with torch.no_grad():
-        inner.normalizer.set_stats({"state": {"mean": [1.0] * 5, "std": [2.0] * 5},
+        policy.normalizer.set_stats({"state": {"mean": [1.0] * 5, "std": [2.0] * 5},
                                     "action": {"mean": [0.5, 0, 0], "std": [3.0, 1, 1]}})
-    inner.set_sampler(SamplerConfig("async", 2, 2))
-    inner.info = {"env_id": "DustFranka-v0", "tasks": ["pick_place"]}
+    policy.set_sampler(SamplerConfig("async", 2, 2))
+    policy.info = {"env_id": "DustFranka-v0", "tasks": ["pick_place"]}
     path = save_policy(policy, tmp_path / "policy.pt")
     loaded = load_policy(path)
-    assert loaded.replan_interval == 3 and unwrap(loaded).config == inner.config
-    assert unwrap(loaded).info == inner.info
+    assert loaded.execute_steps == loaded.executor().replan_interval == 3 and loaded.config == policy.config
+    assert loaded.info == policy.info
     obs = observation()
-    expected = inner.plan(obs, torch.Generator().manual_seed(0))
-    got = unwrap(loaded).plan(obs, torch.Generator().manual_seed(0))
+    expected = policy.plan(obs, torch.Generator().manual_seed(0))
+    got = loaded.plan(obs, torch.Generator().manual_seed(0))
     assert torch.equal(got["action_chunk"], expected["action_chunk"])
     assert torch.equal(got["future_tokens"], expected["future_tokens"])
     assert not list(tmp_path.glob(".*.tmp"))
 
 
 def test_policy_files_naming_the_old_agent_layer_still_load(tiny_encoder, minilm, tmp_path):
-    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm))
+    policy = tiny_policy("dust", tiny_encoder, minilm)
     perturb(policy)
     payload = load_checkpoint(save_policy(policy, tmp_path / "new.pt"), POLICY_KIND)
     payload["state_dict"] = {k.replace("model.", "agent.model.", 1) if k.startswith("model.") else k: v
                              for k, v in payload["state_dict"].items()}  # as files written before the change
     assert any(k.startswith("agent.model.") for k in payload["state_dict"])
-    old = unwrap(load_policy(save_checkpoint(payload, tmp_path / "old.pt", POLICY_KIND)))
+    old = load_policy(save_checkpoint(payload, tmp_path / "old.pt", POLICY_KIND))
     obs = observation()
     expected = policy.plan(obs, torch.Generator().manual_seed(0))["action_chunk"]
     assert torch.equal(old.plan(obs, torch.Generator().manual_seed(0))["action_chunk"], expected)
@@ -185,12 +182,11 @@ def test_receding_horizon_in_a_collector(tiny_encoder, minilm):
     try:
         policy = make_policy("dust", env, image_encoder=tiny_encoder, text_encoder=minilm, execute_steps=4,
                              **{**TINY, "horizon": 8})
-        inner = unwrap(policy)
-        assert inner.config.action_dim == 7 and inner.config.state_dim == 17 and inner.cameras == CAMERAS
+        assert policy.config.action_dim == 7 and policy.config.state_dim == 17 and policy.cameras == CAMERAS
         plans = []
-        inner.register_forward_hook(lambda *args: plans.append(1))
+        policy.register_forward_hook(lambda *args: plans.append(1))
         plans.clear()
-        collector = Collector(env, policy, frames_per_batch=10, total_frames=10)
+        collector = Collector(env, policy.executor(), frames_per_batch=10, total_frames=10)
         try:
             batch = next(iter(collector))
         finally:
@@ -207,7 +203,7 @@ def test_receding_horizon_in_a_collector(tiny_encoder, minilm):
     torch.testing.assert_close(batch["action"], chunk[torch.arange(10), batch["counter"].squeeze(-1) - 1])
     # Every step carries the future predicted at its latest re-plan, refreshed with the chunk.
     future = batch[PREDICTED_FUTURE_KEY]
-    assert future.shape == (10, inner.config.n_vision_tokens, inner.config.vision_dim)
+    assert future.shape == (10, policy.config.n_vision_tokens, policy.config.vision_dim)
     assert all(torch.equal(future[i], future[i - 1]) == (counter[i] != 1) for i in range(1, 10))
     assert len(plans) <= 4  # 3 chunks for 10 steps (+ the collector's spec probe)
 
@@ -217,9 +213,9 @@ def test_an_env_without_init_tracker_is_told_to_append_it(tiny_encoder, minilm):
     try:
         policy = make_policy("dust", env=env, image_encoder=tiny_encoder, text_encoder=minilm, **TINY)
         with pytest.raises(UserError, match=r"no 'is_init' entry.*TransformedEnv\(env, InitTracker\(\)\)$") as error:
-            env.rollout(3, policy)
+            env.rollout(3, policy.executor())
         assert "\n" not in str(error.value)
-        assert TransformedEnv(env, InitTracker()).rollout(3, policy)["action"].shape == (3, 7)
+        assert TransformedEnv(env, InitTracker()).rollout(3, policy.executor())["action"].shape == (3, 7)
     finally:
         env.close()
 
@@ -230,16 +226,16 @@ def test_a_plain_gym_env_works_as_is(tiny_encoder, minilm):
     canonical = make_torchrl_env(task="press_button", image_size=32)
     try:
         policy = make_policy("dust", flat, image_encoder=tiny_encoder, text_encoder=minilm, **TINY)
-        inner = unwrap(policy)
-        assert inner.config.action_dim == 7 and inner.config.state_dim == 17 and inner.cameras == CAMERAS
-        assert torch.equal(inner.action_low, torch.as_tensor(env_spec(canonical)["action_low"]))
-        rollout = flat.rollout(3, policy)
+        assert policy.config.action_dim == 7 and policy.config.state_dim == 17 and policy.cameras == CAMERAS
+        assert torch.equal(policy.action_low, torch.as_tensor(env_spec(canonical)["action_low"]))
+        rollout = flat.rollout(3, policy.executor())
         assert rollout["action"].shape == (3, 7) and flat.action_spec.is_in(rollout["action"])
         # One observation seen through both key layouts gives the same chunk (images are not transposed).
-        perturb(inner)
+        perturb(policy)
         flat.set_seed(7)
         canonical.set_seed(7)
-        plans = [inner.plan(env.reset(), torch.Generator().manual_seed(0))["action_chunk"] for env in (flat, canonical)]
+        plans = [policy.plan(env.reset(), torch.Generator().manual_seed(0))["action_chunk"]
+                 for env in (flat, canonical)]
         assert torch.equal(*plans)
     finally:
         flat.close()
@@ -256,7 +252,7 @@ def test_an_env_without_robot_state_gets_a_clear_error(tiny_encoder, minilm):
 
 
 def test_best_of_k_executes_the_sample_whose_predicted_future_scores_best(tiny_encoder, minilm, tmp_path):
-    policy = unwrap(tiny_policy("dust", tiny_encoder, minilm))
+    policy = tiny_policy("dust", tiny_encoder, minilm)
     perturb(policy)
     scored = with_scorer(policy, hidden=8, candidates=1)
     with torch.no_grad():
@@ -275,7 +271,7 @@ def test_best_of_k_executes_the_sample_whose_predicted_future_scores_best(tiny_e
     best = every["action_chunk"].view(2, k, 6, 3)[torch.arange(2), scores.argmax(-1)]
     assert torch.equal(chosen["action_chunk"], best) and scores.std() > 0
     # The scorer and K travel in the policy file.
-    loaded = unwrap(load_policy(save_policy(scored, tmp_path / "scored.pt")))
+    loaded = load_policy(save_policy(scored, tmp_path / "scored.pt"))
     assert loaded.config.candidates == k
     assert torch.equal(loaded.plan(obs, torch.Generator().manual_seed(1))["action_chunk"], chosen["action_chunk"])
     with pytest.raises(ValueError, match="needs a future scorer"):

@@ -10,7 +10,7 @@ import pytest
 import torch
 from conftest import DEMO_ENV_KWARGS
 
-from dust_rl.agents import make_policy, unwrap
+from dust_rl.agents import make_policy
 from dust_rl.data import DatasetError, DemoDataset
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.storage.cache_files import record_cache
@@ -61,10 +61,10 @@ def test_stored_tokens_are_the_encoded_ones_and_keyed_by_encoder_weights_and_gri
     dataset = DemoDataset(demo_dir)
 
     def token_policy(encoder, grid):
-        return unwrap(make_policy(image_encoder=encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                  horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                                  cond_grid=(2, 2), vision_grid=(2, 2), readout_grid=grid,
-                                  aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
+        return make_policy(image_encoder=encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                           horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                           cond_grid=(2, 2), vision_grid=(2, 2), readout_grid=grid,
+                           aux_state_dim=env_state_width(dataset), lambda_aux=1.0)
 
     stored = cached_aux_frames(tmp_path, *ARGS, progress=False)
     policy = token_policy(tiny_encoder, (4, 4))

@@ -8,7 +8,7 @@ import torch
 from conftest import DEMO_ENV_KWARGS
 from tensordict import TensorDict
 
-from dust_rl.agents import DustConfig, DustPolicy, make_policy, unwrap
+from dust_rl.agents import DustConfig, DustPolicy, make_policy
 from dust_rl.agents.attention_pooling import WIDTH
 from dust_rl.data import DemoDataset
 from dust_rl.data.env_state_norm import EnvStateNorm
@@ -134,9 +134,9 @@ def test_displacement_spares_the_object_the_gripper_holds():
 def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm):
     dataset = DemoDataset(demo_dir)
     width = env_state_width(dataset)
-    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                keypoint_source="pixels", aux_state_dim=width, lambda_aux=1.0))
+    policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                         horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
+                         keypoint_source="pixels", aux_state_dim=width, lambda_aux=1.0)
     rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
                                            width, progress=False)
     batches = AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
@@ -146,9 +146,9 @@ def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm)
     loss.backward()
     assert loss > 0 and all(p.grad is not None for p in policy.condition.keypoints.parameters())
     assert all(p.grad is not None for p in policy.state_readout.parameters())
-    on_features = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                     horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
-                                     aux_state_dim=width, lambda_aux=1.0))
+    on_features = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                              horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, keypoints=2,
+                              aux_state_dim=width, lambda_aux=1.0)
     with pytest.raises(ValueError, match="needs a state read-out on the image tokens"):
         on_features.readout_loss(frames)
 
@@ -157,10 +157,10 @@ def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm)
 def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encoder, minilm):
     dataset = DemoDataset(demo_dir)
     width = env_state_width(dataset)
-    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                                readout_heads=3, readout_coords=True, aux_state_dim=width, lambda_aux=1.0,
-                                aux_state_input=True))
+    policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                         horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                         readout_heads=3, readout_coords=True, aux_state_dim=width, lambda_aux=1.0,
+                         aux_state_input=True)
     rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
                                            width, progress=False)
     batches = AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
@@ -184,10 +184,10 @@ def test_a_finer_readout_grid_feeds_the_readout_more_tokens_and_the_trunk_the_sa
 
     def build(**grid) -> DustPolicy:
         torch.manual_seed(0)  # the read-out is built after the trunk: both policies' trunks are the same
-        return unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                  horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, vision_grid=(2, 2),
-                                  cond_grid=(2, 2), readout="tokens", aux_state_dim=env_state_width(dataset),
-                                  lambda_aux=1.0, **grid))
+        return make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                           horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, vision_grid=(2, 2),
+                           cond_grid=(2, 2), readout="tokens", aux_state_dim=env_state_width(dataset),
+                           lambda_aux=1.0, **grid)
 
     fine, coarse = build(readout_grid=(4, 4)), build()
     frames = torch.randint(0, 256, (3, len(fine.cameras), 3, 32, 32), dtype=torch.uint8)

@@ -8,7 +8,7 @@ import json
 import pytest
 from test_train import TINY_POLICY
 
-from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
+from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder
 from dust_rl.bench.suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, Cell, SuiteConfig, markdown, plan, run_suite
 from dust_rl.errors import ConfigError
 from dust_rl.train.imitation import TrainSettings
@@ -44,7 +44,7 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert "## Data scaling" in markdown and "| action_only | 1 | as trained |" in markdown
     assert f"| {WITH_VIDEO} | 2 | as trained |" in markdown
     video_policy = tmp_path / "suite" / "train" / "dust_video_seed0_demos2" / "policy.pt"
-    assert unwrap(load_policy(video_policy)).info["video_dataset"] == str(config.video_dataset)
+    assert load_policy(video_policy).info["video_dataset"] == str(config.video_dataset)
     assert (tmp_path / "suite" / "results.png").read_bytes()[:4] == b"\x89PNG"
 
     # A rerun finds every cell on disk: no training, no evaluation.

@@ -17,7 +17,7 @@ from tensordict import TensorDict
 from test_evaluate import tiny_policy_file
 from test_train import TINY_ARGS
 
-from dust_rl.agents import load_policy, save_image_encoder, unwrap
+from dust_rl.agents import load_policy, save_image_encoder
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
 from dust_rl.data.layout import STAGING_DIR
@@ -159,7 +159,7 @@ def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
         error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"), *args])
     assert "needs a future scorer" in error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"),
                                                  "resample", "--candidates", "2"])
-    horizon = unwrap(load_policy(policy)).config.horizon
+    horizon = load_policy(policy).config.horizon
     assert "execute_steps must be in [1, " in error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"),
                                                         "--execute-steps", str(horizon + 1)])
     assert "no such checkpoint file" in error_of(["eval", "--policy", str(tmp_path / "missing.pt")])

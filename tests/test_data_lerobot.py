@@ -13,7 +13,7 @@ import pytest
 import torch
 from test_train import tiny_policy
 
-from dust_rl.agents import load_policy, save_image_encoder, unwrap
+from dust_rl.agents import load_policy, save_image_encoder
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.lerobot_export import DATA_FILE, EPISODES_FILE
@@ -195,7 +195,7 @@ def test_training_runs_on_a_plain_lerobot_import(plain_import, tiny_encoder, tmp
     result = train(TrainConfig(dataset=imported, out=tmp_path / "run", policy=tiny_policy(encoder), steps=2,
                                batch_size=8, log_every=1, checkpoint_every=2, threads=1, progress=False))
     assert np.isfinite(result.final_loss)
-    policy = unwrap(load_policy(result.policy))
+    policy = load_policy(result.policy)
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button"]
 
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 from test_evaluate import tiny_policy_file
 
-from dust_rl.agents import CheckpointError, load_policy, seeded_executor, unwrap
+from dust_rl.agents import CheckpointError, load_policy
 from dust_rl.data import DatasetError, collect_demos
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import load_episode_rows, scan_episodes
@@ -40,7 +40,7 @@ def test_stored_rollouts_are_the_policys_evaluated_episodes(rollouts, policy_pat
     assert all(record.kept and not record.success and record.length == 5 for record in records.values())
     rows = load_episode_rows(rollouts, records[3])
     env = make_eval_env("DustFranka-v0", {**ENV_KWARGS, "task": "press_button"}, SeedSchedule(3))
-    evaluated = env.rollout(10, seeded_executor(unwrap(load_policy(policy_path))), break_when_any_done=True)
+    evaluated = env.rollout(10, load_policy(policy_path).executor(seeded=True), break_when_any_done=True)
     env.close()
     assert torch.equal(rows["action"], evaluated["action"])  # the same episode, bit for bit
     assert torch.equal(rows["observation", "state"], evaluated["observation", "state"])

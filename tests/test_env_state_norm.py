@@ -6,7 +6,7 @@ import pytest
 import torch
 from conftest import DEMO_ENV_KWARGS, rounding_tolerance
 
-from dust_rl.agents import make_policy, unwrap
+from dust_rl.agents import make_policy
 from dust_rl.agents.normalizer import MIN_STD
 from dust_rl.data import DemoDataset
 from dust_rl.data.collect import collect_demos
@@ -63,9 +63,9 @@ def test_pooled_statistics_and_unknown_tasks(demo_dir):
 
 def test_a_policy_names_the_normalisation_it_was_trained_with(demo_dir, tiny_encoder, minilm):
     dataset = DemoDataset(demo_dir)
-    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                                aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
+    policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                         horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                         aux_state_dim=env_state_width(dataset), lambda_aux=1.0)
     policy.info = {"dataset": str(demo_dir)}  # trained before per-task statistics: the pooled ones
     assert torch.equal(EnvStateNorm.of_policy(policy).mean, EnvStateNorm.of_dataset(dataset, per_task=False).mean)
     policy.info[INFO_KEY] = PER_TASK

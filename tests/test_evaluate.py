@@ -18,7 +18,6 @@ from dust_rl.agents import (
     load_policy,
     make_policy,
     save_policy,
-    unwrap,
 )
 from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.execution import replans
@@ -52,7 +51,7 @@ def tiny_policy_file(path: pathlib.Path, text_encoder, info: dict | None = None,
     encoder = ConvAutoencoder(AutoencoderConfig(image_size=IMAGE, dim=16, width=8, max_width=16))
     policy = make_policy("dust", image_encoder=encoder, text_encoder=text_encoder, cameras=["front", "wrist"],
                          **{**SIZES, "action_dim": 7, **sizes})
-    unwrap(policy).info = INFO if info is None else info
+    policy.info = INFO if info is None else info
     return save_policy(policy, path)
 
 
@@ -120,7 +119,7 @@ def test_report_rows_count_each_seed_once(report, eval_config):
     assert report["sampler"] == {"name": "async", "n_action_steps": 4, "vision_steps": 4, "candidates": 1,
                                  "noise_scale": 1.0}
     assert report["variant"] == "dust" and report["env_id"] == "DustFranka-v0"
-    policy = unwrap(load_policy(eval_config.policy))
+    policy = load_policy(eval_config.policy)
     assert report["trainable_parameters"] == sum(p.numel() for p in policy.parameters() if p.requires_grad) > 0
     assert report["env_kwargs"] == {"image_size": IMAGE, "max_episode_steps": 10}
 
@@ -192,7 +191,7 @@ def test_a_policy_for_other_frames_or_cameras_is_refused(tmp_path, minilm):
     with pytest.raises(CheckpointError, match=r"image size: policy was trained on \[32, 32\] px frames, env renders "
                                               r"\[64, 64\]"):
         evaluate(config)
-    path = save_policy(unwrap(load_policy(claims_64)), tmp_path / "other_camera.pt")
+    path = save_policy(load_policy(claims_64), tmp_path / "other_camera.pt")
     payload = load_checkpoint(path, POLICY_KIND)
     payload["cameras"], payload["info"] = ["front", "belly"], INFO
     save_checkpoint(payload, path, POLICY_KIND)
@@ -223,7 +222,7 @@ def test_sampler_description_counts_vision_steps():
 
 
 def test_no_predicted_future_without_a_prediction_or_a_decoder(policy_path):
-    policy = unwrap(load_policy(policy_path))
+    policy = load_policy(policy_path)
     assert future_decoder(policy) is not None
     policy.set_sampler(SamplerConfig("action_only"))
     assert future_decoder(policy) is None

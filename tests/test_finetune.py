@@ -15,7 +15,7 @@ from conftest import kill_after_first_checkpoint
 from crafted import CRAFTS
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
-from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy, unwrap
+from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import scan_episodes
@@ -51,12 +51,11 @@ def policy_path(tmp_path_factory, minilm):
     encoder = ConvAutoencoder(AutoencoderConfig(image_size=32, dim=16, width=8, max_width=16))
     policy = make_policy("dust", image_encoder=encoder, text_encoder=minilm, cameras=["front", "wrist"], action_dim=7,
                          state_dim=17, horizon=4, execute_steps=2, d_model=32, n_heads=2, n_mmdit=2, n_dit=0)
-    inner = unwrap(policy)
-    inner.set_action_bounds(-torch.ones(7), torch.ones(7))  # DustFranka-v0's action box, as training sets it
+    policy.set_action_bounds(-torch.ones(7), torch.ones(7))  # DustFranka-v0's action box, as training sets it
     with torch.no_grad():
-        for p in inner.trainable_parameters():
+        for p in policy.trainable_parameters():
             p.add_(0.1 * torch.randn(p.shape, generator=torch.Generator().manual_seed(0)))
-    inner.info = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": 32}, "tasks": ["press_button"]}
+    policy.info = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": 32}, "tasks": ["press_button"]}
     return save_policy(policy, tmp_path_factory.mktemp("policy") / "policy.pt")
 
 
@@ -106,9 +105,9 @@ def test_wm_select_writes_a_policy_eval_loads_and_compares_on_the_same_seeds(pol
                                     max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
     assert report["per_episode"]["base policy"] == [list(e) for e in evaluated["tasks"][0]["per_episode"]]
     # The written policy is the base one plus a scorer, acting with K = 2; dust-rl eval reads it as any policy.
-    selected = unwrap(load_policy(tmp_path / "ft" / "policy.pt"))
+    selected = load_policy(tmp_path / "ft" / "policy.pt")
     assert selected.config.candidates == 2 and selected.info["wm_select"]["base_policy"] == str(policy_path)
-    base_weights = unwrap(load_policy(policy_path)).state_dict()
+    base_weights = load_policy(policy_path).state_dict()
     assert all(torch.equal(v, base_weights[k]) for k, v in selected.state_dict().items() if k in base_weights)
     again = evaluate(EvalConfig(policy=tmp_path / "ft" / "policy.pt", out=tmp_path / "eval_k2", episodes=2,
                                 workers=1, videos=0, max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
@@ -127,7 +126,7 @@ def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path)
     settings = SacSettings(learning_starts=8) if algorithm == "sac" else PpoSettings()
     config = ResidualConfig(policy=policy_path, algorithm=settings, steps=16, batch_size=4, net_arch=(16,),
                             max_steps=EPISODE_STEPS, initial_std=0.05, progress=False)
-    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
     assert np.array_equal(agent.predict(obs, deterministic=True)[0], np.zeros(env.action_space.shape, np.float32))
@@ -146,7 +145,7 @@ def test_critic_warmup_holds_the_actor_at_the_base_policy_while_the_critic_learn
     config = ResidualConfig(policy=policy_path, steps=16, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
                             initial_std=0.05, learning_rate=1e-3, progress=False,
                             algorithm=PpoSettings(n_steps=8, n_epochs=2, target_kl=0.5, critic_warmup=8))
-    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
     assert (agent.learning_rate, agent.n_steps, agent.n_epochs, agent.target_kl) == (1e-3, 8, 2, 0.5)
 
@@ -170,7 +169,7 @@ def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_pa
                          initial_std=0.5, progress=False,
                          algorithm=SacSettings(learning_starts=4, target_entropy=0.0, initial_alpha=0.01,
                                                gradient_steps=3))
-    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
     assert np.array_equal(agent.predict(obs, deterministic=True)[0], np.zeros(env.action_space.shape, np.float32))
@@ -187,7 +186,7 @@ def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_pa
 def test_layer_norm_caps_the_critic_off_its_data(policy_path):
     config = SteerConfig(policy=policy_path, steps=8, net_arch=(16, 16), layer_norm=True, max_steps=EPISODE_STEPS,
                          progress=False)
-    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
     obs_t, _ = agent.policy.obs_to_tensor(obs)
@@ -207,7 +206,7 @@ def test_layer_norm_caps_the_critic_off_its_data(policy_path):
 def test_q_bounds_hold_the_critic_and_its_target_within_the_returns(policy_path):
     config = SteerConfig(policy=policy_path, steps=8, net_arch=(16,), algorithm=SacSettings(q_bounds=(0.0, 1.0)),
                          max_steps=EPISODE_STEPS, progress=False)
-    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
     obs_t, _ = agent.policy.obs_to_tensor(env.reset(seed=0)[0])
     with torch.no_grad():
@@ -270,7 +269,7 @@ def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_pa
     assert report["train_seconds"] > first["train_seconds"]
     assert 0 < saved["train_seconds"] <= first["train_seconds"]
     assert saved["train_seconds"] < report["train_seconds"] < saved["train_seconds"] + resumed_wall
-    env = finetune_env_factory(config, unwrap(load_policy(policy_path)))[0]()
+    env = finetune_env_factory(config, load_policy(policy_path))[0]()
     state = SB3LearningState(build_agent(config, env))
     restore(Checkpoint(agent=state, rng=GlobalRNGState()), CheckpointRotation(config.out / "checkpoints", keep_last=2))
     env.close()
@@ -300,7 +299,7 @@ def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path):
     finetune(dataclasses.replace(reference, out=out, resume=True))
     states = {}
     for name in ("ref", "killed"):
-        env = finetune_env_factory(reference, unwrap(load_policy(policy_path)))[0]()
+        env = finetune_env_factory(reference, load_policy(policy_path))[0]()
         state = SB3LearningState(build_agent(reference, env))
         rotation = CheckpointRotation(tmp_path / name / "checkpoints", keep_last=2)
         restore(Checkpoint(agent=state, rng=GlobalRNGState()), rotation)

@@ -11,7 +11,7 @@ import torch
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_checker import check_env
 
-from dust_rl.agents import make_policy, unwrap
+from dust_rl.agents import make_policy
 from dust_rl.agents.execution import episode_generator
 from dust_rl.envs.factory import make_env
 from dust_rl.rl.frozen_policy_env import observation_td
@@ -27,9 +27,9 @@ IMAGE = 32
 @pytest.fixture
 def steering(tiny_encoder, minilm):
     env = make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE})
-    policy = unwrap(make_policy("dust", image_encoder=tiny_encoder, text_encoder=minilm, cameras=["front", "wrist"],
-                                action_dim=7, state_dim=env.observation_space["observation.state"].shape[0],
-                                horizon=4, execute_steps=2, d_model=32, n_heads=2, n_mmdit=2, n_dit=0))
+    policy = make_policy("dust", image_encoder=tiny_encoder, text_encoder=minilm, cameras=["front", "wrist"],
+                         action_dim=7, state_dim=env.observation_space["observation.state"].shape[0],
+                         horizon=4, execute_steps=2, d_model=32, n_heads=2, n_mmdit=2, n_dit=0)
     policy.set_action_bounds(env.action_space.low, env.action_space.high)
     with torch.no_grad():  # away from the zero-initialised outputs, so the noise matters
         for p in policy.trainable_parameters():
@@ -210,11 +210,11 @@ def test_a_policy_with_a_read_out_shows_its_object_estimate(tiny_encoder, minilm
     env = make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE})
     width = env.observation_space["observation.environment_state"].shape[0]
     torch.manual_seed(0)
-    policy = unwrap(make_policy("action_only", image_encoder=tiny_encoder, text_encoder=minilm,
-                                cameras=["front", "wrist"], action_dim=7,
-                                state_dim=env.observation_space["observation.state"].shape[0], horizon=4,
-                                execute_steps=2, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                                aux_state_dim=width, lambda_aux=1.0, aux_state_input=True))
+    policy = make_policy("action_only", image_encoder=tiny_encoder, text_encoder=minilm,
+                         cameras=["front", "wrist"], action_dim=7,
+                         state_dim=env.observation_space["observation.state"].shape[0], horizon=4,
+                         execute_steps=2, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                         aux_state_dim=width, lambda_aux=1.0, aux_state_input=True)
     steering = NoiseSteeringEnv(env, policy)
     check_env(steering)
     obs, _ = steering.reset(seed=1)
@@ -245,10 +245,10 @@ def test_the_residual_agent_can_see_the_future_dust_sampled_with_the_chunk(steer
     assert np.array_equal(futures[0], futures[1]) and not np.array_equal(futures[1], futures[2])
     assert np.array_equal(futures[2], futures[3])
     env.close()
-    action_only = unwrap(make_policy("action_only", image_encoder=tiny_encoder, text_encoder=minilm,
-                                     cameras=["front", "wrist"],
-                                     action_dim=7, state_dim=policy.config.state_dim, horizon=4, d_model=32,
-                                     n_heads=2, n_mmdit=2, n_dit=0))
+    action_only = make_policy("action_only", image_encoder=tiny_encoder, text_encoder=minilm,
+                              cameras=["front", "wrist"],
+                              action_dim=7, state_dim=policy.config.state_dim, horizon=4, d_model=32,
+                              n_heads=2, n_mmdit=2, n_dit=0)
     with pytest.raises(ValueError, match="world_model needs a policy that predicts the future"):
         ResidualEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE}), action_only,
                     world_model=True)

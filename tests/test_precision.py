@@ -7,7 +7,7 @@ import torch
 from conftest import rounding_tolerance
 from test_train import TINY_POLICY, run_inputs, tiny_config  # noqa: F401 (run_inputs is a fixture)
 
-from dust_rl.agents import DustPolicy, load_policy, unwrap
+from dust_rl.agents import DustPolicy, load_policy
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.train.imitation import train
 
@@ -30,12 +30,12 @@ def planned(policy: DustPolicy, dataset) -> torch.Tensor:
 def test_bf16_trains_and_samples_close_to_fp32(run_inputs, tmp_path):  # noqa: F811
     fp32 = train(tiny_config(run_inputs, tmp_path / "fp32", steps=2, log_every=1))
     bf16 = train(tiny_config(run_inputs, tmp_path / "bf16", steps=2, log_every=1, precision="bf16"))
-    assert all(v.dtype == torch.float32 for v in unwrap(load_policy(bf16.policy)).state_dict().values()
+    assert all(v.dtype == torch.float32 for v in load_policy(bf16.policy).state_dict().values()
                if v.is_floating_point())  # autocast leaves the stored weights float32
     expected, actual = second_loss(tmp_path / "fp32"), second_loss(tmp_path / "bf16")
     assert actual != expected and torch.isfinite(torch.tensor(actual))  # the products did run in bf16
 
-    policy = unwrap(load_policy(fp32.policy))
+    policy = load_policy(fp32.policy)
     reference = planned(policy, run_inputs[0])
     policy.set_runtime(precision="bf16")
     chunk = planned(policy, run_inputs[0])
@@ -52,7 +52,7 @@ def test_compiled_trunk_trains_and_samples_like_eager(run_inputs, tmp_path):  # 
     expected = second_loss(tmp_path / "eager")
     assert abs(second_loss(tmp_path / "compiled") - expected) <= rounding_tolerance(
         torch.float32, TINY_POLICY["d_model"], DEPTH, expected)
-    policy = unwrap(load_policy(eager.policy))
+    policy = load_policy(eager.policy)
     reference = planned(policy, run_inputs[0])
     policy.set_runtime(compile=True)
     chunk = planned(policy, run_inputs[0])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from dust_rl.agents import make_policy, unwrap
+from dust_rl.agents import make_policy
 from dust_rl.data import DemoDataset
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
@@ -14,9 +14,9 @@ from dust_rl.train.readout.error import STEP_BUCKETS, TARGET_XY, readout_error_t
 
 def test_a_read_out_that_always_says_the_mean_is_as_far_off_as_the_mean_is(demo_dir, tiny_encoder, minilm):
     dataset = DemoDataset(demo_dir)
-    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                                aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
+    policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                         horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                         aux_state_dim=env_state_width(dataset), lambda_aux=1.0)
     last = policy.state_readout.pool.head[-1]
     with torch.no_grad():  # estimate 0 in normalised units: the training mean, whatever the image
         last.weight.zero_()

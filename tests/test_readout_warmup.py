@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from dust_rl.agents import DustPolicy, make_policy, unwrap
+from dust_rl.agents import DustPolicy, make_policy
 from dust_rl.data import DemoDataset
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
@@ -24,9 +24,9 @@ def readout_policy(demo_dir, tiny_encoder, minilm, readout: str = "pixel keypoin
     """A tiny policy with a state read-out (:data:`READOUTS`) that frames can train, for the demo dataset."""
     dataset = DemoDataset(demo_dir)
     torch.manual_seed(0)
-    policy = unwrap(make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
-                                horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, **READOUTS[readout],
-                                aux_state_dim=env_state_width(dataset), lambda_aux=1.0))
+    policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                         horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, **READOUTS[readout],
+                         aux_state_dim=env_state_width(dataset), lambda_aux=1.0)
     return dataset, policy
 
 

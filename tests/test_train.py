@@ -16,7 +16,7 @@ import torch
 from conftest import kill_after_first_checkpoint
 from crafted import CRAFTS
 
-from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder, unwrap
+from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
@@ -65,7 +65,7 @@ def tiny_config(run_inputs, out, **overrides) -> TrainConfig:
 
 
 def trained_weights(path) -> dict[str, torch.Tensor]:
-    return {k: v for k, v in unwrap(load_policy(path)).state_dict().items() if not k.startswith("backbone.")}
+    return {k: v for k, v in load_policy(path).state_dict().items() if not k.startswith("backbone.")}
 
 
 def test_warmup_cosine_schedule():
@@ -104,7 +104,7 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     out = tmp_path / "run"
     result = train(tiny_config(run_inputs, out, eval_every=12, eval_episodes=1, eval_workers=1),
                    command="dust-rl train ...")
-    policy = unwrap(load_policy(result.policy))
+    policy = load_policy(result.policy)
     assert policy.config.horizon == 4 and policy.execute_steps == 2
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button", "open_drawer"]
     assert policy.info["image_size"] == [32, 32]  # the frames it was trained on, checked against an env on load
@@ -140,7 +140,7 @@ def test_keypoints_learn_from_the_privileged_state(source, run_inputs, tmp_path)
     out = tmp_path / "run"
     result = train(tiny_config(run_inputs, out, steps=3, log_every=3, keypoints=2, keypoint_source=source,
                                lambda_aux=0.5))
-    config = unwrap(load_policy(result.policy)).config
+    config = load_policy(result.policy).config
     width = len(json.loads((run_inputs[0] / "meta.json").read_text())["stats"]["observation.environment_state"]["mean"])
     assert (config.keypoints, config.keypoint_source, config.aux_state_dim, config.lambda_aux) == (
         2, source, width, 0.5) and width > 0
@@ -271,7 +271,7 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
 
 def test_the_world_model_target_can_be_another_camera(run_inputs, tmp_path):
     result = train(tiny_config(run_inputs, tmp_path / "wrist", steps=4, future_camera="wrist"))
-    policy = unwrap(load_policy(result.policy))
+    policy = load_policy(result.policy)
     assert policy.future_camera == "wrist" and policy.cameras == ["front", "wrist"]
     tokens = torch.stack([torch.zeros(policy.config.n_image_tokens, policy.config.vision_dim),
                           torch.ones(policy.config.n_image_tokens, policy.config.vision_dim)])
@@ -282,8 +282,8 @@ def test_the_world_model_target_can_be_another_camera(run_inputs, tmp_path):
 
 
 def test_a_change_target_is_the_motion_in_units_of_its_rms(run_inputs, tmp_path):
-    policy = unwrap(load_policy(train(tiny_config(run_inputs, tmp_path / "change", steps=4,
-                                                  future_target="change")).policy))
+    policy = load_policy(train(tiny_config(run_inputs, tmp_path / "change", steps=4,
+                                           future_target="change")).policy)
     dataset = DemoDataset(run_inputs[0])
     features = FeatureCache(dataset, policy, progress=False)
     windows = DemoWindows(dataset, horizon=policy.config.horizon, images=False)
@@ -317,7 +317,7 @@ def test_bad_training_input_is_named(run_inputs, tmp_path):
 def test_action_free_episodes_train_the_world_model_but_not_the_actions(run_inputs, demo_dir, tmp_path):
     video_dir = shutil.copytree(demo_dir, tmp_path / "video")
     result = train(tiny_config(run_inputs, tmp_path / "run", steps=2, video_dataset=video_dir, video_fraction=0.5))
-    policy = unwrap(load_policy(result.policy))
+    policy = load_policy(result.policy)
     assert policy.info["video_dataset"] == str(video_dir) and any((video_dir / "features").iterdir())
     # Their rows carry no action label: NaN actions there change no loss, while the vision loss counts them.
     dataset, _ = run_inputs
@@ -340,7 +340,7 @@ def test_action_free_episodes_beside_a_read_out_need_it_frozen_and_the_same_task
     with pytest.raises(ConfigError, match="needs --readout-warmup"):
         tiny_config(run_inputs, tmp_path / "x", **readout)
     result = train(tiny_config(run_inputs, tmp_path / "run", steps=2, readout_warmup=2, **readout))
-    assert unwrap(load_policy(result.policy)).info["video_dataset"] == str(video_dir)
+    assert load_policy(result.policy).info["video_dataset"] == str(video_dir)
     meta = json.loads((video_dir / "meta.json").read_text())
     (video_dir / "meta.json").write_text(json.dumps({**meta, "tasks": [*meta["tasks"], "stack"]}))
     with pytest.raises(DatasetError, match="object state means something else"):
@@ -354,17 +354,17 @@ def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inpu
     dataset, encoder = run_inputs
     config = TrainConfig(dataset=dataset, out=tmp_path / "tuned", init_policy=base, extra_dataset=extra_dir,
                          batch_size=8, steps=3, threads=1, progress=False)
-    tuned = unwrap(load_policy(train(config).policy))
+    tuned = load_policy(train(config).policy)
     assert tuned.info["init_policy"] == str(base) and tuned.info["extra_dataset"] == str(extra_dir)
     # The frozen read-out keeps the object-state units it was trained in: an older policy's stay the pooled ones.
-    assert tuned.info[ENV_STATE_NORM_INFO] == unwrap(load_policy(base)).info[ENV_STATE_NORM_INFO] == PER_TASK
+    assert tuned.info[ENV_STATE_NORM_INFO] == load_policy(base).info[ENV_STATE_NORM_INFO] == PER_TASK
     older = tmp_path / "older.pt"
     payload = torch.load(base, weights_only=True)
     payload["info"].pop(ENV_STATE_NORM_INFO)
     torch.save(payload, older)
     again = TrainConfig(dataset=dataset, out=tmp_path / "tuned_older", init_policy=older, batch_size=8, steps=1,
                         threads=1, progress=False)
-    assert unwrap(load_policy(train(again).policy)).info.get(ENV_STATE_NORM_INFO) is None
+    assert load_policy(train(again).policy).info.get(ENV_STATE_NORM_INFO) is None
     assert any((extra_dir / "features").iterdir())  # its frames were encoded and cached
     before, after = trained_weights(base), trained_weights(tmp_path / "tuned" / "policy.pt")
     assert [k for k in before if k.startswith("normalizer.") and not torch.equal(before[k], after[k])] == []

@@ -9,7 +9,7 @@ import pytest
 import torch
 from conftest import rounding_tolerance
 
-from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_image_encoder, make_policy, unwrap
+from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_image_encoder, make_policy
 from dust_rl.agents.backbone import DEFAULT_IMAGE_ENCODER_FILE
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset, DemoWindows
@@ -27,8 +27,8 @@ def dataset(demo_dir):
 
 
 def small_policy(dataset, encoder, text, variant="dust"):
-    return unwrap(make_policy(variant, image_encoder=encoder, text_encoder=text, **dataset_policy_kwargs(dataset),
-                              horizon=8, d_model=64, n_heads=4, n_mmdit=2, n_dit=1))
+    return make_policy(variant, image_encoder=encoder, text_encoder=text, **dataset_policy_kwargs(dataset),
+                       horizon=8, d_model=64, n_heads=4, n_mmdit=2, n_dit=1)
 
 
 def test_pretraining_reconstructs_held_out_frames(dataset, tmp_path):

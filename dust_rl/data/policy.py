@@ -20,7 +20,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from dust_rl.agents import ChunkExecutor, load_policy, seeded_executor, unwrap
+from dust_rl.agents import ChunkExecutor, load_policy
 from dust_rl.keys import EXPERT_ACTION_KEY, SEED_KEY, STEP_KEY
 
 
@@ -52,4 +52,4 @@ def make_expert_policy(noise_std: float = 0.0) -> TensorDictModule:
 def load_rollout_policy(path: pathlib.Path) -> ChunkExecutor:
     """The collector policy of a trained policy file: reads the VLA observation keys, ``is_init`` and
     ``episode_seed``; writes ``action``. Raises ``CheckpointError`` for a missing or corrupt file."""
-    return seeded_executor(unwrap(load_policy(path)))
+    return load_policy(path).executor(seeded=True)

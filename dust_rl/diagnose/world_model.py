@@ -40,7 +40,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor
 
-from dust_rl.agents import DustPolicy, load_policy, schedule_for, unwrap
+from dust_rl.agents import DustPolicy, load_policy, schedule_for
 from dust_rl.agents.flow_matching import interpolate, sample_tau, velocity_target
 from dust_rl.agents.samplers import DenoiseStep
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
@@ -315,7 +315,7 @@ def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
     """
     if config.threads:
         torch.set_num_threads(config.threads)
-    policy = unwrap(load_policy(config.policy)).to(resolve_device(config.device)).eval()
+    policy = load_policy(config.policy).to(resolve_device(config.device)).eval()
     trained_on = policy.info.get("dataset")
     if trained_on and pathlib.Path(trained_on).resolve() == config.dataset.resolve():
         raise DatasetError(f"{config.dataset} is the dataset {config.policy} was trained on; diagnose on held-out "

@@ -39,7 +39,7 @@ from torchrl.collectors import BaseCollector
 from torchrl.envs import InitTracker, TransformedEnv
 from tqdm import tqdm
 
-from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy, seeded_executor, unwrap
+from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy, seeded_executor
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.agents.precision import Precision
 from dust_rl.data.seeding import HELDOUT_SEED, EpisodeSeedWrapper, SeedSchedule
@@ -207,7 +207,7 @@ def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> Tran
 
 def make_eval_policy(setup: EvalSetup) -> ChunkExecutor:
     """The policy of one worker process, built from the checkpoint file (a live policy is not pickled)."""
-    policy = unwrap(load_policy(setup.policy_path, execute_steps=setup.execute_steps)).to(setup.device)
+    policy = load_policy(setup.policy_path, execute_steps=setup.execute_steps).to(setup.device)
     policy.set_sampler(setup.sampler)
     policy.set_runtime(setup.precision, setup.compile)
     return seeded_executor(policy)
@@ -221,7 +221,7 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
         ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
     """
     device = resolve_device(config.device)
-    policy = unwrap(load_policy(config.policy, execute_steps=config.execute_steps)).to(device)  # checks the range
+    policy = load_policy(config.policy, execute_steps=config.execute_steps).to(device)  # checks the range
     env_id = config.env_id or policy.info.get("env_id")
     tasks = tuple(config.tasks or policy.info.get("tasks", ()))
     if not env_id or not tasks:

@@ -40,7 +40,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from tqdm.auto import tqdm
 
-from dust_rl.agents import DustPolicy, load_policy, unwrap
+from dust_rl.agents import DustPolicy, load_policy
 from dust_rl.agents.checkpoint_io import save_checkpoint
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
@@ -86,7 +86,7 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     resumable = PPO_RESUMABLE_FIELDS if is_ppo else RESUMABLE_FIELDS
     with torch_threads(config.threads):
         check_run_folder(config, resumable)
-        policy = unwrap(load_policy(config.policy))
+        policy = load_policy(config.policy)
         env_id, env_kwargs, task = policy_env(config, policy)
         if isinstance(config, SelfImitationConfig):
             demos = config.demos or pathlib.Path(policy.info.get("dataset") or "")

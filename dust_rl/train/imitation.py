@@ -48,7 +48,7 @@ from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from torchrl.record.loggers import Logger, get_logger
 from tqdm.auto import tqdm
 
-from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy, unwrap
+from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy
 from dust_rl.agents.config import PolicyConfig
 from dust_rl.agents.factory import IMAGE_SIZE_INFO, frame_size
 from dust_rl.agents.flow_matching import Shard
@@ -537,15 +537,15 @@ def _share(batch_size: int, fraction: float) -> int:
 def _build_policy(config: TrainConfig, dataset: DemoDataset, env: gym.Env) -> DustPolicy:
     """A new policy for ``dataset``, or ``init_policy`` checked against the dataset's env."""
     if config.init_policy is not None:
-        return unwrap(load_policy(config.init_policy, env=make_torchrl_env(env)))
+        return load_policy(config.init_policy, env=make_torchrl_env(env))
     try:
         settings = config.policy
         text_encoder = TransformersTextEncoder(settings.text_encoder) if settings.text_encoder else None
-        return unwrap(make_policy(**settings.model_settings(), image_encoder=settings.image_encoder,
-                                  text_encoder=text_encoder,
-                                  execute_steps=settings.execute_steps, future_camera=settings.future_camera,
-                                  aux_state_dim=env_state_width(dataset) if settings.lambda_aux else 0,
-                                  **dataset_policy_kwargs(dataset)))
+        return make_policy(**settings.model_settings(), image_encoder=settings.image_encoder,
+                           text_encoder=text_encoder,
+                           execute_steps=settings.execute_steps, future_camera=settings.future_camera,
+                           aux_state_dim=env_state_width(dataset) if settings.lambda_aux else 0,
+                           **dataset_policy_kwargs(dataset))
     except ValueError as err:  # the model's own config check (e.g. d_model not divisible by n_heads)
         raise ConfigError(f"invalid model settings: {err}") from err
 

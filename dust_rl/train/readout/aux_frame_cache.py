@@ -22,10 +22,10 @@ every run encoded them again: 8,000 frames of two cameras took 3.3 min on one
 thread beside two trainings (EfficientNet-Lite0 at stride 8, 16x16 tokens; 256
 frames timed, scaled to 8,000; 2.1 min beside one), part of every bench cell's start. Measured with::
 
-    .venv/bin/python -c "import time, torch; torch.set_num_threads(1); from dust_rl.agents import make_policy, \
-        unwrap; from dust_rl.train.readout.aux_frames import encode_frames; p = unwrap(make_policy(image_encoder= \
+    .venv/bin/python -c "import time, torch; torch.set_num_threads(1); from dust_rl.agents import make_policy; \
+        from dust_rl.train.readout.aux_frames import encode_frames; p = make_policy(image_encoder= \
         'efficientnet-lite0-s8', cond_grid=(8, 8), readout='tokens', readout_grid=(16, 16), \
-        cameras=['front', 'wrist'], state_dim=17, action_dim=7)); \
+        cameras=['front', 'wrist'], state_dim=17, action_dim=7); \
         f = torch.randint(0, 255, (256, 2, 3, 128, 128), dtype=torch.uint8); t = time.time(); \
         encode_frames(p, f); print((time.time() - t) * 8000 / 256)"
 
