@@ -6,7 +6,7 @@ from .batch import random_batch
 from .checkpoint_io import CheckpointError
 from .config import VARIANTS, DustConfig, ModelConfig, PolicyConfig, SamplerConfig
 from .dust_model import ChunkContext, DustModel
-from .execution import ChunkExecutor, seeded_executor
+from .execution import ChunkExecutor
 from .factory import env_spec, load_policy, make_policy, save_policy
 from .flow_matching import action_validity, decoupled_loss, interpolate, masked_mse, sample_tau, velocity_target
 from .hf_vision import TransformersImageEncoder
@@ -51,7 +51,6 @@ __all__ = [
     "save_image_encoder",
     "save_policy",
     "schedule_for",
-    "seeded_executor",
     "sync_schedule",
     "velocity_target",
 ]

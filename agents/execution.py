@@ -25,7 +25,7 @@ from torchrl.modules import MultiStepActorWrapper
 from torchrl.modules.vla import VLAWrapperBase
 
 from dust_rl.errors import UserError
-from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, FUTURE_CHUNK_KEY, PREDICTED_FUTURE_KEY, SEED_KEY
+from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, FUTURE_CHUNK_KEY, PREDICTED_FUTURE_KEY
 
 
 def replans(step: int, execute_steps: int) -> bool:
@@ -89,8 +89,3 @@ class ChunkExecutor(MultiStepActorWrapper):
             return super().forward(tensordict)
         return tensordict.update(super().forward(tensordict.unsqueeze(0)).squeeze(0))
 
-
-def seeded_executor(policy: VLAWrapperBase) -> ChunkExecutor:
-    """``policy`` as the envs' collectors run it: chunks executed receding-horizon, the sampling noise restarted
-    from each episode's seed (``episode_seed``), so an episode depends on its seed only."""
-    return ChunkExecutor(policy, policy.execute_steps, SEED_KEY)

@@ -54,6 +54,7 @@ from dust_rl.keys import (
     FUTURE_CHUNK_KEY,
     IMAGE_KEY,
     PREDICTED_FUTURE_KEY,
+    SEED_KEY,
     flat_name,
 )
 
@@ -61,7 +62,7 @@ from .backbone import FrozenBackbone
 from .condition import ConditionProjector
 from .config import DustConfig, SamplerConfig
 from .dust_model import DustModel
-from .execution import ChunkExecutor, seeded_executor
+from .execution import ChunkExecutor
 from .flow_matching import WHOLE_BATCH, Shard
 from .future_scorer import FutureScorer
 from .image_encoder import pool_tokens
@@ -159,7 +160,7 @@ class DustPolicy(VLAWrapperBase):
         """The torchrl policy that executes ``execute_steps`` of each chunk before re-planning (for ``env.rollout``
         and collectors); ``seeded``: the sampling noise restarts from each episode's ``episode_seed`` (the env's
         :class:`~dust_rl.data.seeding.EpisodeSeedWrapper` writes it), so an episode depends on its seed only."""
-        return seeded_executor(self) if seeded else ChunkExecutor(self, self.execute_steps)
+        return ChunkExecutor(self, self.execute_steps, SEED_KEY if seeded else None)
 
     def set_action_bounds(self, low: Tensor, high: Tensor) -> None:
         """Clamp sampled actions to the env's action box."""

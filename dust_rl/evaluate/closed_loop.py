@@ -39,7 +39,7 @@ from torchrl.collectors import BaseCollector
 from torchrl.envs import InitTracker, TransformedEnv
 from tqdm import tqdm
 
-from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy, seeded_executor
+from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.agents.precision import Precision
 from dust_rl.data.seeding import HELDOUT_SEED, EpisodeSeedWrapper, SeedSchedule
@@ -210,7 +210,7 @@ def make_eval_policy(setup: EvalSetup) -> ChunkExecutor:
     policy = load_policy(setup.policy_path, execute_steps=setup.execute_steps).to(setup.device)
     policy.set_sampler(setup.sampler)
     policy.set_runtime(setup.precision, setup.compile)
-    return seeded_executor(policy)
+    return policy.executor(seeded=True)
 
 
 def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
@@ -256,7 +256,7 @@ def eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: Wor
     env_fns = [functools.partial(make_eval_env, setup.env_id, {**setup.env_kwargs, "task": task},
                                  SeedSchedule(seed, worker=worker, num_workers=workers.count))
                for worker in range(workers.count)]
-    return episode_collector(env_fns, workers, policy=seeded_executor(policy),
+    return episode_collector(env_fns, workers, policy=policy.executor(seeded=True),
                              policy_factory=None if workers.count == 1 and workers.backend == "local"
                              else functools.partial(make_eval_policy, setup), policy_device=setup.device)
 
