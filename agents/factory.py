@@ -20,7 +20,7 @@ from dust_rl.keys import IMAGE_KEY, STATE_KEY, flat_name
 
 from .backbone import FrozenBackbone, resolve_image_encoder
 from .checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
-from .config import MAX_CAMERAS, DustConfig, check_size
+from .config import MAX_CAMERAS, RETIRED_SETTINGS, DustConfig, check_size, without_retired
 from .execution import ChunkExecutor
 from .image_encoder import ImageEncoder
 from .normalizer import Normalizer
@@ -156,7 +156,7 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
     """
     payload = load_checkpoint(path, POLICY_KIND)
     try:
-        config = DustConfig(**payload["config"])
+        config = DustConfig(**without_retired(payload["config"], RETIRED_SETTINGS))
         cameras = payload["cameras"]
         if not (isinstance(cameras, list) and all(isinstance(c, str) for c in cameras)):
             raise TypeError(f"cameras must be a list of names, got {cameras!r}")
