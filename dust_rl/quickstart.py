@@ -25,8 +25,8 @@ from dust_rl.errors import check_at_least
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.config_json import config_json
-from dust_rl.train.imitation import RecipeName, TrainConfig, train
-from dust_rl.train.recipes import vision_readout
+from dust_rl.train.imitation import TrainConfig, train
+from dust_rl.train.recipes import RecipeName, vision_readout
 from dust_rl.train.settings import TrainSettings
 
 

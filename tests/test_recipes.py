@@ -32,17 +32,19 @@ def trains(settings: object) -> dict:
 
 
 def settings_of(command: str) -> dict:
-    """What a documented ``dust-rl train`` command trains (from every setting's own default)."""
-    return trains(tyro.cli(TrainConfig, args=["--dataset", "d", *shlex.split(command.replace("\\\n", " "))]))
+    """What a documented ``dust-rl train`` command trains (one without ``--recipe`` predates them: from every
+    setting's own default)."""
+    args, default = with_preset("train", ["--recipe=defaults", "--dataset", "d",
+                                          *shlex.split(command.replace("\\\n", " "))])
+    return trains(tyro.cli(TrainConfig, args=args, default=default))
 
 
 def test_each_recipe_is_the_command_its_result_was_measured_with():
     script = pathlib.Path("scripts/recipe.sh").read_text()
-    base = re.search(r"dust-rl train --dataset \"\$data\" --out \"\$out\" --steps \"\$steps\" (.*?)\"\$\{resume",
-                     script, re.S).group(1)
+    base = re.search(r"dust-rl train (.*?)\"\$\{resume", script, re.S).group(1).replace('"$steps"', "20000")
     readme = pathlib.Path("README.md").read_text()
     row3 = re.search(r"# 3 .*?pp200_tokro_g16_h4_f32k_w16k_20k (.*?)\n(?:STEPS|#)", readme, re.S).group(1)
-    assert settings_of(f"--steps 20000 {base} {row3}") == trains(RECIPES["pick-place-readout"].settings())
+    assert settings_of(f"{base} {row3}") == trains(RECIPES["pick-place-readout"].settings())
     diagnosis = pathlib.Path("docs/results/2026-11-28-world-model-diagnosis.md").read_text()
     plain_command = re.search(r"--out runs/train/pb_dust_plain (.*?)\n\S", diagnosis, re.S).group(1)
     assert settings_of(plain_command) == trains(plain())

@@ -38,7 +38,7 @@ import pathlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Annotated, Literal
+from typing import Annotated
 
 import gymnasium as gym
 import torch
@@ -72,7 +72,7 @@ from dust_rl.train.readout.aux_frame_cache import cached_aux_frames, cached_fram
 from dust_rl.train.readout.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches
 from dust_rl.train.readout.cache import readout_cache_path, warm_up_or_load
 from dust_rl.train.readout.warmup import warm_up_readout
-from dust_rl.train.recipes import LEGACY_RECIPE, RECIPES, recipe_help
+from dust_rl.train.recipes import LEGACY_RECIPE, RecipeName, recipe_help
 from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings
 
 # Fields that may differ between a run and its resumption (``recipe`` names where the settings started; they are
@@ -80,7 +80,6 @@ from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "compile", "eval_every", "eval_episodes", "eval_workers",
                     "loggers", "cache_dir", "recipe")
 SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
-RecipeName = Literal[tuple(RECIPES)]  # type: ignore[valid-type]
 
 
 @dataclass(kw_only=True)

@@ -16,6 +16,7 @@ import os
 import pathlib
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
+from typing import Literal
 
 from dust_rl.agents.config import POLICY_PRESETS, PolicyConfig
 from dust_rl.data import DatasetError, DemoDataset
@@ -49,8 +50,8 @@ def vision_readout() -> TrainSettings:
 def pick_place_readout() -> TrainSettings:
     """The command behind pick_place 90% from 200 demonstrations (README row 3; ``STEPS=20000 bash scripts/recipe.sh
     pick_place 200 pp200_tokro_g16_h4_f32k_w16k_20k ...``): :func:`vision_readout` with the action-only trunk, a
-    four-head read-out fitted on 32,000 rendered frames for 16,000 steps, and 20,000 policy steps (~2.5 h on 2
-    cores), checkpointed every 2,000."""
+    four-head read-out fitted on 32,000 rendered frames for 16,000 steps, and 20,000 policy steps checkpointed every
+    2,000."""
     settings = vision_readout()
     return replace(settings, policy=replace(settings.policy, variant="action_only", readout_heads=4), steps=20000,
                    aux_frames=32000, readout_warmup=16000, checkpoint_every=2000)
@@ -76,6 +77,7 @@ RECIPES: dict[str, Recipe] = {
     "defaults": Recipe(TrainSettings, "every setting at its own default: the committed conv-ae encoder, 3,000 steps "
                        "at lr 1e-4 (runs from before recipes resume with it)", "README row 1 (with --lr 3e-4)"),
 }
+RecipeName = Literal[tuple(RECIPES)]  # type: ignore[valid-type]
 LEGACY_RECIPE = "defaults"  # what a run folder that records no recipe was trained from
 
 
