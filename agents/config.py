@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Literal, get_args
 
@@ -57,6 +58,32 @@ MAX_KEYPOINTS = 256  # spatial-softmax keypoints per camera
 MAX_READOUT_HEADS = 64  # attention poolings of the token read-out
 MAX_PARAMETERS = 1_000_000_000  # of the trunk, or of an image encoder: 4 GB of float32 weights
 TIME_FREQ_DIM = 256  # sinusoidal features of the timestep embedding
+
+
+RETIRED_SETTINGS: dict[str, object] = {"readout_coords": False}
+"""Model settings earlier versions had, each at the one value this version builds (what every model now is): a
+stored config holding one at that value loads, one holding another value is refused (it describes another model)."""
+
+
+def without_retired(stored: Mapping, retired: Mapping[str, object]) -> dict:
+    """``stored`` (a config as JSON values, nested configs as dicts) without the ``retired`` settings it holds
+    (dotted names reach into nested configs: ``policy.readout_coords``).
+
+    Raises:
+        ValueError: a retired setting stored at another value than its retired one (the message names it).
+    """
+    kept = dict(stored)
+    for name, value in retired.items():
+        head, _, rest = name.partition(".")
+        if rest and isinstance(kept.get(head), Mapping):
+            try:
+                kept[head] = without_retired(kept[head], {rest: value})
+            except ValueError as err:
+                raise ValueError(f"{head}.{err}") from None
+        elif not rest and head in kept and kept.pop(head) != value:
+            raise ValueError(f"{name} = {stored[head]!r}: a setting this version removed (only {value!r} is "
+                             "still built)")
+    return kept
 
 
 def check_size(name: str, value: object, maximum: int, minimum: int = 1) -> None:
@@ -138,9 +165,6 @@ class ModelConfig:
     :mod:`.token_readout`; no keypoints needed)."""
     readout_heads: int = 1
     """Attention poolings of the token read-out (each attends to one place; several objects may need several)."""
-    readout_coords: bool = False
-    """The token read-out also pools each camera's fixed cell centres by its attention (a spatial soft-argmax,
-    :mod:`.token_readout`): a position pointed at, interpolated between cells."""
     readout_grid: tuple[int, int] | None = None
     """Token grid per camera the token read-out reads, finer than ``cond_grid``: the frozen tokens are kept at this
     grid and pooled to ``cond_grid`` for the trunk. At Lite0 stride 8, (16, 16) reads the named button 2.8 cm off
@@ -210,9 +234,8 @@ class ModelConfig:
                              f"{tuple(self.vision_grid)}")
         if self.readout not in READOUT_INPUTS:
             raise ValueError(f"unknown readout {self.readout!r}; expected one of {READOUT_INPUTS}")
-        for name in ("readout_grid", "readout_coords"):
-            if getattr(self, name) not in (None, False) and self.readout != "tokens":
-                raise ValueError(f"{name} belongs to the token read-out: it needs readout 'tokens'")
+        if self.readout_grid is not None and self.readout != "tokens":
+            raise ValueError("readout_grid belongs to the token read-out: it needs readout 'tokens'")
         if self.future_target not in FUTURE_TARGETS:
             raise ValueError(f"unknown future_target {self.future_target!r}; expected one of {FUTURE_TARGETS}")
         if self.keypoint_source not in KEYPOINT_SOURCES:

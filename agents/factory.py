@@ -28,7 +28,7 @@ from dust_rl.keys import IMAGE_KEY, STATE_KEY, flat_name
 
 from .backbone import FrozenBackbone, resolve_image_encoder, stores_image_weights
 from .checkpoint_io import CheckpointError, load_checkpoint, load_folder, one_line, save_checkpoint, save_folder
-from .config import MAX_CAMERAS, DustConfig, check_size
+from .config import MAX_CAMERAS, RETIRED_SETTINGS, DustConfig, check_size, without_retired
 from .image_encoder import ImageEncoder
 from .normalizer import Normalizer
 from .policy import DustPolicy
@@ -190,7 +190,7 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
     path = pathlib.Path(path)
     payload = _read_policy(path)
     try:
-        config = DustConfig(**payload["config"])
+        config = DustConfig(**without_retired(payload["config"], RETIRED_SETTINGS))
         cameras = payload["cameras"]
         if not (isinstance(cameras, list) and all(isinstance(c, str) for c in cameras)):
             raise TypeError(f"cameras must be a list of names, got {cameras!r}")

@@ -135,7 +135,7 @@ class DustPolicy(VLAWrapperBase):
         # seed then warm up the same read-out (dust_rl.train.readout.cache).
         if config.aux_state_dim and config.readout == "tokens":
             self.state_readout = TokenReadout(len(cameras), config.token_grid, backbone.image_dim, backbone.text_dim,
-                                              config.aux_state_dim, config.readout_heads, config.readout_coords)
+                                              config.aux_state_dim, config.readout_heads)
         elif config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
                                               config.aux_state_dim)

@@ -13,10 +13,7 @@ demonstrations' few layouts.
 It is :class:`~.attention_pooling.AttentionProbe` over every camera's
 condition tokens (one position embedding per camera and cell), with the
 pooled instruction added to each token before the attention, so which object
-is named decides where it looks. With ``coords`` each head also pools every
-camera's fixed cell centres by its attention (a spatial soft-argmax per
-camera), so the head points at the object and interpolates between cells
-rather than decoding a position from learnt per-cell embeddings.
+is named decides where it looks.
 
 ==============  ==================  =====================================
 tensor          shape               meaning
@@ -46,15 +43,13 @@ class TokenReadout(nn.Module):
         text_dim: Dt.
         state_dim: S.
         heads: attention poolings side by side.
-        coords: also pool each camera's cell centres (module doc).
     """
 
     def __init__(self, cameras: int, grid: tuple[int, int], image_dim: int, text_dim: int, state_dim: int,
-                 heads: int = 1, coords: bool = False) -> None:
+                 heads: int = 1) -> None:
         super().__init__()
         self.pool = AttentionProbe(cameras * grid[0] * grid[1], image_dim, lambda: nn.Linear(text_dim, WIDTH),
-                                   outputs=state_dim, heads=heads,
-                                   coords=cell_centres(grid).repeat(cameras, 1) if coords else None, groups=cameras)
+                                   outputs=state_dim, heads=heads)
 
     def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor) -> Tensor:
         return self.pool(image_tokens.flatten(1, 2), pooled_text(text_tokens, text_mask))

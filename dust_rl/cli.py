@@ -1,7 +1,9 @@
 """``dust-rl`` command line.
 
-``dust-rl train --preset NAME ...`` (first, or anywhere) starts from a named policy size
-(:data:`dust_rl.agents.config.POLICY_PRESETS`); ``--policy.*`` flags still override it.
+``dust-rl train --recipe NAME ...`` (and ``quickstart``) starts from a named, measured recipe
+(:data:`dust_rl.train.recipes.RECIPES`; ``dust-rl train`` without it picks one by the dataset), ``--preset NAME``
+from a named policy size (:data:`dust_rl.agents.config.POLICY_PRESETS`, laid over the recipe's policy); flags
+given beside them (anywhere) still override them.
 
 Bad input ends in one line, ``dust-rl: error: <what is wrong and what to do>`` (exit code 1):
 a :class:`~dust_rl.errors.UserError` (bad settings, unusable datasets, a busy dataset folder, a
@@ -98,24 +100,27 @@ def check_utf8(argv: list[str]) -> None:
 
 
 def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:
-    """``args`` without ``--preset NAME``, and the default config that preset gives (None: no preset).
+    """``args`` without ``--recipe NAME`` and ``--preset NAME``, and the default config they give (None: the
+    command's own), train and quickstart starting from a named recipe (:mod:`dust_rl.train.recipes`).
 
     Raises:
-        ConfigError: ``--preset`` on a command other than train, without a name, or with an unknown one.
+        ConfigError: ``--recipe`` or ``--preset`` where it does not apply, without a name, or with an unknown one.
     """
-    if "--preset" not in args:
+    if name not in ("train", "quickstart"):
+        for flag in ("--recipe", "--preset"):
+            if any(arg == flag or arg.startswith(f"{flag}=") for arg in args):
+                raise ConfigError(f"{flag} applies to dust-rl train and quickstart, not dust-rl {name}")
         return args, None
-    from dust_rl.agents.config import POLICY_PRESETS
+    from dust_rl.quickstart import QuickstartConfig
     from dust_rl.train.imitation import TrainConfig
+    from dust_rl.train.recipes import starting_settings
 
-    at = args.index("--preset")
-    if name != "train":
-        raise ConfigError(f"--preset applies to dust-rl train, not dust-rl {name}")
-    if at + 1 >= len(args) or args[at + 1] not in POLICY_PRESETS:
-        given = args[at + 1] if at + 1 < len(args) else "nothing"
-        raise ConfigError(f"--preset takes one of {sorted(POLICY_PRESETS)}, got {given}")
-    default = TrainConfig(dataset=tyro.MISSING, policy=POLICY_PRESETS[args[at + 1]])
-    return args[:at] + args[at + 2:], default
+    args, recipe, settings = starting_settings(name, args)
+    if settings is None:
+        return args, None
+    if name == "quickstart":
+        return args, QuickstartConfig(recipe=recipe, train=settings)
+    return args, TrainConfig.from_settings(settings, dataset=tyro.MISSING, recipe=recipe)
 
 
 if __name__ == "__main__":

@@ -25,8 +25,9 @@ from dust_rl.errors import check_at_least
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.config_json import config_json
-from dust_rl.train.imitation import TrainConfig, TrainSettings, train
-from dust_rl.train.recipes import vision_recipe
+from dust_rl.train.imitation import TrainConfig, train
+from dust_rl.train.recipes import RecipeName, vision_readout
+from dust_rl.train.settings import TrainSettings
 
 
 @dataclass
@@ -47,9 +48,12 @@ class QuickstartConfig:
     """Camera resolution (every measured recipe ran at 128 px)."""
     progress: bool = True
     """Show progress bars."""
-    train: TrainSettings = field(default_factory=vision_recipe)
+    recipe: RecipeName = "vision-readout"
+    """The named recipe training starts from (``dust-rl train --help`` lists them; ``--train.*`` flags override
+    it)."""
+    train: TrainSettings = field(default_factory=vision_readout)
     """Training (``--train.steps``, ``--train.policy.variant`` ...; as ``dust-rl train``, defaults from
-    :func:`~dust_rl.train.recipes.vision_recipe`)."""
+    ``recipe``)."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "demos", "eval_episodes", "workers", "image_size")
@@ -61,7 +65,8 @@ def quickstart(config: QuickstartConfig, command: str | None = None) -> dict:
     data, train_dir, eval_dir = config.out / "data", config.out / "train", config.out / "eval"
     check_image_encoder(config.train.policy.image_encoder)
     train_config = TrainConfig.from_settings(replace(config.train, progress=config.progress), dataset=data,
-                                             out=train_dir, resume=(train_dir / "config.json").is_file())
+                                             out=train_dir, resume=(train_dir / "config.json").is_file(),
+                                             recipe=config.recipe)
     eval_config = EvalConfig(policy=train_dir / "policy.pt", out=eval_dir, episodes=config.eval_episodes,
                              workers=config.workers, train_dir=train_dir, progress=config.progress)
     stages = {}

@@ -36,14 +36,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", required=True, help="the training demonstrations (env, cameras, state stats)")
     parser.add_argument("--frames", type=int, default=4000, help="aux frames to fit")
-    parser.add_argument("--expert-fraction", type=float, default=0.0, help="as --aux-expert-fraction")
-    parser.add_argument("--approach-fraction", type=float, default=0.0, help="as --aux-approach-fraction")
-    parser.add_argument("--approach-displacement", type=float, default=0.0, help="as --aux-approach-displacement")
-    parser.add_argument("--expert-displacement", type=float, default=0.0, help="as --aux-expert-displacement")
     parser.add_argument("--steps", type=int, default=4000)
-    parser.add_argument("--decay", action="store_true", help="as --readout-lr-decay")
     parser.add_argument("--heads", type=int, default=1, help="attention poolings of the read-out")
-    parser.add_argument("--coords", action="store_true", help="as --policy.readout-coords")
     parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
     parser.add_argument("--image-encoder", default="efficientnet-lite0-s8")
     parser.add_argument("--cond-grid", type=int, default=8)
@@ -62,23 +56,19 @@ def main() -> None:
     width = env_state_width(dataset)
     policy = make_policy(image_encoder=args.image_encoder, cond_grid=(args.cond_grid, args.cond_grid),
                          variant="action_only", readout="tokens", readout_heads=args.heads,
-                         readout_coords=args.coords,
                          aux_state_dim=width, lambda_aux=1.0, **dataset_policy_kwargs(dataset))
     norm = EnvStateNorm.of_dataset(dataset, per_task=not args.pooled_stats)
 
     def frames(count: int, first_seed: int) -> AuxFrameBatches:
         rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
-                                               policy.cameras, count, width, expert_fraction=args.expert_fraction,
-                                               approach_fraction=args.approach_fraction,
-                                               approach_displacement=args.approach_displacement, first_seed=first_seed,
-                                               expert_displacement=args.expert_displacement)
+                                               policy.cameras, count, width, first_seed=first_seed)
         return AuxFrameBatches(rows, instructions, policy, norm)
 
     heldout = frames(HELDOUT_FRAMES, HELDOUT_FIRST_SEED)
     policy.normalizer.set_vision_stats(heldout.frames)
     fit = frames(args.frames, FIRST_SEED)
     policy.train()
-    warm_up_readout(policy, None, fit, args.steps, 1e-3, lambda scalars, step: None, decay=args.decay, heldout=heldout)
+    warm_up_readout(policy, None, fit, args.steps, 1e-3, lambda scalars, step: None, heldout=heldout)
     policy.eval()
     rows = heldout.rows(torch.arange(len(heldout)))
     with torch.no_grad():

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 from conftest import DEMO_ENV_KWARGS
-from tensordict import TensorDict
 
 from dust_rl.agents import DustConfig, DustPolicy, make_policy
 from dust_rl.agents.attention_pooling import WIDTH
@@ -15,14 +13,7 @@ from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.envs.factory import make_env
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
-from dust_rl.train.readout.aux_frames import (
-    FIRST_SEED,
-    HELD_WITHIN,
-    MAX_EXPERT_STEPS,
-    AuxFrameBatches,
-    _approach_steps,
-    render_aux_frames,
-)
+from dust_rl.train.readout.aux_frames import FIRST_SEED, AuxFrameBatches, render_aux_frames
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 ENV_ID = "DustFranka-v0"
@@ -45,90 +36,6 @@ def test_frames_are_seeded_padded_and_show_the_reset_objects():
     reset_state = torch.from_numpy(obs["observation.environment_state"])
     plate = slice(6, 9)  # the plate is a mocap body: random actions never move it
     assert torch.equal(state[0, plate], reset_state[plate]) and not state[0, 9:].any()  # zero padding
-
-
-def test_expert_frames_are_taken_along_the_scripted_experts_episode():
-    rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 2, 9, expert_fraction=1.0,
-                                progress=False)
-    random_rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 2, 9, progress=False)
-    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
-    for i in range(2):
-        rng = np.random.default_rng(FIRST_SEED + i)
-        rng.random()  # the draw that chose an expert frame
-        obs, _ = env.reset(seed=FIRST_SEED + i)
-        expert = env.unwrapped.make_expert()
-        for _ in range(rng.integers(0, MAX_EXPERT_STEPS)):
-            obs, _, terminated, truncated, _ = env.step(expert.act())
-            if terminated or truncated:
-                break
-        assert torch.equal(rows.get(ENV_STATE_KEY)[i], torch.from_numpy(obs["observation.environment_state"]))
-    env.close()
-    assert not torch.equal(rows.get((*IMAGE_KEY, "front")), random_rows.get((*IMAGE_KEY, "front")))
-
-
-def test_an_approach_stops_where_the_expert_is_about_to_grasp():
-    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
-    obs, _ = env.reset(seed=FIRST_SEED)
-    sim = env.unwrapped
-    closure = _approach_steps(sim, 10 * MAX_EXPERT_STEPS)  # more steps than the approach needs
-    after = sim.observe()["observation.environment_state"]
-    gripper = sim.end_effector_poses()[0][0]
-    env.close()
-    assert closure.tolist() == [-1.0]  # open all the way down
-    cube = obs["observation.environment_state"][:3]
-    np.testing.assert_allclose(after[:3], cube, atol=1e-3)  # nothing touched yet (resting, to a millimetre)
-    assert np.linalg.norm(gripper[:2] - cube[:2]) < 0.02 and gripper[2] - cube[2] < 0.05  # down at the cube
-
-
-def test_approach_frames_show_the_gripper_near_unheld_objects():
-    rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 6, 9, approach_fraction=1.0,
-                                progress=False)
-    random_rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 6, 9, progress=False)
-    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
-    rest = [env.reset(seed=FIRST_SEED + i)[0]["observation.environment_state"][2] for i in range(6)]
-    env.close()
-    heights = rows.get(ENV_STATE_KEY)[:, 2].numpy()
-    np.testing.assert_allclose(heights, rest, atol=0.01)  # the named cube never lifted
-    assert not torch.equal(rows.get((*IMAGE_KEY, "front")), random_rows.get((*IMAGE_KEY, "front")))
-
-
-def test_displaced_approach_frames_move_every_object_within_the_radius_and_not_the_arm():
-    radius = 0.05
-
-    def frames(displacement: float) -> TensorDict:
-        rows, _ = render_aux_frames(ENV_ID, DEMO_ENV_KWARGS, ["pick_place"], ["front"], 4, 9, approach_fraction=1.0,
-                                    approach_displacement=displacement, progress=False)
-        return rows
-
-    still, moved = frames(0.0), frames(radius)
-    offsets = (moved.get(ENV_STATE_KEY) - still.get(ENV_STATE_KEY)).view(4, 3, 3)  # target, distractor, plate xyz
-    planar = offsets[..., :2].norm(dim=-1)
-    assert (planar <= radius + 1e-6).all() and (planar[:, :2] > 0).all()  # the cubes moved, each within the radius
-    # On the table plane only: heights change by no more than the last physics substep's motion, which the state read
-    # before the displacement's kinematics update did not include yet (well under a millimetre).
-    assert offsets[..., 2].abs().max() < 1e-3
-    assert not torch.equal(moved.get((*IMAGE_KEY, "front")), still.get((*IMAGE_KEY, "front")))
-
-
-def test_displacement_spares_the_object_the_gripper_holds():
-    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
-    sim = env.unwrapped
-    rest = env.reset(seed=0)[0]["observation.environment_state"]
-    expert = sim.make_expert()
-    for _ in range(MAX_EXPERT_STEPS * 2):  # until the named cube is lifted off the table
-        sim.advance(expert.act())
-        held = sim.observe()["observation.environment_state"]
-        if held[2] > rest[2] + 0.02:
-            break
-    else:
-        pytest.fail("the expert never lifted the cube")
-    sim.displace_free_bodies(np.random.default_rng(0), 0.05, spare_within=HELD_WITHIN)
-    moved = sim.observe()["observation.environment_state"]
-    env.close()
-    # The state read before the displacement's kinematics update lacks the last substep's motion (well under a
-    # millimetre; see the test above): the held cube stays within that, the distractor moves farther.
-    assert np.abs(moved[:3] - held[:3]).max() < 1e-3
-    assert np.linalg.norm(moved[3:5] - held[3:5]) > 1e-3
 
 
 def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm):
@@ -159,7 +66,7 @@ def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encod
     width = env_state_width(dataset)
     policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                          horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                         readout_heads=3, readout_coords=True, aux_state_dim=width, lambda_aux=1.0,
+                         readout_heads=3, aux_state_dim=width, lambda_aux=1.0,
                          aux_state_input=True)
     rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
                                            width, progress=False)
@@ -172,8 +79,7 @@ def test_token_readout_learns_from_the_frames_frozen_tokens(demo_dir, tiny_encod
     loss.backward()
     assert loss > 0 and all(p.grad is not None for p in policy.state_readout.parameters())
     assert policy.state_readout.pool.attend.out_features == 3  # one attention pooling per head
-    # Each head also points: a (row, col) per camera and head beside its pooled vector.
-    assert policy.state_readout.pool.head[0].in_features == 3 * WIDTH + len(policy.cameras) * 3 * 2
+    assert policy.state_readout.pool.head[0].in_features == 3 * WIDTH  # the heads' pooled vectors side by side
     assert all(p.grad is None for p in (*policy.model.parameters(), *policy.condition.parameters()))
     # The trunk reads the estimate after the robot state: the state token embeds both.
     assert policy.model.state_in.in_features == policy.config.state_dim + width

@@ -222,20 +222,27 @@ def test_task_all_is_the_suite_of_the_env_ids_robot():
         env_tasks("DustHumanoid-v0", "press_button")
 
 
-def test_preset_sets_the_policy_size_and_flags_override_it(train_args, tmp_path):
+def test_preset_sets_the_policy_size_over_the_recipe_and_flags_override_both(train_args, tmp_path):
     from dust_rl.agents.config import POLICY_PRESETS
     from dust_rl.cli import with_preset
     from dust_rl.train.imitation import TrainConfig
 
-    args, default = with_preset("train", ["--dataset", "d", "--preset", "gpu-base", "--policy.n-dit", "2"])
+    args, default = with_preset("train", ["--dataset", "d", "--preset", "gpu-base", "--policy.n-dit", "2",
+                                          "--recipe=plain"])
     assert args == ["--dataset", "d", "--policy.n-dit", "2"]
     config = tyro.cli(TrainConfig, args=args, default=default)
     gpu = POLICY_PRESETS["gpu-base"]
     assert (config.policy.d_model, config.policy.n_mmdit, config.policy.n_dit) == (gpu.d_model, gpu.n_mmdit, 2)
-    assert with_preset("train", ["--dataset", "d"]) == (["--dataset", "d"], None)
+    assert (config.recipe, config.policy.image_encoder, config.steps) == ("plain", "efficientnet-lite0-s8", 2000)
+    assert with_preset("train", ["--help"]) == (["--help"], None)  # --help shows every setting's own default
     assert "one of ['cpu-small', 'gpu-base'], got huge" in error_of([*train_args, "--out", str(tmp_path / "r"),
                                                                         "--preset", "huge"])
-    assert "applies to dust-rl train" in error_of(["eval", "--policy", "p.pt", "--preset", "gpu-base"])
+    assert "--recipe takes one of ['defaults', 'pick-place-readout', 'plain', 'vision-readout'], got fast" in \
+        error_of([*train_args, "--out", str(tmp_path / "r"), "--recipe", "fast"])
+    assert "--preset applies to dust-rl train, not dust-rl quickstart" in error_of(["quickstart", "--preset",
+                                                                                  "gpu-base"])
+    for flag in ("--preset", "--recipe=plain"):
+        assert "applies to dust-rl train and quickstart" in error_of(["eval", "--policy", "p.pt", flag, "gpu-base"])
     assert not (tmp_path / "r").exists()
 
 
@@ -264,7 +271,7 @@ BAD_INPUT = {
                       "--out must name an .mp4 file"),
     "no-spec": (_no_spec, "meta.json: missing or malformed spec; the file was edited"),
     "nproc-above-cores": (lambda tmp, demos: ["train", "--dataset", str(demos), "--out", str(tmp / "run"), "--device",
-                                              "cpu", "--nproc", str((os.cpu_count() or 1) + 1),
+                                              "cpu", "--recipe", "plain", "--nproc", str((os.cpu_count() or 1) + 1),
                                               "--batch-size", str((os.cpu_count() or 1) + 1)],
                           f"give --nproc at most {os.cpu_count() or 1}"),
     "non-utf8-path": (lambda tmp, demos: ["dataset", "info", os.fsdecode(bytes(tmp / "ds") + b"\xff")],

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
@@ -66,13 +64,3 @@ def test_warm_up_keeps_the_weights_that_read_held_out_frames_best(demo_dir, tiny
     errors = [logged[step]["warmup/loss_aux_frames_heldout"] for step in sorted(logged)]
     assert len(errors) == 8 and min(errors) < errors[-1]
     assert heldout_loss(policy, heldout) == pytest.approx(min(errors), rel=1e-6)
-
-
-def test_a_decaying_warm_up_lowers_its_rate_along_a_cosine_to_zero(demo_dir, tiny_encoder, minilm):
-    dataset, policy = readout_policy(demo_dir, tiny_encoder, minilm, "tokens")
-    logged = {}
-    warm_up_readout(policy, None, aux_frames(dataset, policy), 8, 1e-3,
-                    lambda scalars, step: logged.update({step: scalars["warmup/lr"]}), batch_size=4, decay=True,
-                    log_every=2, progress=False)
-    expected = [1e-3 * (1 + math.cos(math.pi * step / 8)) / 2 for step in (2, 4, 6, 8)]
-    assert [logged[step] for step in (2, 4, 6, 8)] == pytest.approx(expected, rel=1e-9)

@@ -81,3 +81,14 @@ def test_average_pools_the_shared_seeds_and_refuses_unlike_studies(two_studies, 
     results = {**drawer_results, "train": {**drawer_results["train"], "threads": 2, "log_every": 7}}
     (other / "results.json").write_text(json.dumps(results))
     assert average(AverageConfig(studies=(press.out, other)))["variants"] == result["variants"]
+
+
+def test_a_study_from_before_a_setting_was_retired_compares_at_its_retired_value_only():
+    from dust_rl.bench.average import recipe
+
+    now = {"train": {"lr": 3e-4, "policy": {"d_model": 32}}}
+    before = {"train": {**now["train"], "aux_approach_fraction": 0.0,
+                        "policy": {**now["train"]["policy"], "readout_coords": False}}}
+    assert recipe(before) == recipe(now)
+    other = {"train": {**before["train"], "policy": {**before["train"]["policy"], "readout_coords": True}}}
+    assert recipe(other) == {**recipe(now), "policy.readout_coords": True}

@@ -40,7 +40,9 @@ from dust_rl.train.readout.cache import READOUT_KIND
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 TINY_POLICY = {"horizon": 4, "execute_steps": 2, "d_model": 32, "n_heads": 2, "n_mmdit": 2, "n_dit": 0}
-TINY_ARGS = ["--batch-size=8", *[f"--policy.{k.replace('_', '-')}={v}" for k, v in TINY_POLICY.items()]]
+# Through the command line: every setting at its own default (as TrainConfig in Python), tiny sizes.
+TINY_ARGS = ["--recipe=defaults", "--batch-size=8",
+             *[f"--policy.{k.replace('_', '-')}={v}" for k, v in TINY_POLICY.items()]]
 POLICY_FIELDS = {f.name for f in dataclasses.fields(PolicyConfig)}
 
 
@@ -156,22 +158,6 @@ def test_training_logs_the_aux_frame_loss(readout, run_inputs, tmp_path):
     assert int(step) == 2 and float(value) > 0
     with pytest.raises(ConfigError, match="aux_frames needs --policy.lambda-aux > 0 and a read-out frames can"):
         tiny_config(run_inputs, out, keypoints=2, lambda_aux=1.0, aux_frames=3)
-    pixels = {"keypoints": 2, "keypoint_source": "pixels", "lambda_aux": 1.0}
-    with pytest.raises(ConfigError, match="aux_expert_fraction needs --aux-frames"):
-        tiny_config(run_inputs, out, aux_expert_fraction=0.5, **pixels)
-    with pytest.raises(ConfigError, match=r"aux_expert_fraction must be in \[0, 1\], got 1.5"):
-        tiny_config(run_inputs, out, aux_frames=3, aux_expert_fraction=1.5, **pixels)
-    with pytest.raises(ConfigError, match="aux_approach_fraction needs --aux-frames"):
-        tiny_config(run_inputs, out, aux_approach_fraction=0.5, **pixels)
-    with pytest.raises(ConfigError, match="aux_approach_displacement moves the objects of approach frames"):
-        tiny_config(run_inputs, out, aux_frames=3, aux_approach_displacement=0.05, **pixels)
-    with pytest.raises(ConfigError, match="aux_expert_displacement moves the objects of expert frames"):
-        tiny_config(run_inputs, out, aux_frames=3, aux_expert_displacement=0.05, **pixels)
-    with pytest.raises(ConfigError, match="aux_approach_displacement must be a finite number >= 0"):
-        tiny_config(run_inputs, out, aux_frames=3, aux_approach_fraction=0.5, aux_approach_displacement=-0.1,
-                    **pixels)
-    with pytest.raises(ConfigError, match=r"aux_expert_fraction \+ aux_approach_fraction must be at most 1"):
-        tiny_config(run_inputs, out, aux_frames=3, aux_expert_fraction=0.5, aux_approach_fraction=0.6, **pixels)
 
 
 def test_readout_warmup_freezes_the_readout_and_resumes(run_inputs, tmp_path):
@@ -256,12 +242,11 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
         train(tiny_config(run_inputs, out, steps=4, lr=1e-3, resume=True))
     # A run started before a field existed stored none: it resumes at the field's default, not at another value.
     saved = json.loads((out / "config.json").read_text())
-    del saved["config"]["aux_approach_fraction"]
+    del saved["config"]["readout_lr"]
     (out / "config.json").write_text(json.dumps(saved))
     train(tiny_config(run_inputs, out, steps=4, resume=True))
-    with pytest.raises(ConfigError, match="other settings.*aux_approach_fraction"):
-        train(tiny_config(run_inputs, out, steps=4, aux_frames=2, aux_approach_fraction=0.5, resume=True,
-                          readout="tokens", lambda_aux=1.0))
+    with pytest.raises(ConfigError, match="other settings.*readout_lr"):
+        train(tiny_config(run_inputs, out, steps=4, readout_lr=3e-3, resume=True))
     latest = sorted((out / "checkpoints").iterdir())[-1]
     for state in latest.rglob("*.memmap"):
         state.write_bytes(b"garbage")
@@ -598,3 +583,36 @@ def test_a_full_disk_ends_training_in_one_line_and_leaves_no_run_folder(run_inpu
         train(tiny_config(run_inputs, out, steps=2))
     assert not out.exists()  # its config.json could not be written: nothing of the run is left
     assert not [p for p in run_inputs[0].rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_a_run_stored_with_retired_settings_resumes_at_their_value_only(run_inputs, tmp_path):
+    out = tmp_path / "run"
+    train(tiny_config(run_inputs, out, steps=4))
+    path = out / "config.json"
+    saved = json.loads(path.read_text())
+    old = {**saved["config"], "aux_approach_fraction": 0.0, "aux_expert_displacement": 0.0, "readout_lr_decay": False,
+           "policy": {**saved["config"]["policy"], "readout_coords": False}}
+    path.write_text(json.dumps({**saved, "config": old}))  # as an earlier version wrote it
+    (out / "policy.pt").unlink()
+    assert train(tiny_config(run_inputs, out, steps=4, resume=True)).policy.is_file()
+    for retired, value in (("aux_approach_fraction", 0.5), ("readout_lr_decay", True)):
+        path.write_text(json.dumps({**saved, "config": {**old, retired: value}}))
+        with pytest.raises(ConfigError, match=f"started with {retired} = {value}: a setting this version removed"):
+            train(tiny_config(run_inputs, out, steps=4, resume=True))
+    path.write_text(json.dumps({**saved, "config": {**old, "policy": {**old["policy"], "readout_coords": True}}}))
+    with pytest.raises(ConfigError, match="started with policy.readout_coords = True: a setting this version removed"):
+        train(tiny_config(run_inputs, out, steps=4, resume=True))
+
+
+def test_a_policy_file_with_a_retired_setting_loads_at_its_value_only(run_inputs, tmp_path):
+    from dust_rl.agents.factory import POLICY_KIND
+
+    policy = train(tiny_config(run_inputs, tmp_path / "run", steps=2, readout="tokens", lambda_aux=1.0)).policy
+    payload = {k: v for k, v in load_checkpoint(policy, POLICY_KIND).items() if k not in ("kind", "format_version")}
+    for coords in (False, True):
+        save_checkpoint({**payload, "config": {**payload["config"], "readout_coords": coords}}, policy, POLICY_KIND)
+        if coords:
+            with pytest.raises(CheckpointError, match="readout_coords = True: a setting this version removed"):
+                load_policy(policy)
+        else:
+            assert load_policy(policy).config.readout == "tokens"

@@ -47,7 +47,7 @@ from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import check_run_folder
 from dust_rl.train.imitation import RESUMABLE_FIELDS, TrainConfig, TrainSettings, train
-from dust_rl.train.recipes import vision_recipe
+from dust_rl.train.recipes import vision_readout
 
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
@@ -71,7 +71,7 @@ class SuiteConfig:
     ``video_dataset``: only the action-free row (its baseline DUST cells trained elsewhere)."""
     seeds: tuple[int, ...] = (0, 1)
     """Training seeds; each cell's episodes are pooled over them."""
-    train: TrainSettings = field(default_factory=vision_recipe)
+    train: TrainSettings = field(default_factory=vision_readout)
     """The recipe every cell trains with (``--train.steps``, ``--train.policy.d-model`` ...; its variant and
     seed are the cell's); default: the quickstart's, which solves press_button in minutes (a comparison means
     little where every variant fails)."""

@@ -50,7 +50,8 @@ def run(dataset: pathlib.Path, nproc: int, steps: int, train_args: list[str]) ->
     """One training run: samples/s and the peak anonymous and file-backed resident MiB."""
     with tempfile.TemporaryDirectory() as scratch:
         out = pathlib.Path(scratch) / "run"
-        command = [sys.executable, "-m", "dust_rl.train", "--dataset", str(dataset), "--out", str(out),
+        command = [sys.executable, "-m", "dust_rl.train", "--recipe", "defaults", "--dataset", str(dataset),
+                   "--out", str(out),
                    "--steps", str(steps), "--nproc", str(nproc), "--log-every", str(max(1, steps // 2)),
                    "--checkpoint-every", str(steps), "--loggers", "csv", "--no-progress", *train_args]
         process = subprocess.Popen(command, stdout=subprocess.DEVNULL)

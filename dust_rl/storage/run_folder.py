@@ -13,12 +13,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
 from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 
 from dust_rl.agents.checkpoint_io import CheckpointError
+from dust_rl.agents.config import without_retired
 from dust_rl.errors import ConfigError
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.checkpoint_dirs import check_checkpoint_dir, newest_checkpoint
@@ -26,13 +27,16 @@ from dust_rl.storage.config_json import config_json, package_versions
 from dust_rl.storage.lock import LOCK_FILE, folder_lock
 
 
-def check_run_folder(config, resumable: Iterable[str]) -> None:
-    """Raise unless ``config.out`` suits ``config.resume`` (a dataclass with ``out`` and ``resume``).
+def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, object] | None = None) -> None:
+    """Raise unless ``config.out`` suits ``config.resume`` (a dataclass with ``out`` and ``resume``); ``retired``:
+    settings earlier versions stored, at the one value this version honours
+    (:func:`~dust_rl.agents.config.without_retired`).
 
     Raises:
         FileNotFoundError: ``resume`` without a run there.
         FileExistsError: a new run in a folder that holds one.
-        ConfigError: ``resume`` with settings other than the stored run's (fields not in ``resumable``).
+        ConfigError: ``resume`` with settings other than the stored run's (fields not in ``resumable``), or of a run
+            stored with a retired setting at another value.
     """
     saved = config.out / "config.json"
     if config.resume:
@@ -42,6 +46,11 @@ def check_run_folder(config, resumable: Iterable[str]) -> None:
             stored = json.loads(saved.read_text())["config"]
         except (ValueError, KeyError, TypeError) as err:
             raise ConfigError(f"{saved}: unreadable run config ({err!r}); start a new run with another --out") from err
+        try:
+            stored = without_retired(stored, retired or {})
+        except ValueError as err:
+            raise ConfigError(f"{config.out} was started with {err}; it cannot resume: start a new run with another "
+                              "--out") from None
         resumable = set(resumable)
         defaults = _defaults(config)
         changed = [k for k, v in config_json(config).items()
@@ -68,7 +77,8 @@ def _defaults(config) -> dict:
 
 
 @contextlib.contextmanager
-def locked_run_folder(config, resumable: Iterable[str], command: str | None) -> Iterator[None]:
+def locked_run_folder(config, resumable: Iterable[str], command: str | None,
+                      retired: Mapping[str, object] | None = None) -> Iterator[None]:
     """Hold ``config.out``'s lock for the ``with`` body, a new run's ``config.json`` written first.
 
     Two runs in one folder would interleave their logs and checkpoints. The folder is checked again under
@@ -77,13 +87,13 @@ def locked_run_folder(config, resumable: Iterable[str], command: str | None) -> 
 
     Raises:
         FolderLockedError: another process holds the folder (the message names its pid).
-        FileExistsError, FileNotFoundError, ConfigError: as :func:`check_run_folder`.
+        FileExistsError, FileNotFoundError, ConfigError: as :func:`check_run_folder` (``retired`` too).
     """
     created = not config.out.exists()
     config.out.mkdir(parents=True, exist_ok=True)
     with folder_lock(config.out):
         try:
-            check_run_folder(config, resumable)
+            check_run_folder(config, resumable, retired)
             if not config.resume:
                 write_run_config(config, command)
         except BaseException:

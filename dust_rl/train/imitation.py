@@ -37,11 +37,12 @@ import os
 import pathlib
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
-from typing import Literal, get_args
+from dataclasses import dataclass, fields
+from typing import Annotated
 
 import gymnasium as gym
 import torch
+import tyro
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
@@ -49,10 +50,9 @@ from torchrl.record.loggers import Logger, get_logger
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy
-from dust_rl.agents.config import PolicyConfig
 from dust_rl.agents.factory import IMAGE_SIZE_INFO, frame_size
 from dust_rl.agents.flow_matching import Shard
-from dust_rl.agents.precision import Precision, autocast
+from dust_rl.agents.precision import autocast
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.data.env_state_norm import PER_TASK, EnvStateNorm
@@ -60,7 +60,7 @@ from dust_rl.data.features import FeatureCache, dataset_policy_kwargs, env_state
 from dust_rl.diagnose.world_model import Windows, vision_skill, windows_of
 from dust_rl.envs.factory import make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.errors import ConfigError, UserError, check_at_least, check_finite, check_fraction, no_space_left
+from dust_rl.errors import ConfigError, UserError, no_space_left
 from dust_rl.runtime.device import resolve_device
 from dust_rl.storage.checkpoint_dirs import save_checkpoint_dir
 from dust_rl.storage.run_folder import check_run_folder, locked_run_folder, restore
@@ -72,206 +72,28 @@ from dust_rl.train.readout.aux_frame_cache import cached_aux_frames, cached_fram
 from dust_rl.train.readout.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches
 from dust_rl.train.readout.cache import readout_cache_path, warm_up_or_load
 from dust_rl.train.readout.warmup import warm_up_readout
+from dust_rl.train.recipes import LEGACY_RECIPE, RecipeName, recipe_help
+from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings
 
-LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
-# Fields that may differ between a run and its resumption.
+# Fields that may differ between a run and its resumption (``recipe`` names where the settings started; they are
+# compared one by one).
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "compile", "eval_every", "eval_episodes", "eval_workers",
-                    "loggers", "cache_dir")
-# Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
-NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset", "extra_dataset")
+                    "loggers", "cache_dir", "recipe")
 SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
 
 
 @dataclass(kw_only=True)
-class TrainSettings:
-    """How to train a policy by imitation, wherever the data and the run folder are (``dust-rl quickstart
-    --train.*`` nests these)."""
-
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
-    """The policy to build: variant, trunk size, losses, image encoder (``--policy.d-model`` ...)."""
-    steps: int = 3000
-    """Optimiser steps."""
-    batch_size: int = 64
-    """Training windows per step (over all processes: each of ``nproc`` takes ``batch_size / nproc``)."""
-    lr: float = 1e-4
-    """Peak learning rate (paper: 1e-4)."""
-    betas: tuple[float, float] = (0.95, 0.999)
-    """AdamW betas (paper)."""
-    weight_decay: float = 1e-5
-    """AdamW weight decay (paper)."""
-    warmup: float = 0.05
-    """Fraction of the steps with a linear learning-rate warm-up; a cosine decay to 0 follows."""
-    grad_clip: float = 1.0
-    """Gradient-norm clipping threshold."""
-    ema_decay: float = 0.999
-    """Decay of the exponential moving average of the weights (the saved policy uses the average)."""
-    aux_frames: int = 0
-    """Frames of random resets and random arm motions (objects independent of the arm,
-    :mod:`.readout.aux_frames`) rendered once at the start (and kept in ``<dataset>/aux_frames/`` for any run
-    that asks for the same, :mod:`.readout.aux_frame_cache`); every step adds the read-out's error on a batch
-    of them to the loss (weight ``lambda_aux``), so the read-out cannot settle for "the target is where the
-    gripper is". Needs ``lambda_aux`` and ``readout tokens`` or ``keypoint_source pixels``; 0: off."""
-    aux_expert_fraction: float = 0.0
-    """Share of the aux frames taken from the scripted expert's motion (a random number of steps into an expert
-    episode on a fresh layout) instead of random actions, so the read-out also sees objects held and carried."""
-    aux_approach_fraction: float = 0.0
-    """Share of the aux frames taken where the expert is about to grasp, then nudged by 0..9 random arm motions
-    (:mod:`.readout.aux_frames`): the gripper beside its target at random offsets, nothing held."""
-    aux_approach_displacement: float = 0.0
-    """Metres: after each approach frame's motion, every free object is moved by its own random offset within
-    this radius on the table plane (:mod:`.readout.aux_frames`), so the read-out cannot take the gripper's place
-    for the target's; 0: off. Needs ``aux_approach_fraction``."""
-    aux_expert_displacement: float = 0.0
-    """Metres: after each expert frame's motion, every free object the gripper does not hold is moved by its own
-    random offset within this radius on the table plane (:mod:`.readout.aux_frames`), so the object below a carried
-    one is not always under the gripper; 0: off. Needs ``aux_expert_fraction``."""
-    readout_warmup: int = 0
-    """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
-    the policy trains; they are then frozen (:mod:`.readout.warmup`). Needs ``aux_frames``; 0: off."""
-    readout_lr: float = 1e-3
-    """Learning rate of that warm-up (constant unless ``readout_lr_decay``)."""
-    readout_lr_decay: bool = False
-    """Lower the warm-up's rate along a cosine to 0 at its last step: its held-out error was still falling at the
-    end of 4,000 and 8,000 constant-rate steps (docs/franka_results.md)."""
-    readout_demos: bool = True
-    """Also fit the warm-up on demonstration rows (half of each batch); without them it sees aux frames only."""
-    video_dataset: pathlib.Path | None = None
-    """A dataset of the same robot and cameras whose episodes train without their actions (action-free video,
-    :mod:`dust_rl.train.action_free`): the world-model stream learns from them, the action loss does not."""
-    video_fraction: float = 0.25
-    """Share of each batch taken from ``video_dataset``."""
-    extra_dataset: pathlib.Path | None = None
-    """A second dataset of the same robot and cameras whose windows join every batch with their actions
-    (:mod:`dust_rl.train.dataset_batches`), e.g. a policy's successful rollouts on fresh layouts (``dust-rl collect
-    --policy``)."""
-    extra_fraction: float = 0.5
-    """Share of each batch taken from ``extra_dataset``."""
-    extra_action_key: Literal["action", "expert_action"] = "action"
-    """The actions ``extra_dataset`` teaches: the executed ones (self-imitation of a policy's successes) or the
-    scripted expert's label at each state (DAgger)."""
-    init_policy: pathlib.Path | None = None
-    """Start from this trained policy (weights, normalisation, read-out) instead of a new one: fine-tuning.
-    Its own settings are kept (no ``--policy.*`` flags) and its frame read-out stays frozen (no warm-up)."""
-    augment_views: int = 1
-    """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
-    (:mod:`dust_rl.data.augment`); each training window conditions on one of them. Encoding costs that many times
-    more, once per dataset."""
-    start_rows: int = 0
-    """Rows at the start of every episode drawn more often (:mod:`dust_rl.data.windows`): the first frame is
-    where the policy must decide where to go, and uniform draws give it 1 window in an episode's length;
-    0: every row equally likely."""
-    start_fraction: float = 0.25
-    """Share of each batch drawn from those ``start_rows`` rows."""
-    seed: int = 0
-    """Seed of the initial weights, batch sampling and flow-matching noise."""
-    log_every: int = 50
-    """Steps between logged scalars."""
-    checkpoint_every: int = 500
-    """Steps between checkpoints (one is always written at the end)."""
-    eval_every: int = 0
-    """Steps between closed-loop evaluations of the EMA policy (0: none); with a vision stream each also logs
-    ``wm/skill``, the skill of the sampled future against the present frame on a fixed draw of training windows
-    (:mod:`dust_rl.diagnose.world_model`)."""
-    eval_episodes: int = 10
-    """Episodes per task of each periodic evaluation."""
-    eval_workers: int = 2
-    """Env processes of each periodic evaluation."""
-    threads: int | None = None
-    """torch threads, per process (default: torch's choice)."""
-    nproc: int = 1
-    """Processes training data-parallel (``DistributedDataParallel``; gloo on the CPU, NCCL with one GPU per
-    process on CUDA). Under ``torchrun`` leave it at 1 or give torchrun's ``--nproc-per-node``."""
-    device: str = "auto"
-    """Where the policy trains (:mod:`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
-    cuda:N, mps. The feature cache and the saved policy stay on the CPU."""
-    precision: Precision = "fp32"
-    """The trunk's precision while training: fp32, or bf16 autocast (:mod:`dust_rl.agents.precision`; weights,
-    optimiser and the saved policy stay float32)."""
-    compile: bool = False
-    """Compile the trunk's forward pass with ``torch.compile`` (the first steps pay the compilation; its
-    cost on this machine is in BENCHMARKS.md)."""
-    progress: bool = True
-    """Show a progress bar."""
-    loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
-    """Where the scalars go, each through torchrl's ``get_logger`` into ``out/logs`` (experiment ``train``);
-    ``wandb`` and ``mlflow`` need their package installed. ``loss.png`` is drawn from the CSV files."""
-
-    def __post_init__(self) -> None:
-        check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
-                       "eval_episodes", "eval_workers", "threads", "nproc")
-        check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup", "start_rows")
-        check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
-        check_finite(self, "weight_decay")
-        readout_on_frames = self.policy.readout == "tokens" or self.policy.keypoint_source == "pixels"
-        if self.aux_frames and not (self.policy.lambda_aux and readout_on_frames):
-            raise ConfigError("aux_frames needs --policy.lambda-aux > 0 and a read-out frames can train: "
-                              "--policy.readout tokens, or --policy.keypoint-source pixels")
-        for name in ("aux_expert_fraction", "aux_approach_fraction"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-            if getattr(self, name) and not self.aux_frames:
-                raise ConfigError(f"{name} needs --aux-frames > 0: it is a share of those frames")
-        for kind in ("approach", "expert"):
-            check_finite(self, f"aux_{kind}_displacement")
-            if getattr(self, f"aux_{kind}_displacement") and not getattr(self, f"aux_{kind}_fraction"):
-                raise ConfigError(f"aux_{kind}_displacement moves the objects of {kind} frames: it needs "
-                                  f"--aux-{kind}-fraction > 0")
-        if self.aux_expert_fraction + self.aux_approach_fraction > 1:
-            raise ConfigError("aux_expert_fraction + aux_approach_fraction must be at most 1 (shares of the same "
-                              f"frames), got {self.aux_expert_fraction} + {self.aux_approach_fraction}")
-        if not 0 < self.start_fraction < 1:
-            raise ConfigError(f"start_fraction must be in (0, 1), got {self.start_fraction}")
-        for name in ("video_fraction", "extra_fraction"):
-            if not 0 < getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be in (0, 1), got {getattr(self, name)}")
-        mixed = [name for name in ("video_dataset", "extra_dataset") if getattr(self, name) is not None]
-        if self.batch_size < 1 + len(mixed):
-            raise ConfigError(f"{' and '.join(mixed)} need --batch-size >= {1 + len(mixed)}: each batch holds "
-                              "demonstrations and a share of each")
-        if len(mixed) == 2 and self.video_fraction + self.extra_fraction >= 1:
-            raise ConfigError(f"video_fraction + extra_fraction must be below 1 (the rest are demonstrations), got "
-                              f"{self.video_fraction} + {self.extra_fraction}")
-        if self.init_policy is not None and self.policy != PolicyConfig():
-            raise ConfigError("--policy.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
-                              "settings (and its read-out, so no aux frames or read-out warm-up either)")
-        if self.video_dataset is not None and self.policy.lambda_aux and not self.readout_warmup:
-            raise ConfigError("video_dataset with --policy.lambda-aux needs --readout-warmup: the read-out is then "
-                              "fitted first and frozen, so the action-free episodes never train it")
-        if self.readout_warmup and not self.aux_frames:
-            raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
-                              "is where the gripper is' (dust_rl.train.readout.aux_frames)")
-        check_fraction(self, "warmup", "ema_decay")
-        resolve_device(self.device)
-        unknown = set(self.loggers) - set(get_args(LoggerKind))
-        if unknown:
-            raise ConfigError(f"unknown loggers {sorted(unknown)}; choose from {list(get_args(LoggerKind))}")
-        if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
-            raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
-        self.check_data_parallel(self.nproc)
-        cores = os.cpu_count() or 1
-        if self.nproc > cores and resolve_device(self.device).type == "cpu":
-            raise ConfigError(f"--nproc {self.nproc} processes on the CPU of a machine with {cores} cores: each "
-                              f"would wait on the others; give --nproc at most {cores}")
-
-    def check_data_parallel(self, nproc: int) -> None:
-        """Raise unless these settings can train over ``nproc`` processes."""
-        if nproc == 1:
-            return
-        if self.batch_size % nproc:
-            raise ConfigError(f"--batch-size {self.batch_size} does not split evenly over {nproc} processes")
-        used = [name for name in NOT_DATA_PARALLEL if getattr(self, name)]
-        if used:
-            raise ConfigError(f"{', '.join(used)} cannot train over several processes yet; train them with one")
-
-
-@dataclass(kw_only=True)
 class TrainConfig(TrainSettings):
-    """Imitation training of a DUST policy on a demonstration dataset. ``--preset cpu-small|gpu-base`` starts
-    from a named policy size (``--policy.*`` flags override it)."""
+    """Imitation training of a DUST policy on a demonstration dataset. ``--recipe NAME`` starts from a measured
+    recipe (by default one chosen by the dataset), ``--preset cpu-small|gpu-base`` from a named policy size; flags
+    given beside them override them."""
 
     dataset: pathlib.Path
     """Dataset folder written by ``dust-rl collect`` (or ``dust-rl dataset import``)."""
-    out: pathlib.Path = pathlib.Path("runs/train")
+    recipe: Annotated[RecipeName, tyro.conf.arg(help=recipe_help(),
+                                                help_behavior_hint="(default: chosen by the dataset)")] = LEGACY_RECIPE
+    """The named recipe the settings started from (:mod:`dust_rl.train.recipes`)."""
+    out: pathlib.Path = DEFAULT_OUT
     """Run folder: config, checkpoints, logs, ``policy.pt``."""
     resume: bool = False
     """Continue the run in ``out`` from its newest checkpoint."""
@@ -325,7 +147,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     if config.threads:
         torch.set_num_threads(config.threads)
     ranks = _join(config)
-    check_run_folder(config, RESUMABLE_FIELDS)
+    check_run_folder(config, RESUMABLE_FIELDS, RETIRED_FIELDS)
     ranks.barrier()  # every rank has seen the folder before rank 0 writes it
 
     # Data, env check, policy (all checked before the run folder is written), cached frozen features.
@@ -340,7 +162,8 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         probe.close()
     with (no_space_left(f"training into {config.out}", "free some space and run again (with --resume once a "
                         "checkpoint exists): checkpoints are only ever replaced whole"),
-          locked_run_folder(config, RESUMABLE_FIELDS, command) if ranks.is_main else contextlib.nullcontext()):
+          locked_run_folder(config, RESUMABLE_FIELDS, command, RETIRED_FIELDS) if ranks.is_main
+          else contextlib.nullcontext()):
         return _train_in_folder(config, ranks, dataset, policy)
 
 
@@ -563,7 +386,7 @@ def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPoli
         heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.aux_frames),
                                      HELDOUT_FIRST_SEED)
         warm_up_readout(policy, demo_batch, _aux_frame_batches(config, dataset, policy), config.readout_warmup,
-                        config.readout_lr, log_fit, config.batch_size, decay=config.readout_lr_decay, heldout=heldout,
+                        config.readout_lr, log_fit, config.batch_size, heldout=heldout,
                         progress=config.progress)
 
     if warm_up_or_load(path, policy.readout_modules(), config.seed, warm_up, log):
@@ -576,11 +399,7 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
     of them to fit, or ``count`` from ``first_seed`` on (frames that only measure)."""
     stored = cached_aux_frames(dataset.cache_root / "aux_frames", dataset.meta["env_id"], dataset.meta["env_kwargs"],
                                dataset.tasks, policy.cameras, count or config.aux_frames, env_state_width(dataset),
-                               seed=config.seed, expert_fraction=config.aux_expert_fraction,
-                               approach_fraction=config.aux_approach_fraction,
-                               approach_displacement=config.aux_approach_displacement,
-                               expert_displacement=config.aux_expert_displacement, first_seed=first_seed,
-                               progress=config.progress)
+                               seed=config.seed, first_seed=first_seed, progress=config.progress)
     return AuxFrameBatches(stored.rows, stored.instructions, policy, EnvStateNorm.of_dataset(dataset),
                            encode=lambda frames: cached_frame_tokens(stored.path, policy, frames))
 

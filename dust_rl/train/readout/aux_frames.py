@@ -13,41 +13,11 @@ error to every step's loss beside the demonstrations'.
 
 Random motions never lift a cube, so a read-out trained on them alone is
 3 cm off before the grasp but 12-15 cm off once the cube is carried
-(docs/franka_results.md). With ``--aux-expert-fraction p`` that share of the frames is
-instead taken 0..79 steps into a scripted-expert episode on a fresh
-layout: objects reached, held, carried and placed, in layouts no
-demonstration shows, so they teach the carried phase without the 200
-training layouts to learn by heart.
-
-Neither kind shows the gripper right beside the object, where a grasp is
-won or lost: in closed loop the pick_place policy closed its fingers 1-2 cm
-beside the cube it had reached (docs/franka_results.md). With ``--aux-approach-fraction q``
-that share follows the expert until just before its gripper command first
-changes (the grasp; never, for a task without one) and then takes 0..9
-random arm motions that keep that command: the gripper near its target at
-random offsets, nothing held. Measured on pick_place, half of 8,000 frames of
-this kind made the read-out worse, not better (9.5 cm from the named cube at
-the first step of unseen demonstrations instead of 2.3 cm; docs/franka_results.md).
-
-Those frames bring the shortcut back (the target is where the gripper is).
-``--aux-approach-displacement r`` breaks it again: after the approach every
-free object is moved by its own uniformly random offset within r metres on
-the table plane (then rendered, not simulated), so the gripper hovers near the
-objects, the close-up is the same, and where the target lies relative to the
-gripper has to be read from the image. Measured on pick_place (a quarter of
-8,000 frames, r = 5 cm, the read-out fitted alone): still worse than random
-motions only, 6.1 cm from the named cube at the first step of unseen
-demonstrations and 8.9 cm over steps 10-29 (the grasp) instead of 2.4 and
-3.5 cm (docs/franka_results.md).
-
-Expert frames have the same shortcut where it matters for stacking: while
-the cube is carried over the one below, that one sits under the gripper in
-every frame. ``--aux-expert-displacement r`` moves every free object the
-gripper does not hold (farther than :data:`HELD_WITHIN` from it) by up to
-r metres after an expert frame's motion. Measured on stack (a quarter of
-8,000 frames, r = 5 cm, the read-out fitted alone), it did not help: the
-cube to stack on 4.8-7.1 cm off on unseen demonstrations against 2.9-3.9 cm
-with random motions only, as far off as expert frames without it (docs/franka_results.md).
+(docs/franka_results.md). Frames taken along the scripted expert's episode,
+close-ups where it is about to grasp, and either with the loose objects moved
+away from the gripper were each measured against random motions only and did
+worse (docs/franka_results.md); more random frames and a finer read-out are
+what helped, so random motions are the only kind.
 
 Seeds start at :data:`FIRST_SEED`, away from the demonstration (0..),
 validation (5000..) and held-out (10000..) seeds, so the frames never show a
@@ -65,7 +35,7 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
 from dust_rl.data.env_state_norm import EnvStateNorm
-from dust_rl.envs.env import ACTION_WIDTH, CLOSURE, DustEnv
+from dust_rl.envs.env import DustEnv
 from dust_rl.envs.factory import make_env
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, TASK_INDEX_KEY, flat_name
 
@@ -73,17 +43,12 @@ FIRST_SEED = 1_000_000
 HELDOUT_FIRST_SEED = 2_000_000  # frames that only measure the read-out (never fitted)
 HELDOUT_FRAMES = 256
 MAX_RANDOM_STEPS = 40
-MAX_EXPERT_STEPS = 80
-MAX_NUDGE_STEPS = 10  # random motions after an approach
-HELD_WITHIN = 0.03  # metres from the gripper's site within which an object counts as held (a 4 cm cube's centre)
 
 
 def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: list[str], count: int,
-                      env_state_width: int, seed: int = 0, expert_fraction: float = 0.0,
-                      approach_fraction: float = 0.0, approach_displacement: float = 0.0,
-                      expert_displacement: float = 0.0, first_seed: int = FIRST_SEED,
+                      env_state_width: int, seed: int = 0, first_seed: int = FIRST_SEED,
                       progress: bool = True) -> tuple[TensorDict, list[str]]:
-    """``count`` frames of random resets and random arm motions (or expert motions, or approaches), tasks in turn.
+    """``count`` frames of random resets and random arm motions, tasks in turn.
 
     Args:
         env_id, env_kwargs: the env the training data came from.
@@ -92,12 +57,6 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
         count: frames to render.
         env_state_width: the dataset's (padded) width of the object state; shorter states are zero-padded.
         seed: offsets the frames' seeds (first_seed + seed * count + i), so runs can differ.
-        expert_fraction: chance that a frame comes from the scripted expert's motion rather than random actions.
-        approach_fraction: chance that it comes from an approach (the expert's motion up to its grasp, nudged).
-        approach_displacement: after an approach, move every free object by up to this many metres on the table
-            plane (module doc); 0: leave them.
-        expert_displacement: after an expert frame's motion, move every free object not held by up to this many
-            metres on the table plane (module doc); 0: leave them.
         first_seed: :data:`FIRST_SEED` for frames to fit, :data:`HELDOUT_FIRST_SEED` for frames that measure.
         progress: show a progress bar.
 
@@ -115,18 +74,7 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
             rng = np.random.default_rng(frame_seed)
             env.reset(seed=frame_seed)
             sim = env.unwrapped  # steps without rendering; only the frame at the end is drawn
-            draw = rng.random() if expert_fraction or approach_fraction else 1.0  # none at 0: old frames stay
-            if draw < expert_fraction:
-                _expert_steps(sim, int(rng.integers(0, MAX_EXPERT_STEPS)))
-                if expert_displacement:
-                    sim.displace_free_bodies(rng, expert_displacement, spare_within=HELD_WITHIN)
-            elif draw < expert_fraction + approach_fraction:
-                closure = _approach_steps(sim, int(rng.integers(0, MAX_EXPERT_STEPS)))
-                _random_steps(sim, rng, int(rng.integers(0, MAX_NUDGE_STEPS)), closure)
-                if approach_displacement:
-                    sim.displace_free_bodies(rng, approach_displacement)
-            else:
-                _random_steps(sim, rng, int(rng.integers(0, MAX_RANDOM_STEPS)))
+            _random_steps(sim, rng, int(rng.integers(0, MAX_RANDOM_STEPS)))
             obs = sim.observe()
             for cam in cameras:
                 frames[cam].append(torch.from_numpy(obs[f"{flat_name(IMAGE_KEY)}.{cam}"]).permute(2, 0, 1))
@@ -141,39 +89,10 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
     return rows, instructions
 
 
-def _random_steps(sim: DustEnv, rng: np.random.Generator, steps: int, closure: np.ndarray | None = None) -> None:
-    """``steps`` uniformly random actions (their closure held at ``closure`` if given), or fewer if the episode
-    ends (a time limit, an unstable simulation)."""
+def _random_steps(sim: DustEnv, rng: np.random.Generator, steps: int) -> None:
+    """``steps`` uniformly random actions, or fewer if the episode ends (a time limit, an unstable simulation)."""
     for _ in range(steps):
-        action = rng.uniform(-1.0, 1.0, sim.action_space.shape).astype(np.float32)
-        if closure is not None:
-            action[CLOSURE::ACTION_WIDTH] = closure
-        if sim.advance(action)[1]:
-            break
-
-
-def _approach_steps(sim: DustEnv, steps: int) -> np.ndarray:
-    """Up to ``steps`` scripted-expert steps after a reset, stopping before its closure command first changes
-    (or the episode ends); returns that command, one per end effector."""
-    expert = sim.make_expert()
-    action = expert.act()
-    closure = action[CLOSURE::ACTION_WIDTH].copy()
-    for _ in range(steps):
-        if not np.array_equal(action[CLOSURE::ACTION_WIDTH], closure):
-            break
-        success, reason = sim.advance(action)
-        if success or reason:
-            break
-        action = expert.act()
-    return closure
-
-
-def _expert_steps(sim: DustEnv, steps: int) -> None:
-    """``steps`` scripted-expert steps after a reset, or up to the episode's end if sooner."""
-    expert = sim.make_expert()
-    for _ in range(steps):
-        success, reason = sim.advance(expert.act())
-        if success or reason:
+        if sim.advance(rng.uniform(-1.0, 1.0, sim.action_space.shape).astype(np.float32))[1]:
             break
 
 

@@ -32,14 +32,12 @@ from dust_rl.agents import DustPolicy
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.data.features import hash_weights
 from dust_rl.storage.cache_files import cached, record_cache
+from dust_rl.train.settings import RETIRED_FIELDS
 
 READOUT_KIND = "dust-rl/readout-warmup"
-# What the warm-up reads from the training config (dust_rl.train.imitation.TrainConfig) and the policy config.
-WARMUP_SETTINGS = ("seed", "batch_size", "aux_frames", "aux_expert_fraction", "aux_approach_fraction",
-                   "aux_approach_displacement", "aux_expert_displacement", "readout_warmup", "readout_lr",
-                   "readout_lr_decay")
-READOUT_POLICY_SETTINGS = ("readout", "readout_grid", "readout_heads", "readout_coords", "keypoints",
-                           "keypoint_source")
+# What the warm-up reads from the training settings (dust_rl.train.settings.TrainSettings) and the policy config.
+WARMUP_SETTINGS = ("seed", "batch_size", "aux_frames", "readout_warmup", "readout_lr")
+READOUT_POLICY_SETTINGS = ("readout", "readout_grid", "readout_heads", "keypoints", "keypoint_source")
 
 Logged = list[tuple[int, dict[str, float]]]  # (step, scalars) as the warm-up logged them
 
@@ -49,8 +47,13 @@ def readout_cache_path(folder: pathlib.Path, policy: DustPolicy, settings: objec
     :data:`WARMUP_SETTINGS`) and ``features`` the key of the dataset's frozen features
     (:func:`dust_rl.data.features.feature_key`: rows, encoder weights, cameras, token grid)."""
     digest = hashlib.sha256()
-    described = {"settings": {k: getattr(settings, k) for k in WARMUP_SETTINGS}, "features": features,
-                 "policy": {k: getattr(policy.config, k) for k in READOUT_POLICY_SETTINGS},
+    # The retired settings stay in the key at the value every run now has, so fits cached before are still found.
+    retired = {name.partition(".")[::2]: value for name, value in RETIRED_FIELDS.items()}
+    described = {"settings": {k: getattr(settings, k) for k in WARMUP_SETTINGS}
+                 | {name: value for (name, rest), value in retired.items() if not rest},
+                 "features": features,
+                 "policy": {k: getattr(policy.config, k) for k in READOUT_POLICY_SETTINGS}
+                 | {rest: value for (group, rest), value in retired.items() if group == "policy"},
                  "cameras": policy.cameras, "device": policy.weights_device.type, "torch": torch.__version__}
     digest.update(json.dumps(described, sort_keys=True, default=str).encode())
     hash_weights(digest, policy.readout_modules())

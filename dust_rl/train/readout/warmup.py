@@ -42,7 +42,7 @@ LOG_EVERY = 100
 
 def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase] | None, aux: AuxFrameBatches,
                     steps: int, lr: float, log: Callable[[dict[str, float], int], None], batch_size: int = 64,
-                    *, decay: bool = False, heldout: AuxFrameBatches | None = None, log_every: int = LOG_EVERY,
+                    *, heldout: AuxFrameBatches | None = None, log_every: int = LOG_EVERY,
                     progress: bool = True) -> None:
     """Fit ``policy``'s read-out (and its pixel keypoints) for ``steps`` steps, then freeze them.
 
@@ -52,8 +52,7 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
         demo_batch: draws a feature batch of demonstration rows (with ``pixels`` and ``env_state``); None: aux
             frames only.
         aux: aux frames; each step draws ``batch_size`` of them.
-        steps: optimiser steps (AdamW at the rate ``lr``).
-        decay: lower the rate along a cosine to 0 at ``steps`` instead of keeping it constant.
+        steps: optimiser steps (AdamW at the constant rate ``lr``).
         log: receives ``warmup/loss_aux_frames`` and ``warmup/lr`` (and ``warmup/loss_aux`` on demonstration rows,
             and ``warmup/loss_aux_frames_heldout``) every ``log_every`` steps.
         heldout: aux frames never fitted, whose error (frames unshifted, no random draws) tells learning the
@@ -64,7 +63,6 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
     modules = policy.readout_modules()
     modules.requires_grad_(True)
     optimizer = torch.optim.AdamW(modules.parameters(), lr=lr)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps) if decay else None
     best = (float("inf"), None)  # the lowest held-out error and the weights that reached it
     for step in tqdm(range(1, steps + 1), desc="read-out warm-up", disable=not progress):
         losses = {"warmup/loss_aux_frames": policy.readout_loss(aux.sample(batch_size))}
@@ -73,8 +71,6 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
         optimizer.zero_grad(set_to_none=True)
         sum(losses.values()).backward()
         optimizer.step()
-        if schedule is not None:
-            schedule.step()
         if step % log_every == 0 or step == steps:
             scalars = {k: v.item() for k, v in losses.items()} | {"warmup/lr": optimizer.param_groups[0]["lr"]}
             if heldout is not None:

@@ -1,0 +1,181 @@
+"""What ``dust-rl train`` is told, wherever the data and the run folder are: :class:`TrainSettings`.
+
+Its own module so the named recipes (:mod:`dust_rl.train.recipes`) can build settings that the training loop
+(:mod:`dust_rl.train.imitation`) then reads.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+from dataclasses import dataclass, field
+from typing import Literal, get_args
+
+from dust_rl.agents.config import RETIRED_SETTINGS, PolicyConfig
+from dust_rl.agents.precision import Precision
+from dust_rl.errors import ConfigError, check_at_least, check_finite, check_fraction
+from dust_rl.runtime.device import resolve_device
+
+DEFAULT_OUT = pathlib.Path("runs/train")  # dust-rl train's run folder when --out is not given
+LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
+# Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
+NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset", "extra_dataset")
+# Settings earlier versions had, each at the value every run now has (their other values were measured and did not
+# help; docs/franka_results.md): a run or cached read-out fit stored with one of them at that value is still this
+# version's, one stored at another value is not.
+RETIRED_FIELDS: dict[str, object] = {
+    "aux_expert_fraction": 0.0, "aux_approach_fraction": 0.0, "aux_approach_displacement": 0.0,
+    "aux_expert_displacement": 0.0, "readout_lr_decay": False,
+    **{f"policy.{name}": value for name, value in RETIRED_SETTINGS.items()}}
+
+
+@dataclass(kw_only=True)
+class TrainSettings:
+    """How to train a policy by imitation, wherever the data and the run folder are (``dust-rl quickstart
+    --train.*`` nests these)."""
+
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    """The policy to build: variant, trunk size, losses, image encoder (``--policy.d-model`` ...)."""
+    steps: int = 3000
+    """Optimiser steps."""
+    batch_size: int = 64
+    """Training windows per step (over all processes: each of ``nproc`` takes ``batch_size / nproc``)."""
+    lr: float = 1e-4
+    """Peak learning rate (paper: 1e-4)."""
+    betas: tuple[float, float] = (0.95, 0.999)
+    """AdamW betas (paper)."""
+    weight_decay: float = 1e-5
+    """AdamW weight decay (paper)."""
+    warmup: float = 0.05
+    """Fraction of the steps with a linear learning-rate warm-up; a cosine decay to 0 follows."""
+    grad_clip: float = 1.0
+    """Gradient-norm clipping threshold."""
+    ema_decay: float = 0.999
+    """Decay of the exponential moving average of the weights (the saved policy uses the average)."""
+    aux_frames: int = 0
+    """Frames of random resets and random arm motions (objects independent of the arm,
+    :mod:`dust_rl.train.readout.aux_frames`) rendered once at the start (and kept in ``<dataset>/aux_frames/`` for
+    any run that asks for the same, :mod:`dust_rl.train.readout.aux_frame_cache`); every step adds the read-out's
+    error on a batch of them to the loss (weight ``lambda_aux``), so the read-out cannot settle for "the target is
+    where the gripper is". Needs ``lambda_aux`` and ``readout tokens`` or ``keypoint_source pixels``; 0: off."""
+    readout_warmup: int = 0
+    """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
+    the policy trains; they are then frozen (:mod:`dust_rl.train.readout.warmup`). Needs ``aux_frames``; 0: off."""
+    readout_lr: float = 1e-3
+    """Learning rate of that warm-up (constant)."""
+    readout_demos: bool = True
+    """Also fit the warm-up on demonstration rows (half of each batch); without them it sees aux frames only."""
+    video_dataset: pathlib.Path | None = None
+    """A dataset of the same robot and cameras whose episodes train without their actions (action-free video,
+    :mod:`dust_rl.train.action_free`): the world-model stream learns from them, the action loss does not."""
+    video_fraction: float = 0.25
+    """Share of each batch taken from ``video_dataset``."""
+    extra_dataset: pathlib.Path | None = None
+    """A second dataset of the same robot and cameras whose windows join every batch with their actions
+    (:mod:`dust_rl.train.dataset_batches`), e.g. a policy's successful rollouts on fresh layouts (``dust-rl collect
+    --policy``)."""
+    extra_fraction: float = 0.5
+    """Share of each batch taken from ``extra_dataset``."""
+    extra_action_key: Literal["action", "expert_action"] = "action"
+    """The actions ``extra_dataset`` teaches: the executed ones (self-imitation of a policy's successes) or the
+    scripted expert's label at each state (DAgger)."""
+    init_policy: pathlib.Path | None = None
+    """Start from this trained policy (weights, normalisation, read-out) instead of a new one: fine-tuning.
+    Its own settings are kept (no ``--policy.*`` flags) and its frame read-out stays frozen (no warm-up)."""
+    augment_views: int = 1
+    """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
+    (:mod:`dust_rl.data.augment`); each training window conditions on one of them. Encoding costs that many times
+    more, once per dataset."""
+    start_rows: int = 0
+    """Rows at the start of every episode drawn more often (:mod:`dust_rl.data.windows`): the first frame is
+    where the policy must decide where to go, and uniform draws give it 1 window in an episode's length;
+    0: every row equally likely."""
+    start_fraction: float = 0.25
+    """Share of each batch drawn from those ``start_rows`` rows."""
+    seed: int = 0
+    """Seed of the initial weights, batch sampling and flow-matching noise."""
+    log_every: int = 50
+    """Steps between logged scalars."""
+    checkpoint_every: int = 500
+    """Steps between checkpoints (one is always written at the end)."""
+    eval_every: int = 0
+    """Steps between closed-loop evaluations of the EMA policy (0: none); with a vision stream each also logs
+    ``wm/skill``, the skill of the sampled future against the present frame on a fixed draw of training windows
+    (:mod:`dust_rl.diagnose.world_model`)."""
+    eval_episodes: int = 10
+    """Episodes per task of each periodic evaluation."""
+    eval_workers: int = 2
+    """Env processes of each periodic evaluation."""
+    threads: int | None = None
+    """torch threads, per process (default: torch's choice)."""
+    nproc: int = 1
+    """Processes training data-parallel (``DistributedDataParallel``; gloo on the CPU, NCCL with one GPU per
+    process on CUDA). Under ``torchrun`` leave it at 1 or give torchrun's ``--nproc-per-node``."""
+    device: str = "auto"
+    """Where the policy trains (:mod:`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
+    cuda:N, mps. The feature cache and the saved policy stay on the CPU."""
+    precision: Precision = "fp32"
+    """The trunk's precision while training: fp32, or bf16 autocast (:mod:`dust_rl.agents.precision`; weights,
+    optimiser and the saved policy stay float32)."""
+    compile: bool = False
+    """Compile the trunk's forward pass with ``torch.compile`` (the first steps pay the compilation; its
+    cost on a 2-core x86 CPU is in BENCHMARKS.md)."""
+    progress: bool = True
+    """Show a progress bar."""
+    loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
+    """Where the scalars go, each through torchrl's ``get_logger`` into ``out/logs`` (experiment ``train``);
+    ``wandb`` and ``mlflow`` need their package installed. ``loss.png`` is drawn from the CSV files."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
+                       "eval_episodes", "eval_workers", "threads", "nproc")
+        check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup", "start_rows")
+        check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
+        check_finite(self, "weight_decay")
+        readout_on_frames = self.policy.readout == "tokens" or self.policy.keypoint_source == "pixels"
+        if self.aux_frames and not (self.policy.lambda_aux and readout_on_frames):
+            raise ConfigError("aux_frames needs --policy.lambda-aux > 0 and a read-out frames can train: "
+                              "--policy.readout tokens, or --policy.keypoint-source pixels")
+        if not 0 < self.start_fraction < 1:
+            raise ConfigError(f"start_fraction must be in (0, 1), got {self.start_fraction}")
+        for name in ("video_fraction", "extra_fraction"):
+            if not 0 < getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be in (0, 1), got {getattr(self, name)}")
+        mixed = [name for name in ("video_dataset", "extra_dataset") if getattr(self, name) is not None]
+        if self.batch_size < 1 + len(mixed):
+            raise ConfigError(f"{' and '.join(mixed)} need --batch-size >= {1 + len(mixed)}: each batch holds "
+                              "demonstrations and a share of each")
+        if len(mixed) == 2 and self.video_fraction + self.extra_fraction >= 1:
+            raise ConfigError(f"video_fraction + extra_fraction must be below 1 (the rest are demonstrations), got "
+                              f"{self.video_fraction} + {self.extra_fraction}")
+        if self.init_policy is not None and self.policy != PolicyConfig():
+            raise ConfigError("--policy.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
+                              "settings (and its read-out, so no aux frames or read-out warm-up either)")
+        if self.video_dataset is not None and self.policy.lambda_aux and not self.readout_warmup:
+            raise ConfigError("video_dataset with --policy.lambda-aux needs --readout-warmup: the read-out is then "
+                              "fitted first and frozen, so the action-free episodes never train it")
+        if self.readout_warmup and not self.aux_frames:
+            raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
+                              "is where the gripper is' (dust_rl.train.readout.aux_frames)")
+        check_fraction(self, "warmup", "ema_decay")
+        resolve_device(self.device)
+        unknown = set(self.loggers) - set(get_args(LoggerKind))
+        if unknown:
+            raise ConfigError(f"unknown loggers {sorted(unknown)}; choose from {list(get_args(LoggerKind))}")
+        if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
+            raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
+        self.check_data_parallel(self.nproc)
+        cores = os.cpu_count() or 1
+        if self.nproc > cores and resolve_device(self.device).type == "cpu":
+            raise ConfigError(f"--nproc {self.nproc} processes on the CPU of a machine with {cores} cores: each "
+                              f"would wait on the others; give --nproc at most {cores}")
+
+    def check_data_parallel(self, nproc: int) -> None:
+        """Raise unless these settings can train over ``nproc`` processes."""
+        if nproc == 1:
+            return
+        if self.batch_size % nproc:
+            raise ConfigError(f"--batch-size {self.batch_size} does not split evenly over {nproc} processes")
+        used = [name for name in NOT_DATA_PARALLEL if getattr(self, name)]
+        if used:
+            raise ConfigError(f"{', '.join(used)} cannot train over several processes yet; train them with one")
