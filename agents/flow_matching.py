@@ -16,8 +16,8 @@ from torch import Tensor
 
 @dataclass(frozen=True)
 class Shard:
-    """This process's part of a batch split evenly over ``count`` data-parallel processes (rows
-    ``index * b .. (index + 1) * b`` of ``count * b``).
+    """This process's part of a batch split evenly over `count` data-parallel processes (rows
+    `index * b .. (index + 1) * b` of `count * b`).
 
     Why: each process draws the noise of the whole batch from the same generator state and keeps its rows,
     so every sample gets the noise it would get in one process, and all processes' generators stay equal.

@@ -49,11 +49,11 @@ class QuickstartConfig:
     progress: bool = True
     """Show progress bars."""
     recipe: RecipeName = "vision-readout"
-    """The named recipe training starts from (``dust-rl train --help`` lists them; ``--train.*`` flags override
+    """The named recipe training starts from (`dust-rl train --help` lists them; `--train.*` flags override
     it)."""
     train: TrainSettings = field(default_factory=vision_readout)
-    """Training (``--train.steps``, ``--train.policy.variant`` ...; as ``dust-rl train``, defaults from
-    ``recipe``)."""
+    """Training (`--train.steps`, `--train.policy.variant` ...; as `dust-rl train`, defaults from
+    `recipe`)."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "demos", "eval_episodes", "workers", "image_size")

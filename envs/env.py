@@ -61,7 +61,7 @@ _INSTABILITY_WARNINGS = np.array([mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWa
 
 @dataclasses.dataclass(frozen=True)
 class SimSnapshot:
-    """A copy of what :meth:`DustEnv.step` changes (:meth:`DustEnv.snapshot`)."""
+    """A copy of what `DustEnv.step()` changes (`DustEnv.snapshot()`)."""
 
     data: mujoco.MjData
     elapsed: int

@@ -30,7 +30,7 @@ class EndEffector:
             turn it about world z.
         yaw_period: turn about world z after which the grasp repeats (pi for a parallel
             gripper, 2 pi for a hand).
-        opening_weights: weights of ``opening_joints`` in the scalar opening measure
+        opening_weights: weights of `opening_joints` in the scalar opening measure
             (larger = more open); None sums them (the Panda's finger separation).
     """
 
@@ -74,17 +74,17 @@ class RobotConfig:
     """A robot placed in a scene.
 
     Attributes:
-        name: robot suite name used in registration (``"franka"``, ``"humanoid"``).
+        name: robot suite name used in registration (`"franka"`, `"humanoid"`).
         arm_joints: joints driven through inverse kinematics, in actuator order.
         arm_actuators: position actuators that receive the IK joint targets.
         end_effectors: controlled end effectors, in action order.
         home_qpos: joint name -> home position, also the IK posture target.
-        cameras: camera names this robot brings (e.g. ``("wrist",)``).
+        cameras: camera names this robot brings (e.g. `("wrist",)`).
         default_cameras: cameras observed when the user names none (scene or robot cameras).
         max_joint_velocity: joint name -> velocity limit (rad/s) used by IK.
         workspace: (low, high) corners of the absolute-mode position box, table frame (m).
         collision_pairs: pairs of geom-name groups that the IK keeps apart
-            (``mink.CollisionAvoidanceLimit``); empty for none.
+            (`mink.CollisionAvoidanceLimit`); empty for none.
         posture_costs: joint name -> IK posture weight where it differs from the controller's default.
     """
 

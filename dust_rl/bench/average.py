@@ -39,12 +39,12 @@ READ = (*SHARED, "task", "train", "rows")  # the entries of results.json this co
 
 @dataclass
 class AverageConfig:
-    """Pool single-task variant comparisons (``dust-rl bench suite`` folders) into a suite average."""
+    """Pool single-task variant comparisons (`dust-rl bench suite` folders) into a suite average."""
 
     studies: tuple[pathlib.Path, ...]
-    """Folders of ``dust-rl bench suite`` runs, one task each, or their ``results.json`` files."""
+    """Folders of `dust-rl bench suite` runs, one task each, or their `results.json` files."""
     out: pathlib.Path = pathlib.Path("runs/bench/suite_average")
-    """Folder of ``average.md``, ``average.json`` and ``average.png``."""
+    """Folder of `average.md`, `average.json` and `average.png`."""
 
     def __post_init__(self) -> None:
         if len(self.studies) < 2:

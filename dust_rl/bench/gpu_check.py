@@ -84,18 +84,18 @@ SIZES = {
 @dataclass
 class GpuCheckConfig:
     """Check that training, sampling, data-parallel training with resume and closed-loop evaluation run on a
-    device, and time them: one table (``dust-rl bench gpu``)."""
+    device, and time them: one table (`dust-rl bench gpu`)."""
 
     out: pathlib.Path = pathlib.Path("runs/gpu_check")
-    """Folder for the dataset, run, evaluation and the result files (``results.json``, ``table.md``)."""
+    """Folder for the dataset, run, evaluation and the result files (`results.json`, `table.md`)."""
     device: str = "auto"
     """auto | cpu | cuda | cuda:N."""
     size: Literal["full", "tiny"] = "full"
-    """``full``: the table's sizes (minutes on one GPU); ``tiny``: every path once at toy sizes (the CPU test)."""
+    """`full`: the table's sizes (minutes on one GPU); `tiny`: every path once at toy sizes (the CPU test)."""
     sections: tuple[Section, ...] = ("train", "latency", "ddp", "eval", "compile")
-    """Which parts to run (``eval`` evaluates the policy ``ddp`` trains)."""
+    """Which parts to run (`eval` evaluates the policy `ddp` trains)."""
     text_encoder: pathlib.Path | None = None
-    """Text model folder for the ``ddp`` policy (``--policy.text-encoder``); None: the bundled MiniLM."""
+    """Text model folder for the `ddp` policy (`--policy.text-encoder`); None: the bundled MiniLM."""
     budget_s: float = 420.0
     """Rows not started within this many seconds are skipped (listed as such), so the check ends in time."""
     progress: bool = True

@@ -63,22 +63,22 @@ class SuiteConfig:
     env: str = DEFAULT_ENV_ID
     """Gymnasium env id."""
     task: str = "pick_place"
-    """Task name, comma-separated names, or ``all`` (one language-conditioned policy per cell)."""
+    """Task name, comma-separated names, or `all` (one language-conditioned policy per cell)."""
     demos: tuple[int, ...] = (50, 100, 200)
     """Demonstrations per task; the largest trains every variant, the others give the data-scaling row."""
     variants: tuple[Variant, ...] = VARIANTS
     """Variants to compare (the first two of the data-scaling row: dust and action_only, when listed); none, with
-    ``video_dataset``: only the action-free row (its baseline DUST cells trained elsewhere)."""
+    `video_dataset`: only the action-free row (its baseline DUST cells trained elsewhere)."""
     seeds: tuple[int, ...] = (0, 1)
     """Training seeds; each cell's episodes are pooled over them."""
     train: TrainSettings = field(default_factory=vision_readout)
-    """The recipe every cell trains with (``--train.steps``, ``--train.policy.d-model`` ...; its variant and
+    """The recipe every cell trains with (`--train.steps`, `--train.policy.d-model` ...; its variant and
     seed are the cell's); default: the quickstart's, which solves press_button in minutes (a comparison means
     little where every variant fails)."""
     video_dataset: pathlib.Path | None = None
     """Episodes of the same robot and cameras (of the same tasks with a read-out, as in the default recipe) that
     DUST also trains on with their actions dropped, one more row at the largest demo count (e.g. more layouts than
-    the demonstrations: ``dust-rl collect --seed N``); None: no such row."""
+    the demonstrations: `dust-rl collect --seed N`); None: no such row."""
     vision_steps: tuple[int, ...] = (4, 8, 16, 32)
     """N_o of DUST's test-time scaling (async, N_A = 4) and of the synchronous control (N_A = N_o)."""
     episodes: int = 20

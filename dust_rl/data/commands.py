@@ -26,9 +26,9 @@ class DemoCommand:
     """Run the scripted expert in closed loop with cameras and save an MP4 per task."""
 
     env: str = DEFAULT_ENV_ID
-    """Gymnasium env id (its robot's suite is what ``--task all`` means)."""
+    """Gymnasium env id (its robot's suite is what `--task all` means)."""
     task: str = "pick_place"
-    """Task name, comma-separated names, or ``all``."""
+    """Task name, comma-separated names, or `all`."""
     episodes: int = 2
     """Episodes per task."""
     seed: int = 0
@@ -75,7 +75,7 @@ class ExpertTableCommand:
     env: str = DEFAULT_ENV_ID
     """Gymnasium env id."""
     task: str = "all"
-    """Task name, comma-separated names, or ``all``."""
+    """Task name, comma-separated names, or `all`."""
     seeds: int = 50
     """Episodes (seeds 0..N-1) per task."""
     out: pathlib.Path | None = None
@@ -105,16 +105,16 @@ class CollectCommand:
     env: str = DEFAULT_ENV_ID
     """Gymnasium env id."""
     task: str = "pick_place"
-    """Task name, comma-separated names, or ``all``."""
+    """Task name, comma-separated names, or `all`."""
     episodes: int = 100
     """Successful episodes per task."""
     workers: int = 1
     """Env processes (or Ray actors)."""
     backend: Backend = "local"
-    """Where the workers run: processes on this machine, or actors on a Ray cluster (``pip install
-    "dust-rl[ray]"``); same dataset either way."""
+    """Where the workers run: processes on this machine, or actors on a Ray cluster (`pip install
+    "dust-rl[ray]"`); same dataset either way."""
     ray_address: str | None = None
-    """Ray cluster to join with ``--backend ray`` (e.g. ``auto``); default: start a local one for the command."""
+    """Ray cluster to join with `--backend ray` (e.g. `auto`); default: start a local one for the command."""
     seed: int = 0
     """First episode seed of every task."""
     image_size: int = 128
@@ -126,11 +126,11 @@ class CollectCommand:
     keep_failed: bool = False
     """Also store failed episodes."""
     policy: pathlib.Path | None = None
-    """A trained ``policy.pt`` to roll out instead of the scripted expert, as ``dust-rl eval`` runs it (its env
-    settings must match ``--image-size``...): rows keep its actions as ``action`` and the expert's as
-    ``expert_action``; ``--episodes`` counts its successes."""
+    """A trained `policy.pt` to roll out instead of the scripted expert, as `dust-rl eval` runs it (its env
+    settings must match `--image-size`...): rows keep its actions as `action` and the expert's as
+    `expert_action`; `--episodes` counts its successes."""
     threads: int = 1
-    """Torch threads of each worker's policy (with ``--policy``)."""
+    """Torch threads of each worker's policy (with `--policy`)."""
     privileged_state: bool = False
     """Append the objects' state to observation.state: an oracle (policies trained on it need not see the
     objects; compare with an image-only dataset to measure what perception costs)."""

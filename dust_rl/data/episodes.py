@@ -38,7 +38,7 @@ _NEXT_FLAGS = ("reward", "done", "terminated", "truncated")
 
 @dataclasses.dataclass(frozen=True)
 class EpisodeRecord:
-    """What is known about one finished episode; the row data lives beside it when ``kept``."""
+    """What is known about one finished episode; the row data lives beside it when `kept`."""
 
     task: str
     seed: int

@@ -29,7 +29,7 @@ HELDOUT_SEED = 10_000
 
 @dataclasses.dataclass(frozen=True)
 class SeedSchedule:
-    """The seeds one worker runs: the ``worker``-th of every ``num_workers`` unknown seeds from ``start``.
+    """The seeds one worker runs: the `worker`-th of every `num_workers` unknown seeds from `start`.
 
     Picklable, so it travels to collector worker processes inside the env constructor.
     """

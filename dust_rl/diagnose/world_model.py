@@ -61,14 +61,14 @@ CONDITIONS = {
 @dataclass
 class WorldModelDiagnosis:
     """Measure a policy's world model on held-out windows: the vision stream's skill against trivial predictors,
-    and the oracle-future test of whether its actions can use a future (``dust-rl diagnose world-model``)."""
+    and the oracle-future test of whether its actions can use a future (`dust-rl diagnose world-model`)."""
 
     policy: pathlib.Path
-    """Policy file (``dust-rl train``)."""
+    """Policy file (`dust-rl train`)."""
     dataset: pathlib.Path
     """Dataset of the policy's env and tasks whose episodes it was not trained on."""
     out: pathlib.Path = pathlib.Path("runs/diagnose/world_model")
-    """Folder for ``report.json``, ``report.md`` and ``world_model.png``."""
+    """Folder for `report.json`, `report.md` and `world_model.png`."""
     windows: int = 512
     """Windows drawn at random from the dataset (fewer if it has fewer rows)."""
     batch_size: int = 128
@@ -94,9 +94,9 @@ class Windows:
     """The diagnosed windows as the trunk sees them, with what the two tests need beside."""
 
     batch: TensorDict
-    """The trunk's batch [N] (``cond_tokens``, ``state``, ``action_chunk``, ``future_tokens`` ...)."""
+    """The trunk's batch [N] (`cond_tokens`, `state`, `action_chunk`, `future_tokens` ...)."""
     present: Tensor | None
-    """[N, N_o, Dv] the "nothing moves" prediction of ``future_tokens`` (None without a vision stream)."""
+    """[N, N_o, Dv] the "nothing moves" prediction of `future_tokens` (None without a vision stream)."""
     episode: Tensor
     """[N] the dataset episode of each window (intervals are over episodes)."""
     other: Tensor | None

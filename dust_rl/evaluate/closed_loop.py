@@ -72,17 +72,17 @@ class EvalConfig:
     workers: int = 2
     """Env processes (or Ray actors) per task; 1 local worker runs in this process."""
     backend: Backend = "local"
-    """Where the workers run: processes on this machine, or actors on a Ray cluster (``pip install
-    "dust-rl[ray]"``); same episodes either way."""
+    """Where the workers run: processes on this machine, or actors on a Ray cluster (`pip install
+    "dust-rl[ray]"`); same episodes either way."""
     ray_address: str | None = None
-    """Ray cluster to join with ``--backend ray`` (e.g. ``auto``); default: start a local one for the command."""
+    """Ray cluster to join with `--backend ray` (e.g. `auto`); default: start a local one for the command."""
     seed: int = HELDOUT_SEED
     """Episode k of a task resets from seed + k (training data uses seeds from 0 on)."""
     sampling: (Annotated[SamplerConfig, tyro.conf.subcommand("resample")]
                | Annotated[None, tyro.conf.subcommand("as-saved")]) = None
-    """How chunks are sampled: as the policy file says (the default), or ``resample`` with other settings, given
-    after every other argument (``dust-rl eval --policy P resample --n-action-steps 8 --vision-step-ratio 4
-    --candidates 4``; fields not given take their defaults, not the file's)."""
+    """How chunks are sampled: as the policy file says (the default), or `resample` with other settings, given
+    after every other argument (`dust-rl eval --policy P resample --n-action-steps 8 --vision-step-ratio 4
+    --candidates 4`; fields not given take their defaults, not the file's)."""
     execute_steps: int | None = None
     """Actions executed per chunk before re-planning (1..H); default: the policy's (training's)."""
     max_steps: int | None = None
@@ -94,12 +94,12 @@ class EvalConfig:
     threads: int = 1
     """Torch threads per process."""
     device: str = "auto"
-    """Where the policy runs (:mod:`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
+    """Where the policy runs (`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
     cuda:N, mps; the envs run on the CPU."""
     precision: Precision = "fp32"
-    """The trunk's precision while sampling: fp32, or bf16 autocast (:mod:`dust_rl.agents.precision`)."""
+    """The trunk's precision while sampling: fp32, or bf16 autocast (`dust_rl.agents.precision`)."""
     compile: bool = False
-    """Compile the trunk's forward pass with ``torch.compile`` in every worker (each pays the compilation once)."""
+    """Compile the trunk's forward pass with `torch.compile` in every worker (each pays the compilation once)."""
     progress: bool = True
     """Show progress bars."""
 

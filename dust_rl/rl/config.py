@@ -41,9 +41,9 @@ class FinetuneSettings:
     """What every fine-tuning method shares: the policy, the run folder, the task and the held-out comparison."""
 
     policy: pathlib.Path
-    """Policy file written by ``dust-rl train``."""
+    """Policy file written by `dust-rl train`."""
     out: pathlib.Path = pathlib.Path("runs/finetune")
-    """Run folder: ``config.json``, ``report.json``, ``report.md`` and the method's files."""
+    """Run folder: `config.json`, `report.json`, `report.md` and the method's files."""
     task: str | None = None
     """Task to fine-tune on; default: the policy's first training task."""
     max_steps: int | None = None
@@ -56,11 +56,11 @@ class FinetuneSettings:
     eval_seed: int = HELDOUT_SEED
     """First evaluation seed (training data: 0 on; validation: 5000 on; held-out: 10000 on)."""
     resume: bool = False
-    """Continue the run in ``out`` where it stopped."""
+    """Continue the run in `out` where it stopped."""
     threads: int = 1
     """torch threads."""
     device: str = "auto"
-    """Where the policy (and an RL agent) runs (:mod:`dust_rl.runtime.device`): auto, cpu, cuda, cuda:N, mps; the
+    """Where the policy (and an RL agent) runs (`dust_rl.runtime.device`): auto, cpu, cuda, cuda:N, mps; the
     envs run on the CPU."""
     progress: bool = True
     """Show progress bars."""
@@ -76,7 +76,7 @@ class CurveSettings(FinetuneSettings):
     """The settings of a method that also draws a learning curve on validation seeds."""
 
     curve_episodes: int = 10
-    """Episodes of each point of the learning curve (``learning_curve.png``)."""
+    """Episodes of each point of the learning curve (`learning_curve.png`)."""
     curve_seed: int = VALIDATION_SEED
     """First seed of the learning curve's evaluations (validation seeds: the held-out ones stay for the report)."""
 
@@ -88,24 +88,24 @@ class CurveSettings(FinetuneSettings):
 
 @dataclass
 class SacSettings:
-    """Soft actor-critic (SB3's ``SAC``, off-policy, a replay buffer as large as the run)."""
+    """Soft actor-critic (SB3's `SAC`, off-policy, a replay buffer as large as the run)."""
 
     learning_starts: int = 1000
-    """Steps before the first update (uniformly random actions, unless ``--initial-std`` is set)."""
+    """Steps before the first update (uniformly random actions, unless `--initial-std` is set)."""
     gradient_steps: int = 1
     """Gradient steps per RL step, the update-to-data ratio (DSRL: 20)."""
     target_entropy: float | None = None
-    """Learn the entropy coefficient so the policy keeps this entropy (SB3's ``ent_coef="auto"``; DSRL: 0),
-    starting from ``initial_alpha``; with ``--initial-std`` the std then starts there and is learnt. None: SB3's
-    target (minus the action dimension), or with ``--initial-std`` a fixed std and no entropy bonus
-    (:mod:`dust_rl.rl.start_at_base`)."""
+    """Learn the entropy coefficient so the policy keeps this entropy (SB3's `ent_coef="auto"`; DSRL: 0),
+    starting from `initial_alpha`; with `--initial-std` the std then starts there and is learnt. None: SB3's
+    target (minus the action dimension), or with `--initial-std` a fixed std and no entropy bonus
+    (`dust_rl.rl.start_at_base`)."""
     initial_alpha: float = 1.0
     """The entropy coefficient's start when it is learnt (SB3's 1.0). Each step's entropy bonus is about alpha
     times the action dimension (112 when steering stack) against a sparse reward of 1, so a steering run with
-    ``target_entropy`` wants it far smaller."""
+    `target_entropy` wants it far smaller."""
     q_bounds: tuple[float, float] | None = None
     """Squash the critic's output into (LO, HI), the returns the reward can pay (sparse: 0 1;
-    :mod:`dust_rl.rl.critic_limits`). None: unbounded."""
+    `dust_rl.rl.critic_limits`). None: unbounded."""
     name: Literal["sac"] = field(default="sac", init=False)
 
     def __post_init__(self) -> None:
@@ -121,16 +121,16 @@ class SacSettings:
 
 @dataclass
 class PpoSettings:
-    """Proximal policy optimisation (SB3's ``PPO``, on-policy, in rollouts of ``n_steps``)."""
+    """Proximal policy optimisation (SB3's `PPO`, on-policy, in rollouts of `n_steps`)."""
 
     n_steps: int = 2048
-    """RL steps per rollout, i.e. between updates (SB3's default; at most ``steps``). Steering takes one RL step per
-    chunk, so a rollout holds ``execute_steps`` times as many env steps."""
+    """RL steps per rollout, i.e. between updates (SB3's default; at most `steps`). Steering takes one RL step per
+    chunk, so a rollout holds `execute_steps` times as many env steps."""
     n_epochs: int = 10
     """Passes over each rollout (SB3's default)."""
     target_kl: float | None = None
     """End a rollout's epochs early once the policy's approximate KL from the rollout's exceeds 1.5 times this (SB3's
-    ``target_kl``): SB3 normalises advantages, so each update is full-sized however weak the signal; this bounds how
+    `target_kl`): SB3 normalises advantages, so each update is full-sized however weak the signal; this bounds how
     far one rollout moves the policy. None: no limit."""
     critic_warmup: int = 0
     """Env steps (whole rollouts) during which only the critic learns and the actor stays at the base policy, so the
@@ -150,24 +150,24 @@ Algorithm = (Annotated[SacSettings, tyro.conf.subcommand("sac")]
 
 @dataclass
 class RLSettings(CurveSettings):
-    """An SB3 agent trained on top of the frozen policy (``steer``, ``residual``); ``rl_agent.pt``, ``checkpoints/``,
-    ``logs/`` and ``learning_curve.json`` go to ``out``."""
+    """An SB3 agent trained on top of the frozen policy (`steer`, `residual`); `rl_agent.pt`, `checkpoints/`,
+    `logs/` and `learning_curve.json` go to `out`."""
 
     steps: int = 20_000
     """RL agent steps (chunks when steering, env steps for residual)."""
     reward: Literal["sparse", "dense"] = "sparse"
     """The env's reward while training: 1 on success only, or that plus potential-based shaping by the task's
-    staged progress, shaped for ``gamma`` (``DustEnv.step``; evaluation counts successes either way)."""
+    staged progress, shaped for `gamma` (`DustEnv.step`; evaluation counts successes either way)."""
     gamma: float = 0.99
     """The RL agent's discount per RL step (an env step for residual, a chunk when steering; steering discounts
-    the rewards within a chunk by ``gamma ** (1 / execute_steps)`` per env step, the discount the dense reward is
+    the rewards within a chunk by `gamma ** (1 / execute_steps)` per env step, the discount the dense reward is
     then shaped for)."""
     finite_horizon: bool = False
     """The time limit ends an episode as a failure for the RL agent (terminated: nothing is bootstrapped past it)
-    and the agent observes the fraction of the episode left (:mod:`dust_rl.rl.frozen_policy_env`). Default: a
+    and the agent observes the fraction of the episode left (`dust_rl.rl.frozen_policy_env`). Default: a
     time-limit end is a truncation, bootstrapped as if the episode went on."""
     initial_std: float | None = None
-    """Start the RL agent at the base policy (:mod:`dust_rl.rl.start_at_base`): mean action 0 (no residual; steering:
+    """Start the RL agent at the base policy (`dust_rl.rl.start_at_base`): mean action 0 (no residual; steering:
     the centre of the base policy's noise) and this exploration standard deviation (SAC: before the tanh), acting so
     from the first step, the std fixed (SAC: no entropy bonus). None: SB3's initialisation (random mean, std ~1 and
     learnt, uniformly random warm-up)."""
@@ -178,23 +178,23 @@ class RLSettings(CurveSettings):
     net_arch: tuple[int, ...] = (256, 256)
     """Hidden layers of the RL actor and critic."""
     layer_norm: bool = False
-    """Normalise each hidden layer of the RL actor and critic before its ReLU (:mod:`dust_rl.rl.critic_limits`: caps
+    """Normalise each hidden layer of the RL actor and critic before its ReLU (`dust_rl.rl.critic_limits`: caps
     how far the critic's Q extrapolates to actions the actor has not tried; DSRL's setting). PPO's MLPs then use
     ReLU instead of their default tanh."""
     eval_every: int = 0
-    """RL steps between evaluations of the agent on ``curve_episodes`` validation episodes, for the learning curve
-    (``learning_curve.json``/``.png``: success against env steps, from the base policy at 0); 0: none."""
+    """RL steps between evaluations of the agent on `curve_episodes` validation episodes, for the learning curve
+    (`learning_curve.json`/`.png`: success against env steps, from the base policy at 0); 0: none."""
     checkpoint_every: int = 5000
     """RL steps between checkpoints of the whole learning state (one is always written at the end; PPO rounds
-    each sitting up to whole rollouts of ``n_steps``); ``--resume`` continues from the newest (a PPO run, also with
-    a larger ``steps``: a finished run goes on to the new budget; SAC's replay buffer is sized by the original
+    each sitting up to whole rollouts of `n_steps`); `--resume` continues from the newest (a PPO run, also with
+    a larger `steps`: a finished run goes on to the new budget; SAC's replay buffer is sized by the original
     one)."""
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
-    """Where the agent's scalars go, each through torchrl's ``get_logger`` into ``out/logs`` (experiment
-    ``finetune``), as ``dust-rl train``'s do."""
+    """Where the agent's scalars go, each through torchrl's `get_logger` into `out/logs` (experiment
+    `finetune`), as `dust-rl train`'s do."""
     algorithm: Algorithm = field(default_factory=SacSettings)
-    """The stable-baselines3 algorithm (``MultiInputPolicy``) and its own settings, given after every other argument
-    (``... ppo --n-steps 512``)."""
+    """The stable-baselines3 algorithm (`MultiInputPolicy`) and its own settings, given after every other argument
+    (`... ppo --n-steps 512`)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -213,7 +213,7 @@ class RLSettings(CurveSettings):
 @dataclass
 class SteerConfig(RLSettings):
     """Noise steering (DSRL): the RL action is the policy's initial action noise, one RL step per chunk
-    (:mod:`dust_rl.rl.steering`)."""
+    (`dust_rl.rl.steering`)."""
 
     noise_bound: float = 2.0
     """The noise magnitude an RL action of +-1 maps to."""
@@ -226,13 +226,13 @@ class SteerConfig(RLSettings):
 
 @dataclass
 class ResidualConfig(RLSettings):
-    """Residual RL: a bounded correction added to every executed action (:mod:`dust_rl.rl.residual`)."""
+    """Residual RL: a bounded correction added to every executed action (`dust_rl.rl.residual`)."""
 
     residual_scale: float = 0.1
     """What an RL action of +-1 adds, as a fraction of the action box's half-width."""
     world_model_obs: bool = False
     """The RL agent (actor and critic) also sees the future DUST sampled jointly with the chunk being executed
-    (:mod:`dust_rl.rl.residual`); needs a policy that predicts one."""
+    (`dust_rl.rl.residual`); needs a policy that predicts one."""
     method: Literal["residual"] = field(default="residual", init=False)
 
     def __post_init__(self) -> None:
@@ -243,10 +243,10 @@ class ResidualConfig(RLSettings):
 @dataclass
 class WmSelectConfig(FinetuneSettings):
     """World-model selection: K joint samples per chunk, the one whose predicted future a scorer fitted on the
-    policy's own rollouts rates best executed (:mod:`dust_rl.rl.wm_select`; writes ``policy.pt``, no RL agent)."""
+    policy's own rollouts rates best executed (`dust_rl.rl.wm_select`; writes `policy.pt`, no RL agent)."""
 
     candidates: tuple[int, ...] = (4, 8)
-    """The K values evaluated; the written ``policy.pt`` acts with the first."""
+    """The K values evaluated; the written `policy.pt` acts with the first."""
     rollouts: int = 100
     """Base-policy episodes whose outcomes train the scorer."""
     rollout_seed: int = ROLLOUT_SEED
@@ -270,7 +270,7 @@ class WmSelectConfig(FinetuneSettings):
 
 @dataclass
 class RoundTraining(TrainSettings):
-    """How each self-imitation round fine-tunes (``dust-rl train``'s settings): the policy's architecture is the
+    """How each self-imitation round fine-tunes (`dust-rl train`'s settings): the policy's architecture is the
     starting policy's, and the starting policy, the rollouts, the seed, threads, device and progress bars are the
     round's."""
 
@@ -286,21 +286,21 @@ class RoundTraining(TrainSettings):
 @dataclass
 class SelfImitationConfig(CurveSettings):
     """Self-imitation: the policy fine-tuned on its demonstrations and its own successful rollouts, round after round
-    (:mod:`dust_rl.rl.self_imitation`; each round writes a ``policy.pt``, no RL agent)."""
+    (`dust_rl.rl.self_imitation`; each round writes a `policy.pt`, no RL agent)."""
 
     rounds: int = 1
-    """Rounds of rollouts and fine-tuning (``--resume`` with more rounds extends a run)."""
+    """Rounds of rollouts and fine-tuning (`--resume` with more rounds extends a run)."""
     rollout_successes: int = 150
     """Successful rollouts each round collects (its failures are stored only for DAgger,
-    ``--train.extra-action-key expert_action``)."""
+    `--train.extra-action-key expert_action`)."""
     rollout_seed: int = ROLLOUT_SEED
     """First seed of the rollouts; round r starts 10,000 seeds further on per round."""
     demos: pathlib.Path | None = None
     """The demonstrations fine-tuning keeps training on; default: the policy's training dataset
-    (``info["dataset"]``)."""
+    (`info["dataset"]`)."""
     train: RoundTraining = field(default_factory=lambda: RoundTraining(steps=3000, lr=1e-4))
-    """How each round fine-tunes (``--train.steps``, ``--train.lr``, ``--train.extra-fraction``,
-    ``--train.start-rows`` ...; ``--train.extra-action-key expert_action``: DAgger)."""
+    """How each round fine-tunes (`--train.steps`, `--train.lr`, `--train.extra-fraction`,
+    `--train.start-rows` ...; `--train.extra-action-key expert_action`: DAgger)."""
     control: bool = True
     """Also fine-tune the base policy on its demonstrations alone, for as many steps as all rounds together, and
     report it as a row: the gain a method is credited with is the one above that control (on push the
@@ -326,7 +326,7 @@ class FinetuneCommand:
              | Annotated[ResidualConfig, tyro.conf.subcommand("residual")]
              | Annotated[WmSelectConfig, tyro.conf.subcommand("wm-select")]
              | Annotated[SelfImitationConfig, tyro.conf.subcommand("self-imitation")])
-    """The fine-tuning method (``dust-rl finetune METHOD --help`` lists its settings)."""
+    """The fine-tuning method (`dust-rl finetune METHOD --help` lists its settings)."""
 
 
 METHOD_CONFIGS: dict[str, type] = {config.method: config for config in (SteerConfig, ResidualConfig, WmSelectConfig,

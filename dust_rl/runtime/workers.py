@@ -30,7 +30,7 @@ class Workers:
     threads: int = 1
     """Torch threads per worker (and CPUs each Ray actor reserves)."""
     ray_address: str | None = None
-    """Ray cluster to join (``ray.init(address=...)``, e.g. ``auto``); default: start a local one."""
+    """Ray cluster to join (`ray.init(address=...)`, e.g. `auto`); default: start a local one."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "count", "threads")

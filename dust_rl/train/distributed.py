@@ -46,7 +46,7 @@ class RankFailedError(UserError):
 
 @dataclass(frozen=True)
 class Ranks:
-    """This process's place in the run: one process unless it was started by torchrun or :func:`spawn`."""
+    """This process's place in the run: one process unless it was started by torchrun or `spawn()`."""
 
     rank: int = 0
     world_size: int = 1

@@ -38,7 +38,7 @@ class PretrainEncoderCommand:
     width: int = 16
     """Channels of the first conv stage."""
     device: str = "auto"
-    """Where the autoencoder trains: auto | cpu | cuda | cuda:N | mps (:mod:`dust_rl.runtime.device`)."""
+    """Where the autoencoder trains: auto | cpu | cuda | cuda:N | mps (`dust_rl.runtime.device`)."""
 
     def __post_init__(self) -> None:
         resolve_device(self.device)

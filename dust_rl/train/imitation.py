@@ -84,19 +84,19 @@ SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at 
 
 @dataclass(kw_only=True)
 class TrainConfig(TrainSettings):
-    """Imitation training of a DUST policy on a demonstration dataset. ``--recipe NAME`` starts from a measured
-    recipe (by default one chosen by the dataset), ``--preset cpu-small|gpu-base`` from a named policy size; flags
+    """Imitation training of a DUST policy on a demonstration dataset. `--recipe NAME` starts from a measured
+    recipe (by default one chosen by the dataset), `--preset cpu-small|gpu-base` from a named policy size; flags
     given beside them override them."""
 
     dataset: pathlib.Path
-    """Dataset folder written by ``dust-rl collect`` (or ``dust-rl dataset import``)."""
+    """Dataset folder written by `dust-rl collect` (or `dust-rl dataset import`)."""
     recipe: Annotated[RecipeName, tyro.conf.arg(help=recipe_help(),
                                                 help_behavior_hint="(default: chosen by the dataset)")] = LEGACY_RECIPE
-    """The named recipe the settings started from (:mod:`dust_rl.train.recipes`)."""
+    """The named recipe the settings started from (`dust_rl.train.recipes`)."""
     out: pathlib.Path = DEFAULT_OUT
-    """Run folder: config, checkpoints, logs, ``policy.pt``."""
+    """Run folder: config, checkpoints, logs, `policy.pt`."""
     resume: bool = False
-    """Continue the run in ``out`` from its newest checkpoint."""
+    """Continue the run in `out` from its newest checkpoint."""
     cache_dir: pathlib.Path | None = None
     """Where the caches derived from the datasets (features, aux frames, read-out fits) go, one subfolder per
     dataset; default: inside each dataset, or the user's cache folder when it is read-only."""

@@ -31,15 +31,15 @@ RETIRED_FIELDS: dict[str, object] = {
 
 @dataclass(kw_only=True)
 class TrainSettings:
-    """How to train a policy by imitation, wherever the data and the run folder are (``dust-rl quickstart
-    --train.*`` nests these)."""
+    """How to train a policy by imitation, wherever the data and the run folder are (`dust-rl quickstart
+    --train.*` nests these)."""
 
     policy: PolicyConfig = field(default_factory=PolicyConfig)
-    """The policy to build: variant, trunk size, losses, image encoder (``--policy.d-model`` ...)."""
+    """The policy to build: variant, trunk size, losses, image encoder (`--policy.d-model` ...)."""
     steps: int = 3000
     """Optimiser steps."""
     batch_size: int = 64
-    """Training windows per step (over all processes: each of ``nproc`` takes ``batch_size / nproc``)."""
+    """Training windows per step (over all processes: each of `nproc` takes `batch_size / nproc`)."""
     lr: float = 1e-4
     """Peak learning rate (paper: 1e-4)."""
     betas: tuple[float, float] = (0.95, 0.999)
@@ -54,44 +54,44 @@ class TrainSettings:
     """Decay of the exponential moving average of the weights (the saved policy uses the average)."""
     aux_frames: int = 0
     """Frames of random resets and random arm motions (objects independent of the arm,
-    :mod:`dust_rl.train.readout.aux_frames`) rendered once at the start (and kept in ``<dataset>/aux_frames/`` for
-    any run that asks for the same, :mod:`dust_rl.train.readout.aux_frame_cache`); every step adds the read-out's
-    error on a batch of them to the loss (weight ``lambda_aux``), so the read-out cannot settle for "the target is
-    where the gripper is". Needs ``lambda_aux`` and ``readout tokens`` or ``keypoint_source pixels``; 0: off."""
+    `dust_rl.train.readout.aux_frames`) rendered once at the start (and kept in `<dataset>/aux_frames/` for
+    any run that asks for the same, `dust_rl.train.readout.aux_frame_cache`); every step adds the read-out's
+    error on a batch of them to the loss (weight `lambda_aux`), so the read-out cannot settle for "the target is
+    where the gripper is". Needs `lambda_aux` and `readout tokens` or `keypoint_source pixels`; 0: off."""
     readout_warmup: int = 0
     """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
-    the policy trains; they are then frozen (:mod:`dust_rl.train.readout.warmup`). Needs ``aux_frames``; 0: off."""
+    the policy trains; they are then frozen (`dust_rl.train.readout.warmup`). Needs `aux_frames`; 0: off."""
     readout_lr: float = 1e-3
     """Learning rate of that warm-up (constant)."""
     readout_demos: bool = True
     """Also fit the warm-up on demonstration rows (half of each batch); without them it sees aux frames only."""
     video_dataset: pathlib.Path | None = None
     """A dataset of the same robot and cameras whose episodes train without their actions (action-free video,
-    :mod:`dust_rl.train.action_free`): the world-model stream learns from them, the action loss does not."""
+    `dust_rl.train.action_free`): the world-model stream learns from them, the action loss does not."""
     video_fraction: float = 0.25
-    """Share of each batch taken from ``video_dataset``."""
+    """Share of each batch taken from `video_dataset`."""
     extra_dataset: pathlib.Path | None = None
     """A second dataset of the same robot and cameras whose windows join every batch with their actions
-    (:mod:`dust_rl.train.dataset_batches`), e.g. a policy's successful rollouts on fresh layouts (``dust-rl collect
-    --policy``)."""
+    (`dust_rl.train.dataset_batches`), e.g. a policy's successful rollouts on fresh layouts (`dust-rl collect
+    --policy`)."""
     extra_fraction: float = 0.5
-    """Share of each batch taken from ``extra_dataset``."""
+    """Share of each batch taken from `extra_dataset`."""
     extra_action_key: Literal["action", "expert_action"] = "action"
-    """The actions ``extra_dataset`` teaches: the executed ones (self-imitation of a policy's successes) or the
+    """The actions `extra_dataset` teaches: the executed ones (self-imitation of a policy's successes) or the
     scripted expert's label at each state (DAgger)."""
     init_policy: pathlib.Path | None = None
     """Start from this trained policy (weights, normalisation, read-out) instead of a new one: fine-tuning.
-    Its own settings are kept (no ``--policy.*`` flags) and its frame read-out stays frozen (no warm-up)."""
+    Its own settings are kept (no `--policy.*` flags) and its frame read-out stays frozen (no warm-up)."""
     augment_views: int = 1
-    """Cached views per frame: the frame itself plus ``augment_views - 1`` random shifts with colour jitter
-    (:mod:`dust_rl.data.augment`); each training window conditions on one of them. Encoding costs that many times
+    """Cached views per frame: the frame itself plus `augment_views - 1` random shifts with colour jitter
+    (`dust_rl.data.augment`); each training window conditions on one of them. Encoding costs that many times
     more, once per dataset."""
     start_rows: int = 0
-    """Rows at the start of every episode drawn more often (:mod:`dust_rl.data.windows`): the first frame is
+    """Rows at the start of every episode drawn more often (`dust_rl.data.windows`): the first frame is
     where the policy must decide where to go, and uniform draws give it 1 window in an episode's length;
     0: every row equally likely."""
     start_fraction: float = 0.25
-    """Share of each batch drawn from those ``start_rows`` rows."""
+    """Share of each batch drawn from those `start_rows` rows."""
     seed: int = 0
     """Seed of the initial weights, batch sampling and flow-matching noise."""
     log_every: int = 50
@@ -100,8 +100,8 @@ class TrainSettings:
     """Steps between checkpoints (one is always written at the end)."""
     eval_every: int = 0
     """Steps between closed-loop evaluations of the EMA policy (0: none); with a vision stream each also logs
-    ``wm/skill``, the skill of the sampled future against the present frame on a fixed draw of training windows
-    (:mod:`dust_rl.diagnose.world_model`)."""
+    `wm/skill`, the skill of the sampled future against the present frame on a fixed draw of training windows
+    (`dust_rl.diagnose.world_model`)."""
     eval_episodes: int = 10
     """Episodes per task of each periodic evaluation."""
     eval_workers: int = 2
@@ -109,22 +109,22 @@ class TrainSettings:
     threads: int | None = None
     """torch threads, per process (default: torch's choice)."""
     nproc: int = 1
-    """Processes training data-parallel (``DistributedDataParallel``; gloo on the CPU, NCCL with one GPU per
-    process on CUDA). Under ``torchrun`` leave it at 1 or give torchrun's ``--nproc-per-node``."""
+    """Processes training data-parallel (`DistributedDataParallel`; gloo on the CPU, NCCL with one GPU per
+    process on CUDA). Under `torchrun` leave it at 1 or give torchrun's `--nproc-per-node`."""
     device: str = "auto"
-    """Where the policy trains (:mod:`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
+    """Where the policy trains (`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
     cuda:N, mps. The feature cache and the saved policy stay on the CPU."""
     precision: Precision = "fp32"
-    """The trunk's precision while training: fp32, or bf16 autocast (:mod:`dust_rl.agents.precision`; weights,
+    """The trunk's precision while training: fp32, or bf16 autocast (`dust_rl.agents.precision`; weights,
     optimiser and the saved policy stay float32)."""
     compile: bool = False
-    """Compile the trunk's forward pass with ``torch.compile`` (the first steps pay the compilation; its
+    """Compile the trunk's forward pass with `torch.compile` (the first steps pay the compilation; its
     cost on a 2-core x86 CPU is in BENCHMARKS.md)."""
     progress: bool = True
     """Show a progress bar."""
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
-    """Where the scalars go, each through torchrl's ``get_logger`` into ``out/logs`` (experiment ``train``);
-    ``wandb`` and ``mlflow`` need their package installed. ``loss.png`` is drawn from the CSV files."""
+    """Where the scalars go, each through torchrl's `get_logger` into `out/logs` (experiment `train`);
+    `wandb` and `mlflow` need their package installed. `loss.png` is drawn from the CSV files."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
