@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import importlib.util
 import json
 import math
 import os
@@ -135,6 +136,9 @@ def test_loggers_are_chosen_by_name(run_inputs, tmp_path):
     assert not list((out / "logs").rglob("events.out.tfevents.*"))
     with pytest.raises(ConfigError, match=r"unknown loggers \['visdom'\]"):
         tiny_config(run_inputs, out, loggers=("csv", "visdom"))
+    if importlib.util.find_spec("wandb") is None:  # refused before any work, as dust-rl finetune does
+        with pytest.raises(ConfigError, match=r"--loggers wandb needs the wandb package: pip install wandb"):
+            tiny_config(run_inputs, out, loggers=("csv", "wandb"))
 
 
 @pytest.mark.parametrize("source", ["features", "pixels"])

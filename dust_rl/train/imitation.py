@@ -46,7 +46,6 @@ import tyro
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
-from torchrl.record.loggers import Logger, get_logger
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy
@@ -62,6 +61,7 @@ from dust_rl.envs.factory import make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, UserError, no_space_left
 from dust_rl.runtime.device import resolve_device
+from dust_rl.runtime.loggers import log_scalars, make_loggers
 from dust_rl.storage.checkpoint_dirs import save_checkpoint_dir
 from dust_rl.storage.run_folder import check_run_folder, locked_run_folder, restore
 from dust_rl.train.action_free import ActionFreeBatches, with_action_free
@@ -197,7 +197,7 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
                             config.extra_action_key, progress=config.progress, **start_rows)
              if config.extra_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
-    loggers = [get_logger(kind, str(out / "logs"), "train") for kind in config.loggers] if ranks.is_main else []
+    loggers = make_loggers(config.loggers, out / "logs", "train") if ranks.is_main else []
     progress = config.progress and ranks.is_main
     policy.train()
     if config.compile:
@@ -213,7 +213,7 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
         if not (config.resume and rotation.latest() is not None):
             _warm_up_readout(config, dataset, policy,
                              (lambda: features.batch(windows.sample())) if config.readout_demos else None,
-                             lambda scalars, step: _log(loggers, scalars, step))
+                             lambda scalars, step: log_scalars(loggers, scalars, step))
         policy.readout_modules().requires_grad_(False)
     elif config.aux_frames:
         aux = _aux_frame_batches(config, dataset, policy)
@@ -255,14 +255,14 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
             scalars = {f"train/{k}": ranks.mean(v).item() for k, v in losses.items()}
             scalars |= {"train/lr": schedule.get_last_lr()[0], "train/grad_norm": grad_norm.item(),
                         "train/samples_per_second": speed}
-            _log(loggers, scalars, done)
+            log_scalars(loggers, scalars, done)
             bar.set_postfix(loss=f"{scalars['train/loss']:.4f}", samples_s=f"{speed:.0f}")
             tick, samples = time.perf_counter(), 0
         if ranks.is_main and (done % config.checkpoint_every == 0 or done == config.steps):
             save_checkpoint_dir(checkpoint, rotation, done, {"step": done, "dataset": dataset.identity})
         if ranks.is_main and config.eval_every and (done % config.eval_every == 0 or done == config.steps):
             with averaged_weights(ema, trained):
-                _log(loggers, _periodic_eval(config, policy, done, skill_windows), done)
+                log_scalars(loggers, _periodic_eval(config, policy, done, skill_windows), done)
     bar.close()
     seconds = time.perf_counter() - began
     ranks.check_same(nn.utils.parameters_to_vector(trained.parameters()).detach())
@@ -429,11 +429,6 @@ def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: Dust
                            "episodes of the demonstrations' tasks, or a policy without --policy.lambda-aux")
     return ActionFreeBatches(video, policy, batch_size, progress=config.progress)
 
-
-def _log(loggers: list[Logger], scalars: dict[str, float], step: int) -> None:
-    for logger in loggers:
-        for name, value in scalars.items():
-            logger.log_scalar(name, value, step=step)
 
 
 def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int,

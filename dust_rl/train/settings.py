@@ -9,15 +9,15 @@ from __future__ import annotations
 import os
 import pathlib
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Literal
 
 from dust_rl.agents.config import RETIRED_SETTINGS, PolicyConfig
 from dust_rl.agents.precision import Precision
 from dust_rl.errors import ConfigError, check_at_least, check_finite, check_fraction
 from dust_rl.runtime.device import resolve_device
+from dust_rl.runtime.loggers import LoggerKind, check_loggers
 
 DEFAULT_OUT = pathlib.Path("runs/train")  # dust-rl train's run folder when --out is not given
-LoggerKind = Literal["csv", "tensorboard", "wandb", "mlflow"]
 # Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
 NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset", "extra_dataset")
 # Settings earlier versions had, each at the value every run now has (their other values were measured and did not
@@ -159,9 +159,7 @@ class TrainSettings:
                               "is where the gripper is' (dust_rl.train.readout.aux_frames)")
         check_fraction(self, "warmup", "ema_decay")
         resolve_device(self.device)
-        unknown = set(self.loggers) - set(get_args(LoggerKind))
-        if unknown:
-            raise ConfigError(f"unknown loggers {sorted(unknown)}; choose from {list(get_args(LoggerKind))}")
+        check_loggers(self.loggers)
         if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
             raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
         self.check_data_parallel(self.nproc)
