@@ -32,28 +32,18 @@ class AttentionProbe(nn.Module):
             vector (False: the pooling cannot depend on which object is named).
         heads: softmax poolings side by side, their vectors concatenated: one attends to one place, so a
             prediction about several objects needs several.
-        coords: fixed coordinates [N, K] of the tokens (e.g. each token's cell centre on its camera's grid),
-            pooled by each head's attention within each of ``groups`` equal runs of tokens (one per camera) and
-            handed to the output MLP beside the pooled vectors: a spatial soft-argmax, so a position is pointed
-            at and interpolated between cells instead of decoded from learnt per-cell embeddings. None: off.
-        groups: runs of tokens that get their own coordinate softmax (the cameras).
     """
 
     def __init__(self, tokens: int, dim: int, condition: Callable[[], nn.Module], outputs: int,
-                 early: bool = True, heads: int = 1, coords: Tensor | None = None, groups: int = 1) -> None:
+                 early: bool = True, heads: int = 1) -> None:
         super().__init__()
-        if coords is not None and (coords.shape[0] != tokens or tokens % groups):
-            raise ValueError(f"coords must be [tokens={tokens}, K] with tokens a multiple of groups={groups}, "
-                             f"got {tuple(coords.shape)}")
-        self.early, self.groups = early, groups
-        self.register_buffer("coords", coords, persistent=False)
-        pointed = 0 if coords is None else groups * heads * coords.shape[1]
+        self.early = early
         self.position = nn.Parameter(0.02 * torch.randn(tokens, WIDTH))
         self.condition = condition()
         self.project = nn.Linear(dim, WIDTH)
         self.mlp = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, WIDTH))
         self.attend = nn.Linear(WIDTH, heads)
-        self.head = nn.Sequential(nn.Linear(heads * WIDTH + pointed, 2 * WIDTH), nn.GELU(),
+        self.head = nn.Sequential(nn.Linear(heads * WIDTH, 2 * WIDTH), nn.GELU(),
                                   nn.Linear(2 * WIDTH, outputs))
 
     def forward(self, tokens: Tensor, condition: Tensor) -> Tensor:
@@ -62,17 +52,7 @@ class AttentionProbe(nn.Module):
         h = h + self.mlp(h)
         logits = self.attend(h)  # [B, N, heads]
         pooled = torch.einsum("bnk,bnw->bkw", logits.softmax(1), h)  # [B, heads, WIDTH]
-        parts = [(pooled if self.early else pooled + named).flatten(1)]
-        if self.coords is not None:
-            parts.append(soft_argmax(logits, self.coords, self.groups))
-        return self.head(torch.cat(parts, dim=-1))
-
-
-def soft_argmax(logits: Tensor, coords: Tensor, groups: int) -> Tensor:
-    """Coordinates [N, K] averaged by a softmax of ``logits`` [B, N, heads] within each of ``groups`` equal runs
-    of tokens: [B, groups * heads * K], group-major."""
-    weights = logits.unflatten(1, (groups, -1)).softmax(2)  # [B, groups, N / groups, heads]
-    return torch.einsum("bgnk,gnc->bgkc", weights, coords.unflatten(0, (groups, -1))).flatten(1)
+        return self.head((pooled if self.early else pooled + named).flatten(1))
 
 
 def standardise(train: Tensor, *others: Tensor) -> tuple[Tensor, ...]:

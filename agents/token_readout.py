@@ -26,7 +26,6 @@ estimate        [B, S]              normalised environment state
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor, nn
 
 from .attention_pooling import WIDTH, AttentionProbe
@@ -53,9 +52,3 @@ class TokenReadout(nn.Module):
 
     def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor) -> Tensor:
         return self.pool(image_tokens.flatten(1, 2), pooled_text(text_tokens, text_mask))
-
-
-def cell_centres(grid: tuple[int, int]) -> Tensor:
-    """(row, col) centres [rows * cols, 2] of a grid's cells in row-major order, scaled to (-1, 1)."""
-    rows, cols = ((torch.arange(n) + 0.5) / n * 2 - 1 for n in grid)
-    return torch.stack(torch.meshgrid(rows, cols, indexing="ij"), dim=-1).reshape(-1, 2)

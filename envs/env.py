@@ -300,20 +300,6 @@ class DustEnv(gym.Env):
             reason = "time_limit"
         return bool(success), reason
 
-    def displace_free_bodies(self, rng: np.random.Generator, radius: float, spare_within: float = 0.0) -> None:
-        """Move every free body (the task's loose objects) by its own uniformly random offset within ``radius`` on
-        the table plane, heights and orientations kept, and recompute the kinematics (no physics step): a frame
-        whose objects sit elsewhere relative to the arm (the read-out's aux frames). Bodies within ``spare_within``
-        metres of an end effector (held ones) stay where they are; every body draws its offset all the same."""
-        grippers = self.data.site_xpos[self._ee_sites]
-        for joint in np.flatnonzero(self.model.jnt_type == mujoco.mjtJoint.mjJNT_FREE):
-            angle, distance = rng.uniform(0, 2 * np.pi), radius * np.sqrt(rng.uniform())
-            address = self.model.jnt_qposadr[joint]
-            if np.linalg.norm(grippers - self.data.qpos[address:address + 3], axis=-1).min() < spare_within:
-                continue
-            self.data.qpos[address:address + 2] += distance * np.array([np.cos(angle), np.sin(angle)])
-        mujoco.mj_forward(self.model, self.data)
-
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array":
             return None

@@ -5,8 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from dust_rl.agents.attention_pooling import WIDTH, AttentionProbe, soft_argmax, standardise
-from dust_rl.agents.token_readout import cell_centres
+from dust_rl.agents.attention_pooling import WIDTH, AttentionProbe, standardise
 
 TOKENS, DIM, SAMPLES = 6, 4, 512
 
@@ -39,26 +38,3 @@ def test_standardise_uses_the_training_statistics_for_every_set():
     torch.testing.assert_close(scaled_train.mean((0, 1)), torch.zeros(2), atol=1e-5, rtol=0)
     mean, std = train.mean((0, 1)), train.std((0, 1)) + 1e-5
     torch.testing.assert_close(scaled_other, (other - mean) / std)
-
-
-def test_cell_centres_are_row_major_in_minus_one_to_one():
-    torch.testing.assert_close(cell_centres((2, 3)), torch.tensor(
-        [[-0.5, -2 / 3], [-0.5, 0.0], [-0.5, 2 / 3], [0.5, -2 / 3], [0.5, 0.0], [0.5, 2 / 3]]))
-
-
-def test_soft_argmax_points_at_the_peak_of_each_group_and_head():
-    grid, groups, heads = (2, 3), 2, 2
-    coords = cell_centres(grid).repeat(groups, 1)  # [12, 2], camera-major as TokenReadout lays them out
-    logits = torch.full((1, 12, heads), -1e4)
-    peaks = {(0, 0): 4, (0, 1): 0, (1, 0): 6 + 2, (1, 1): 6 + 5}  # (group, head) -> token index
-    for (_, head), token in peaks.items():
-        logits[0, token, head] = 0.0
-    pointed = soft_argmax(logits, coords, groups).view(groups, heads, 2)
-    for (group, head), token in peaks.items():
-        torch.testing.assert_close(pointed[group, head], coords[token])
-
-
-def test_soft_argmax_interpolates_between_cells():
-    coords = cell_centres((1, 2))
-    logits = torch.zeros(1, 2, 1)  # equal weight on both cells: their midpoint
-    torch.testing.assert_close(soft_argmax(logits, coords, 1), torch.zeros(1, 2))
