@@ -3,7 +3,6 @@ eval) at a tiny size, in one fresh interpreter (the registered task must not lea
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shlex
@@ -17,7 +16,6 @@ from test_train import TINY_ARGS
 from dust_rl.agents import save_image_encoder
 from dust_rl.data import DemoDataset
 from dust_rl.envs import list_tasks
-from dust_rl.train.imitation import TrainConfig
 
 PAGE = ROOT / "docs" / "own_task.md"
 TASK, LAUNCHER = "reach_ball", "my_dust.py"
@@ -26,8 +24,7 @@ TINY = {
     "demo": ["--episodes", "1", "--image-size", "32"],
     "collect": ["--episodes", "2", "--image-size", "32"],
     "train": ["--steps", "5", "--threads", "1", "--no-progress", "--policy.image-encoder", "encoder.pt", *TINY_ARGS,
-              # The default recipe for a dataset with environment_state fits a read-out first; plain is the tiny one.
-              *(["--recipe", "plain"] if "recipe" in {f.name for f in dataclasses.fields(TrainConfig)} else [])],
+              "--recipe", "plain"],  # the default for data with environment_state fits a read-out first
     "eval": ["--episodes", "1", "--workers", "1", "--videos", "0", "--no-progress"],
 }
 # Runs each command of the page through the launcher's main(), in one interpreter.
