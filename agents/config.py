@@ -271,7 +271,7 @@ class PolicyConfig(ModelConfig):
 
     image_encoder: str | None = None
     """Frozen image encoder: a name (`efficientnet-lite0`: ImageNet EfficientNet-Lite0 to stride 16,
-    `-s8`/`-s32` variants, `lite1`/`lite2`; `conv-ae`: the committed Franka autoencoder, the default)
+    `-s8`/`-s32` variants, `lite1`/`lite2`; `conv-ae`: the committed Franka autoencoder, taken when none is named)
     or a file from `dust-rl pretrain-encoder`."""
     text_encoder: str | None = None
     """Frozen text encoder: a local folder of a BERT-family `transformers` model (weights, config and
