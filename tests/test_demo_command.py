@@ -19,3 +19,10 @@ def test_demo_writes_a_video_even_at_an_odd_image_size(tmp_path, capsys):
     assert row["successes"] == 1 and len(frames) > 1
     assert frames[0].shape == (34, 66, 3)  # front | wrist, 33 rows padded by one repeated row for H.264
     assert "press_button: 1/1 successful" in capsys.readouterr().out
+
+
+def test_expert_table_counts_episodes_as_collect_and_eval_do(tmp_path, capsys):
+    main(["expert-table", "--task", "press_button", "--episodes", "2", "--out", str(tmp_path / "table")])
+    (row,) = json.loads((tmp_path / "table.json").read_text())
+    assert row["task"] == "press_button" and row["episodes"] == 2
+    assert "| press_button |" in capsys.readouterr().out

@@ -76,8 +76,8 @@ class ExpertTableCommand:
     """Gymnasium env id."""
     task: str = "all"
     """Task name, comma-separated names, or `all`."""
-    seeds: int = 50
-    """Episodes (seeds 0..N-1) per task."""
+    episodes: int = 50
+    """Episodes per task (seeds 0..N-1), as `--episodes` counts them in collect and eval."""
     out: pathlib.Path | None = None
     """Also write the table (.md) and rows (.json) here."""
 
@@ -86,8 +86,8 @@ def run_expert_table(config: ExpertTableCommand, command_line: str) -> None:
     from dust_rl.data.expert_rollouts import expert_success_table, format_table
     from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 
-    check_at_least(config, 1, "seeds")
-    rows = expert_success_table(config.env, env_tasks(config.env, config.task), config.seeds)
+    check_at_least(config, 1, "episodes")
+    rows = expert_success_table(config.env, env_tasks(config.env, config.task), config.episodes)
     table = format_table(rows)
     print(table)
     if config.out:
