@@ -38,6 +38,7 @@ from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune, finetune_e
 from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
 from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import restore
+from dust_rl.train.settings import LoggingSettings, OptimSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -333,7 +334,8 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
         finetune(dataclasses.replace(config, out=tmp_path / "ft2", demos=demo_dir, rollout_successes=2, resume=True))
     # DAgger (the expert's labels taught): the failed rollouts are kept too, with their rows.
     dagger = dataclasses.replace(config, out=tmp_path / "ft3", demos=demo_dir,
-                                 train=dataclasses.replace(config.train, extra_action_key="expert_action"))
+                                 train=dataclasses.replace(config.train, data=dataclasses.replace(config.train.data,
+                                                                                   extra_action_key="expert_action")))
     with pytest.raises(SuccessesOutOfReachError, match="succeeded in only 0 of"):
         finetune(dagger)
     kept = scan_episodes(tmp_path / "ft3" / "round-1" / "rollouts")["press_button"].values()
@@ -344,12 +346,14 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
 
 def test_the_control_is_the_base_fine_tuned_as_long_on_its_demonstrations_alone(policy_path, demo_dir, tmp_path):
     config = SelfImitationConfig(policy=policy_path, out=tmp_path / "ft", demos=demo_dir, rounds=2, seed=3,
-                            train=RoundTraining(steps=2, lr=1e-4, batch_size=4, log_every=1),
+                            train=RoundTraining(optim=OptimSettings(steps=2, lr=1e-4, batch_size=4),
+                                                logging=LoggingSettings(log_every=1)),
                             eval_episodes=1, max_steps=EPISODE_STEPS, progress=False)
     name, row = control_row(config)
     assert name == "demonstrations alone (4 steps, the control)"  # two rounds of two steps
     trained = json.loads((tmp_path / "ft" / "control" / "steps-4" / "config.json").read_text())["config"]
-    assert (trained["steps"], trained["init_policy"], trained["extra_dataset"]) == (4, str(policy_path), None)
+    assert (trained["optim"]["steps"], trained["init_policy"], trained["data"]["extra_dataset"]) == (
+        4, str(policy_path), None)
     assert trained["seed"] == 3  # the run's --seed: the rounds' own is not offered
     assert trained["dataset"] == str(demo_dir)
     assert row["episodes"] == 1 and row["seeds"] == [config.eval_seed]
@@ -403,7 +407,7 @@ def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
     assert "--gradient-steps" in sac and "--n-steps" not in sac
     assert "--n-steps" in ppo and "--gradient-steps" not in ppo
     rounds = help_of("self-imitation")
-    assert "--train.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
+    assert "--train.optim.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
     assert "--steps" not in help_of("wm-select")
 
 
