@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 import torch
-from conftest import kill_after_first_checkpoint
+from conftest import as_before_the_groups, kill_after_first_checkpoint
 from crafted import CRAFTS
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
@@ -25,17 +25,20 @@ from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
     PpoSettings,
     ResidualConfig,
+    RoundData,
     RoundTraining,
     SacSettings,
     SelfImitationConfig,
     SteerConfig,
     WmSelectConfig,
+    grouped_round_training,
     rl_config_from_json,
 )
 from dust_rl.rl.critic_limits import LayerNormReLU
 from dust_rl.rl.critic_warmup import CriticWarmup
 from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune, finetune_env_factory
 from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
+from dust_rl.storage.config_json import config_json
 from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import restore
 from dust_rl.train.settings import LoggingSettings, OptimSettings
@@ -419,3 +422,12 @@ def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own
     assert config.algorithm == PpoSettings(n_steps=512, target_kl=0.01) and config.net_arch == (16,)
     new = SteerConfig(policy=pathlib.Path("p.pt"), algorithm=SacSettings(q_bounds=(0.0, 1.0)))
     assert rl_config_from_json(json.loads(json.dumps(dataclasses.asdict(new), default=str))) == new
+
+
+def test_a_self_imitation_run_from_before_the_settings_groups_reads_as_todays():
+    today = config_json(SelfImitationConfig(policy=pathlib.Path("policy.pt"), train=RoundTraining(
+        optim=OptimSettings(steps=7), data=RoundData(extra_action_key="expert_action"))))
+    before = {**today, "train": as_before_the_groups(today["train"])}
+    assert before["train"]["steps"] == 7 and "optim" not in before["train"]
+    assert grouped_round_training(before) == today
+    assert grouped_round_training({"method": "steer"}) == {"method": "steer"}
