@@ -183,10 +183,10 @@ class LoggingSettings:
         check_loggers(self.loggers)
 
 
-# The groups' fields, and what earlier versions called each at the top level (the names a run folder's
-# config.json, a study's results.json or a cache key of theirs holds).
 GROUPS = {"optim": OptimSettings, "data": DataSettings, "readout": ReadoutSettings, "runtime": RuntimeSettings,
           "logging": LoggingSettings}
+# Each grouped setting under the top-level name earlier versions gave it (what a run folder's config.json, a study's
+# results.json or a read-out cache key of theirs holds): its name in the group, but for the read-out's three.
 _OLD_NAMES = {"readout.warmup_steps": "readout_warmup", "readout.lr": "readout_lr", "readout.demos": "readout_demos"}
 GROUPED_SETTINGS: dict[str, str] = {
     _OLD_NAMES.get(f"{group}.{name}", name): f"{group}.{name}"
@@ -214,7 +214,7 @@ def grouped_json(stored: Mapping) -> dict:
     grouped = {k: dict(v) if k in GROUPS and isinstance(v, Mapping) else v for k, v in stored.items()
                if k not in GROUPED_SETTINGS}
     for old, new in GROUPED_SETTINGS.items():
-        if old in stored and old != new:
+        if old in stored:
             group, _, name = new.partition(".")
             grouped.setdefault(group, {})[name] = stored[old]
     return grouped
