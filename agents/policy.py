@@ -195,7 +195,7 @@ class DustPolicy(VLAWrapperBase):
         return nn.ModuleDict(modules)
 
     def readout_modules(self) -> nn.ModuleDict:
-        """The state read-out (and the pixel keypoint networks it reads): what ``--readout-warmup`` fits and then
+        """The state read-out (and the pixel keypoint networks it reads): what ``--readout.warmup-steps`` fits and then
         freezes.
 
         Raises:

@@ -7,7 +7,7 @@ Lite0 stride-8 tokens of fresh pick_place resets reads it to 1.5 cm (tokens
 pooled to 8x8) or 0.7 cm (16x16), but only when fitted on 2,000 layouts; on
 200 it learns nothing (15.5 cm, predicting the mean; docs/franka_results.md,
 ``experiments/frozen_feature_probe.py``). So this read-out is meant to be fitted
-on rendered frames (``--aux-frames``, ``--readout-warmup``), not on the
+on rendered frames (``--readout.aux-frames``, ``--readout.warmup-steps``), not on the
 demonstrations' few layouts.
 
 It is :class:`~.attention_pooling.AttentionProbe` over every camera's

@@ -52,7 +52,7 @@ class QuickstartConfig:
     """The named recipe training starts from (`dust-rl train --help` lists them; `--train.*` flags override
     it)."""
     train: TrainSettings = field(default_factory=vision_readout)
-    """Training (`--train.steps`, `--train.policy.variant` ...; as `dust-rl train`, defaults from
+    """Training (`--train.optim.steps`, `--train.policy.variant` ...; as `dust-rl train`, defaults from
     `recipe`)."""
 
     def __post_init__(self) -> None:
@@ -64,9 +64,9 @@ def quickstart(config: QuickstartConfig, command: str | None = None) -> dict:
     began = time.perf_counter()
     data, train_dir, eval_dir = config.out / "data", config.out / "train", config.out / "eval"
     check_image_encoder(config.train.policy.image_encoder)
-    train_config = TrainConfig.from_settings(replace(config.train, progress=config.progress), dataset=data,
-                                             out=train_dir, resume=(train_dir / "config.json").is_file(),
-                                             recipe=config.recipe)
+    settings = replace(config.train, runtime=replace(config.train.runtime, progress=config.progress))
+    train_config = TrainConfig.from_settings(settings, dataset=data, out=train_dir,
+                                             resume=(train_dir / "config.json").is_file(), recipe=config.recipe)
     eval_config = EvalConfig(policy=train_dir / "policy.pt", out=eval_dir, episodes=config.eval_episodes,
                              workers=config.workers, train_dir=train_dir, progress=config.progress)
     stages = {}

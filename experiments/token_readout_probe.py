@@ -1,6 +1,6 @@
 """How many centimetres off is the token read-out (``--policy.readout tokens``), object by object?
 
-Fits only the read-out, as ``dust-rl train --aux-frames N --readout-warmup S --no-readout-demos`` warms it
+Fits only the read-out, as ``dust-rl train --readout.aux-frames N --readout.warmup-steps S --readout.no-demos`` warms it
 up (the same frames: seeds from ``dust_rl.train.readout.aux_frames.FIRST_SEED``, the same held-out ones), and
 prints each
 object's xy error on the held-out frames in cm, and the normalised squared error of every state column,

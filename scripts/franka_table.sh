@@ -9,8 +9,8 @@ for task in ${TASKS:-open_drawer close_drawer press_button push pick_place stack
   if [ ! -f "runs/train/$task/policy.pt" ]; then
     resume=()
     [ -f "runs/train/$task/config.json" ] && resume=(--resume)
-    .venv/bin/dust-rl train --recipe defaults --dataset "runs/data/$task" --out "runs/train/$task" --steps 3000 \
-      --lr 3e-4 --threads 1 --no-progress "${resume[@]}" "$@"
+    .venv/bin/dust-rl train --recipe defaults --dataset "runs/data/$task" --out "runs/train/$task" --optim.steps 3000 \
+      --optim.lr 3e-4 --runtime.threads 1 --runtime.no-progress "${resume[@]}" "$@"
   fi
   [ -f "runs/eval/$task/report.json" ] || .venv/bin/dust-rl eval --policy "runs/train/$task/policy.pt" \
     --out "runs/eval/$task" --episodes 20 --workers 1 --no-progress

@@ -16,9 +16,9 @@ out=runs/train/$run
 if [ ! -f "$out/policy.pt" ]; then
   resume=()
   [ -f "$out/config.json" ] && resume=(--resume)
-  .venv/bin/dust-rl train --recipe plain --dataset "$data" --out "$out" --steps "$steps" --lr 3e-4 --threads 1 \
-    --policy.image-encoder efficientnet-lite0-s8 --policy.cond-grid 8 8 --policy.text-fusion --start-rows 4 \
-    --start-fraction 0.75 --policy.variant action_only --checkpoint-every 2000 --no-progress "${resume[@]}" "${@:4}"
+  .venv/bin/dust-rl train --recipe plain --dataset "$data" --out "$out" --optim.steps "$steps" --optim.lr 3e-4 --runtime.threads 1 \
+    --policy.image-encoder efficientnet-lite0-s8 --policy.cond-grid 8 8 --policy.text-fusion --data.start-rows 4 \
+    --data.start-fraction 0.75 --policy.variant action_only --logging.checkpoint-every 2000 --runtime.no-progress "${resume[@]}" "${@:4}"
 fi
 for seed in 5000 10000; do
   eval_out=runs/eval/${run}_seed$seed

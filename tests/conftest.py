@@ -174,3 +174,16 @@ def kill_after_first_checkpoint(cli_args: list[str], out: pathlib.Path) -> None:
     proc.send_signal(signal.SIGKILL)
     _, stderr = proc.communicate()
     assert proc.returncode == -signal.SIGKILL, stderr.decode()[-2000:]
+
+
+def as_before_the_groups(settings: dict) -> dict:
+    """Train settings as JSON values (a run's or a study's) the way versions before the settings groups stored them:
+    every group's settings at the top level, under their names then."""
+    from dust_rl.train.settings import GROUPED_SETTINGS, GROUPS
+
+    flat = {k: v for k, v in settings.items() if k not in GROUPS}
+    for old, new in GROUPED_SETTINGS.items():
+        group, _, name = new.partition(".")
+        if name in settings.get(group, {}):
+            flat[old] = settings[group][name]
+    return flat

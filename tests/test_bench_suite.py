@@ -12,14 +12,17 @@ from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder
 from dust_rl.bench.suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, Cell, SuiteConfig, markdown, plan, run_suite
 from dust_rl.errors import ConfigError
 from dust_rl.train.imitation import TrainSettings
+from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, tmp_path, capsys):
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
-    train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)), steps=2, batch_size=8,
-                          log_every=1, checkpoint_every=2, threads=1, progress=False)
+    train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
+                          optim=OptimSettings(steps=2, batch_size=8),
+                          logging=LoggingSettings(log_every=1, checkpoint_every=2),
+                          runtime=RuntimeSettings(threads=1, progress=False))
     config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1, 2), variants=("dust", "action_only"),
                          seeds=(0,), train=train, vision_steps=(4, 8), episodes=1, image_size=32, max_steps=6,
                          video_dataset=tmp_path / "suite" / "data" / "1", progress=False)  # collected by the suite
@@ -55,7 +58,8 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
 
     # Cells on disk from other settings are refused, not passed off as this study's.
-    longer = dataclasses.replace(config, train=dataclasses.replace(train, steps=3))
+    longer_train = dataclasses.replace(train, optim=dataclasses.replace(train.optim, steps=3))
+    longer = dataclasses.replace(config, train=longer_train)
     with pytest.raises(ConfigError, match="other settings"):
         run_suite(longer)
     with pytest.raises(ConfigError, match="holds an evaluation of seeds"):

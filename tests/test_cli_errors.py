@@ -169,16 +169,18 @@ def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
 @pytest.fixture
 def train_args(dataset_copy, tiny_encoder, tmp_path):
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
-    return ["train", "--dataset", str(dataset_copy), "--policy.image-encoder", str(encoder), "--threads", "1",
-            "--no-progress", "--log-every", "1", "--checkpoint-every", "1", *TINY_ARGS]
+    return ["train", "--dataset", str(dataset_copy), "--policy.image-encoder", str(encoder), "--runtime.threads", "1",
+            "--runtime.no-progress", "--logging.log-every", "1", "--logging.checkpoint-every", "1", *TINY_ARGS]
 
 
 def test_train_refuses_bad_settings_before_writing(train_args, tmp_path, capsys):
     out = tmp_path / "run"
-    for flags, field in ((["--lr", "inf"], "lr"), (["--grad-clip", "nan"], "grad_clip"), (["--lr", "0"], "lr"),
-                         (["--steps", "0"], "steps"), (["--batch-size", "0"], "batch_size"),
-                         (["--warmup", "1"], "warmup"), (["--device", "tpu"], "device"),
-                         (["--start-fraction", "1"], "start_fraction"), (["--nproc", "3"], "split evenly")):
+    for flags, field in ((["--optim.lr", "inf"], "lr"), (["--optim.grad-clip", "nan"], "grad_clip"),
+                         (["--optim.lr", "0"], "lr"),
+                         (["--optim.steps", "0"], "steps"), (["--optim.batch-size", "0"], "batch_size"),
+                         (["--optim.warmup", "1"], "warmup"), (["--runtime.device", "tpu"], "device"),
+                         (["--data.start-fraction", "1"], "start_fraction"),
+                         (["--optim.batch-size", "7", "--runtime.nproc", "2"], "split evenly")):
         assert field in error_of([*train_args, "--out", str(out), *flags])
     # The nested policy settings are checked while tyro parses: a usage error (exit 2) naming the group and rule.
     for flags, reason in ((["--policy.execute-steps", "9"], "execute_steps must be in [1, horizon=4], got 9"),
@@ -193,7 +195,7 @@ def test_train_refuses_bad_settings_before_writing(train_args, tmp_path, capsys)
 
 def test_diverging_training_stops_at_the_first_non_finite_loss(train_args, tmp_path):
     out = tmp_path / "run"
-    message = error_of([*train_args, "--out", str(out), "--steps", "6", "--lr", "1e30"])
+    message = error_of([*train_args, "--out", str(out), "--optim.steps", "6", "--optim.lr", "1e30"])
     step = int(message.split("diverged at step ")[1].split(":")[0])
     assert not (out / "policy.pt").exists()
     checkpoints = sorted((out / "checkpoints").iterdir())
@@ -233,7 +235,7 @@ def test_preset_sets_the_policy_size_over_the_recipe_and_flags_override_both(tra
     config = tyro.cli(TrainConfig, args=args, default=default)
     gpu = POLICY_PRESETS["gpu-base"]
     assert (config.policy.d_model, config.policy.n_mmdit, config.policy.n_dit) == (gpu.d_model, gpu.n_mmdit, 2)
-    assert (config.recipe, config.policy.image_encoder, config.steps) == ("plain", "efficientnet-lite0-s8", 2000)
+    assert (config.recipe, config.policy.image_encoder, config.optim.steps) == ("plain", "efficientnet-lite0-s8", 2000)
     assert with_preset("train", ["--help"]) == (["--help"], None)  # --help shows every setting's own default
     assert "one of ['cpu-small', 'gpu-base'], got huge" in error_of([*train_args, "--out", str(tmp_path / "r"),
                                                                         "--preset", "huge"])
@@ -270,10 +272,11 @@ BAD_INPUT = {
     "video-not-mp4": (lambda tmp, demos: ["dataset", "video", str(demos), "--out", str(tmp / "grid.avi")],
                       "--out must name an .mp4 file"),
     "no-spec": (_no_spec, "meta.json: missing or malformed spec; the file was edited"),
-    "nproc-above-cores": (lambda tmp, demos: ["train", "--dataset", str(demos), "--out", str(tmp / "run"), "--device",
-                                              "cpu", "--recipe", "plain", "--nproc", str((os.cpu_count() or 1) + 1),
-                                              "--batch-size", str((os.cpu_count() or 1) + 1)],
-                          f"give --nproc at most {os.cpu_count() or 1}"),
+    "nproc-above-cores": (lambda tmp, demos: ["train", "--dataset", str(demos), "--out", str(tmp / "run"),
+                                              "--runtime.device", "cpu", "--recipe", "plain",
+                                              "--runtime.nproc", str((os.cpu_count() or 1) + 1),
+                                              "--optim.batch-size", str((os.cpu_count() or 1) + 1)],
+                          f"give --runtime.nproc at most {os.cpu_count() or 1}"),
     "non-utf8-path": (lambda tmp, demos: ["dataset", "info", os.fsdecode(bytes(tmp / "ds") + b"\xff")],
                       "is not UTF-8 text; rename"),
 }

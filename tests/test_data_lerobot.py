@@ -21,6 +21,7 @@ from dust_rl.data.lerobot_import import import_lerobot
 from dust_rl.data.video import read_mp4
 from dust_rl.errors import ConfigError
 from dust_rl.train.imitation import TrainConfig, train
+from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
 
 IMAGE = ("observation", "image", "front")
 # The per-frame features any LeRobot v3 dataset has (besides its videos); no dust-rl extras.
@@ -192,8 +193,10 @@ def test_training_runs_on_a_plain_lerobot_import(plain_import, tiny_encoder, tmp
     windows = DemoWindows(DemoDataset(imported), horizon=4, batch_size=8)
     assert windows.sample()["vla_action", "chunk"].shape == (8, 4, 7)
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
-    result = train(TrainConfig(dataset=imported, out=tmp_path / "run", policy=tiny_policy(encoder), steps=2,
-                               batch_size=8, log_every=1, checkpoint_every=2, threads=1, progress=False))
+    result = train(TrainConfig(dataset=imported, out=tmp_path / "run", policy=tiny_policy(encoder),
+                               optim=OptimSettings(steps=2, batch_size=8),
+                               logging=LoggingSettings(log_every=1, checkpoint_every=2),
+                               runtime=RuntimeSettings(threads=1, progress=False)))
     assert np.isfinite(result.final_loss)
     policy = load_policy(result.policy)
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button"]

@@ -36,6 +36,7 @@ from dust_rl.data import DatasetError, DemoDataset, collect_demos
 from dust_rl.data.lerobot_export import EPISODES_FILE
 from dust_rl.data.video import write_mp4
 from dust_rl.train.imitation import TrainConfig, train
+from dust_rl.train.settings import OptimSettings, RuntimeSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -57,8 +58,8 @@ def _data_dir(root: pathlib.Path) -> pathlib.Path:
 def _read_with(entry: str, root: pathlib.Path, tmp_path: pathlib.Path, encoder: pathlib.Path) -> None:
     """Read the dataset at ``root`` the way one of the package's entry points does."""
     if entry == "train":
-        train(TrainConfig(dataset=root, out=tmp_path / "run", policy=PolicyConfig(image_encoder=str(encoder)), steps=1,
-                          threads=1, progress=False))
+        train(TrainConfig(dataset=root, out=tmp_path / "run", policy=PolicyConfig(image_encoder=str(encoder)),
+                          optim=OptimSettings(steps=1), runtime=RuntimeSettings(threads=1, progress=False)))
     elif entry == "collect-resume":  # one more episode, then the consolidated rows are read back
         collect_demos(root, tasks=["press_button"], episodes=4, env_kwargs={"image_size": 32}, progress=False)
     else:

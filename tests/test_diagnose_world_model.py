@@ -15,6 +15,7 @@ from dust_rl.cli import main
 from dust_rl.data import DatasetError
 from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
 from dust_rl.train.imitation import TrainConfig, train
+from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -79,8 +80,9 @@ def trained(demo_dir, tmp_path_factory):
     encoder = save_image_encoder(make_tiny_encoder(), root / "encoder.pt")
     policies = {}
     for variant in ("dust", "action_only"):
-        config = TrainConfig(dataset=data, out=root / variant, steps=6, batch_size=8, checkpoint_every=6, threads=1,
-                             progress=False, loggers=("csv",),
+        config = TrainConfig(dataset=data, out=root / variant, optim=OptimSettings(steps=6, batch_size=8),
+                             logging=LoggingSettings(checkpoint_every=6, loggers=("csv",)),
+                             runtime=RuntimeSettings(threads=1, progress=False),
                              policy=PolicyConfig(**TINY, variant=variant, image_encoder=str(encoder)))
         policies[variant] = train(config).policy
     return policies, data, shutil.copytree(demo_dir, root / "heldout")

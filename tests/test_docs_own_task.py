@@ -23,8 +23,9 @@ TASK, LAUNCHER = "reach_ball", "my_dust.py"
 TINY = {
     "demo": ["--episodes", "1", "--image-size", "32"],
     "collect": ["--episodes", "2", "--image-size", "32"],
-    "train": ["--steps", "5", "--threads", "1", "--no-progress", "--policy.image-encoder", "encoder.pt", *TINY_ARGS,
-              "--recipe", "plain"],  # the default for data with environment_state fits a read-out first
+    # --recipe plain: the default for data with environment_state fits a read-out first
+    "train": ["--optim.steps", "5", "--runtime.threads", "1", "--runtime.no-progress",
+              "--policy.image-encoder", "encoder.pt", *TINY_ARGS, "--recipe", "plain"],
     "eval": ["--episodes", "1", "--workers", "1", "--videos", "0", "--no-progress"],
 }
 # Runs each command of the page through the launcher's main(), in one interpreter.

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 import torch
-from conftest import kill_after_first_checkpoint
+from conftest import as_before_the_groups, kill_after_first_checkpoint
 from crafted import CRAFTS
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
@@ -25,19 +25,23 @@ from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
     PpoSettings,
     ResidualConfig,
+    RoundData,
     RoundTraining,
     SacSettings,
     SelfImitationConfig,
     SteerConfig,
     WmSelectConfig,
+    grouped_round_training,
     rl_config_from_json,
 )
 from dust_rl.rl.critic_limits import LayerNormReLU
 from dust_rl.rl.critic_warmup import CriticWarmup
 from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune, finetune_env_factory
 from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
+from dust_rl.storage.config_json import config_json
 from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import restore
+from dust_rl.train.settings import LoggingSettings, OptimSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -333,7 +337,8 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
         finetune(dataclasses.replace(config, out=tmp_path / "ft2", demos=demo_dir, rollout_successes=2, resume=True))
     # DAgger (the expert's labels taught): the failed rollouts are kept too, with their rows.
     dagger = dataclasses.replace(config, out=tmp_path / "ft3", demos=demo_dir,
-                                 train=dataclasses.replace(config.train, extra_action_key="expert_action"))
+                                 train=dataclasses.replace(config.train, data=dataclasses.replace(config.train.data,
+                                                                                   extra_action_key="expert_action")))
     with pytest.raises(SuccessesOutOfReachError, match="succeeded in only 0 of"):
         finetune(dagger)
     kept = scan_episodes(tmp_path / "ft3" / "round-1" / "rollouts")["press_button"].values()
@@ -344,12 +349,14 @@ def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_di
 
 def test_the_control_is_the_base_fine_tuned_as_long_on_its_demonstrations_alone(policy_path, demo_dir, tmp_path):
     config = SelfImitationConfig(policy=policy_path, out=tmp_path / "ft", demos=demo_dir, rounds=2, seed=3,
-                            train=RoundTraining(steps=2, lr=1e-4, batch_size=4, log_every=1),
+                            train=RoundTraining(optim=OptimSettings(steps=2, lr=1e-4, batch_size=4),
+                                                logging=LoggingSettings(log_every=1)),
                             eval_episodes=1, max_steps=EPISODE_STEPS, progress=False)
     name, row = control_row(config)
     assert name == "demonstrations alone (4 steps, the control)"  # two rounds of two steps
     trained = json.loads((tmp_path / "ft" / "control" / "steps-4" / "config.json").read_text())["config"]
-    assert (trained["steps"], trained["init_policy"], trained["extra_dataset"]) == (4, str(policy_path), None)
+    assert (trained["optim"]["steps"], trained["init_policy"], trained["data"]["extra_dataset"]) == (
+        4, str(policy_path), None)
     assert trained["seed"] == 3  # the run's --seed: the rounds' own is not offered
     assert trained["dataset"] == str(demo_dir)
     assert row["episodes"] == 1 and row["seeds"] == [config.eval_seed]
@@ -403,7 +410,7 @@ def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
     assert "--gradient-steps" in sac and "--n-steps" not in sac
     assert "--n-steps" in ppo and "--gradient-steps" not in ppo
     rounds = help_of("self-imitation")
-    assert "--train.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
+    assert "--train.optim.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
     assert "--steps" not in help_of("wm-select")
 
 
@@ -415,3 +422,12 @@ def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own
     assert config.algorithm == PpoSettings(n_steps=512, target_kl=0.01) and config.net_arch == (16,)
     new = SteerConfig(policy=pathlib.Path("p.pt"), algorithm=SacSettings(q_bounds=(0.0, 1.0)))
     assert rl_config_from_json(json.loads(json.dumps(dataclasses.asdict(new), default=str))) == new
+
+
+def test_a_self_imitation_run_from_before_the_settings_groups_reads_as_todays():
+    today = config_json(SelfImitationConfig(policy=pathlib.Path("policy.pt"), train=RoundTraining(
+        optim=OptimSettings(steps=7), data=RoundData(extra_action_key="expert_action"))))
+    before = {**today, "train": as_before_the_groups(today["train"])}
+    assert before["train"]["steps"] == 7 and "optim" not in before["train"]
+    assert grouped_round_training(before) == today
+    assert grouped_round_training({"method": "steer"}) == {"method": "steer"}

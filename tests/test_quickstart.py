@@ -15,11 +15,11 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 def test_quickstart_then_eval_command(tiny_encoder, tmp_path, capsys):
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
     out = tmp_path / "qs"
-    args = ["quickstart", "--out", str(out), "--task", "press_button", "--demos", "2", "--train.steps", "4",
-            "--train.batch-size", "8", "--eval-episodes", "1", "--image-size", "32",
+    args = ["quickstart", "--out", str(out), "--task", "press_button", "--demos", "2", "--train.optim.steps", "4",
+            "--train.optim.batch-size", "8", "--eval-episodes", "1", "--image-size", "32",
             "--train.policy.image-encoder", str(encoder), "--train.policy.cond-grid", "4", "4",
-            "--train.policy.readout-grid", "4", "4", "--train.aux-frames", "8", "--train.readout-warmup", "2",
-            "--train.threads", "1", "--no-progress"]
+            "--train.policy.readout-grid", "4", "4", "--train.readout.aux-frames", "8",
+            "--train.readout.warmup-steps", "2", "--train.runtime.threads", "1", "--no-progress"]
     main(args)
     printed = capsys.readouterr().out
     assert "press_button: " in printed and str(out / "eval" / "report.md") in printed

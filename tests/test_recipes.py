@@ -19,23 +19,38 @@ from dust_rl.quickstart import QuickstartConfig
 from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TrainConfig, train
 from dust_rl.train.recipes import RECIPES, default_recipe, plain, vision_readout
-from dust_rl.train.settings import TrainSettings
+from dust_rl.train.settings import GROUPED_SETTINGS, DataSettings, OptimSettings, ReadoutSettings, TrainSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 # How a command ran, not what it trains.
-RUN_ONLY = ("threads", "progress", "dataset", "out", "resume", "recipe", "cache_dir")
+RUN_ONLY = ("dataset", "out", "resume", "recipe", "cache_dir")
+RUN_ONLY_RUNTIME = ("threads", "progress")
 
 
 def trains(settings: object) -> dict:
     """What ``settings`` (TrainSettings or TrainConfig) train, as JSON values."""
-    return {k: v for k, v in config_json(settings).items() if k not in RUN_ONLY}
+    values = {k: v for k, v in config_json(settings).items() if k not in RUN_ONLY}
+    values["runtime"] = {k: v for k, v in values["runtime"].items() if k not in RUN_ONLY_RUNTIME}
+    return values
+
+
+def todays_flag(arg: str) -> str:
+    """``arg`` of a train command line as today's: a setting's top-level flag of before the groups (``--lr``,
+    ``--no-readout-demos``) becomes its group's (``--optim.lr``, ``--readout.no-demos``)."""
+    flag, equals, value = arg.partition("=")
+    negated = flag.startswith("--no-")
+    name = GROUPED_SETTINGS.get(flag.removeprefix("--no-" if negated else "--").replace("-", "_"))
+    if not flag.startswith("--") or name is None:
+        return arg
+    group, _, setting = name.partition(".")
+    return f"--{group}.{'no-' if negated else ''}{setting}".replace("_", "-") + equals + value
 
 
 def settings_of(command: str) -> dict:
-    """What a documented ``dust-rl train`` command trains (one without ``--recipe`` predates them: from every
-    setting's own default)."""
+    """What a documented ``dust-rl train`` command trains, in the command line of its date (one without ``--recipe``
+    predates them: from every setting's own default; one with top-level flags predates the groups)."""
     args, default = with_preset("train", ["--recipe=defaults", "--dataset", "d",
-                                          *shlex.split(command.replace("\\\n", " "))])
+                                          *map(todays_flag, shlex.split(command.replace("\\\n", " ")))])
     return trains(tyro.cli(TrainConfig, args=args, default=default))
 
 
@@ -52,21 +67,22 @@ def test_each_recipe_is_the_command_its_result_was_measured_with():
     quickstart = TrainSettings(policy=PolicyConfig(image_encoder="efficientnet-lite0-s8", cond_grid=(8, 8),
                                                    text_fusion=True, readout="tokens", readout_grid=(16, 16),
                                                    lambda_aux=1.0, aux_state_input=True),
-                               steps=2000, lr=3e-4, start_rows=4, start_fraction=0.75, aux_frames=8000,
-                               readout_warmup=4000, readout_demos=False)
+                               optim=OptimSettings(steps=2000, lr=3e-4),
+                               data=DataSettings(start_rows=4, start_fraction=0.75),
+                               readout=ReadoutSettings(aux_frames=8000, warmup_steps=4000, demos=False))
     assert vision_readout() == quickstart == QuickstartConfig().train
     assert RECIPES["defaults"].settings() == TrainSettings()
 
 
 def test_flags_override_the_recipe_and_quickstart_takes_one(capsys):
-    args, default = with_preset("train", ["--recipe", "vision-readout", "--dataset", "d", "--aux-frames", "16",
+    args, default = with_preset("train", ["--recipe", "vision-readout", "--dataset", "d", "--readout.aux-frames", "16",
                                           "--policy.readout-heads", "2"])
     config = tyro.cli(TrainConfig, args=args, default=default)
-    assert (config.recipe, config.aux_frames, config.readout_warmup, config.policy.readout_heads,
+    assert (config.recipe, config.readout.aux_frames, config.readout.warmup_steps, config.policy.readout_heads,
             config.policy.readout) == ("vision-readout", 16, 4000, 2, "tokens")
-    args, default = with_preset("quickstart", ["--recipe", "plain", "--train.steps", "5"])
+    args, default = with_preset("quickstart", ["--recipe", "plain", "--train.optim.steps", "5"])
     config = tyro.cli(QuickstartConfig, args=args, default=default)
-    assert config.recipe == "plain" and config.train == replace(plain(), steps=5)
+    assert config.recipe == "plain" and config.train == replace(plain(), optim=replace(plain().optim, steps=5))
     assert capsys.readouterr().out == ""  # a recipe given is not announced
 
 
@@ -75,14 +91,15 @@ def test_train_without_a_recipe_picks_one_by_the_dataset(demo_dir, tiny_encoder,
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
     out = tmp_path / "run"
     tiny = [a for a in TINY_ARGS if not a.startswith("--recipe")]
-    main(["train", "--dataset", str(dataset), "--out", str(out), "--steps", "2", "--policy.image-encoder", str(encoder),
-          "--policy.cond-grid", "4", "4", "--policy.readout-grid", "4", "4", "--aux-frames", "8",
-          "--readout-warmup", "2", "--threads", "1", "--no-progress", *tiny])
+    main(["train", "--dataset", str(dataset), "--out", str(out), "--optim.steps", "2",
+          "--policy.image-encoder", str(encoder),
+          "--policy.cond-grid", "4", "4", "--policy.readout-grid", "4", "4", "--readout.aux-frames", "8",
+          "--readout.warmup-steps", "2", "--runtime.threads", "1", "--runtime.no-progress", *tiny])
     printed = capsys.readouterr().out
     assert "recipe vision-readout: " in printed and "--recipe plain trains without it" in printed
     stored = json.loads((out / "config.json").read_text())["config"]
     assert stored["recipe"] == "vision-readout"
-    assert (stored["policy"]["readout"], stored["policy"]["text_fusion"], stored["readout_demos"]) == (
+    assert (stored["policy"]["readout"], stored["policy"]["text_fusion"], stored["readout"]["demos"]) == (
         "tokens", True, False)
     # A dataset without the object state gets the plain recipe.
     meta = json.loads((dataset / "meta.json").read_text())
@@ -100,8 +117,9 @@ def test_resume_keeps_the_recipe_the_run_started_with(run_inputs, tmp_path, caps
     (out / "config.json").write_text(json.dumps(saved))
     (out / "policy.pt").unlink()
     dataset, encoder = run_inputs
-    main(["train", "--dataset", str(dataset), "--out", str(out), "--resume", "--steps", "4", "--checkpoint-every", "2",
-          "--log-every", "3", "--policy.image-encoder", str(encoder), "--threads", "1", "--no-progress",
+    main(["train", "--dataset", str(dataset), "--out", str(out), "--resume", "--optim.steps", "4",
+          "--logging.checkpoint-every", "2", "--logging.log-every", "3", "--policy.image-encoder", str(encoder),
+          "--runtime.threads", "1", "--runtime.no-progress",
           *[a for a in TINY_ARGS if not a.startswith("--recipe")]])
     assert f"recipe defaults: the one {out} started with" in capsys.readouterr().out
     assert (out / "policy.pt").is_file()

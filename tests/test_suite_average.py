@@ -6,13 +6,16 @@ import json
 import shutil
 
 import pytest
+from conftest import as_before_the_groups
 from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, save_image_encoder
 from dust_rl.bench.average import AverageConfig, average, average_command
 from dust_rl.bench.suite import AS_TRAINED, SuiteConfig, run_suite
 from dust_rl.errors import ConfigError
+from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TrainSettings
+from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -21,8 +24,10 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 def two_studies(tiny_encoder, tmp_path):
     """press_button with training seeds 0 and 1, close_drawer with seed 0 only: two real tiny studies."""
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
-    train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)), steps=2, batch_size=8,
-                          log_every=1, checkpoint_every=2, threads=1, progress=False)
+    train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
+                          optim=OptimSettings(steps=2, batch_size=8),
+                          logging=LoggingSettings(log_every=1, checkpoint_every=2),
+                          runtime=RuntimeSettings(threads=1, progress=False))
     configs = [SuiteConfig(out=tmp_path / task, task=task, demos=(1,), variants=("dust", "action_only"), seeds=seeds,
                            train=train, vision_steps=(), episodes=2, image_size=32, max_steps=6, progress=False)
                for task, seeds in (("press_button", (0, 1)), ("close_drawer", (0,)))]
@@ -86,9 +91,20 @@ def test_average_pools_the_shared_seeds_and_refuses_unlike_studies(two_studies, 
 def test_a_study_from_before_a_setting_was_retired_compares_at_its_retired_value_only():
     from dust_rl.bench.average import recipe
 
-    now = {"train": {"lr": 3e-4, "policy": {"d_model": 32}}}
+    now = {"train": {"optim": {"lr": 3e-4}, "policy": {"d_model": 32}}}
     before = {"train": {**now["train"], "aux_approach_fraction": 0.0,
                         "policy": {**now["train"]["policy"], "readout_coords": False}}}
     assert recipe(before) == recipe(now)
     other = {"train": {**before["train"], "policy": {**before["train"]["policy"], "readout_coords": True}}}
     assert recipe(other) == {**recipe(now), "policy.readout_coords": True}
+
+
+def test_a_study_from_before_the_settings_groups_compares_as_todays():
+    from dust_rl.bench.average import recipe
+
+    today = {"train": config_json(TrainSettings(optim=OptimSettings(lr=3e-4), runtime=RuntimeSettings(threads=2)))}
+    before = {"train": as_before_the_groups(today["train"])}
+    assert "lr" in before["train"] and "optim" not in before["train"]
+    assert recipe(before) == recipe(today) and recipe(today)["optim.lr"] == 3e-4
+    assert "runtime.threads" not in recipe(today)  # how a run was carried out, not what it trained
+    assert recipe({"train": {**before["train"], "lr": 1e-4}}) == {**recipe(today), "optim.lr": 1e-4}

@@ -14,7 +14,7 @@ import subprocess
 import numpy as np
 import pytest
 import torch
-from conftest import kill_after_first_checkpoint
+from conftest import as_before_the_groups, kill_after_first_checkpoint
 from crafted import CRAFTS
 
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder
@@ -37,14 +37,16 @@ from dust_rl.train.dataset_batches import DatasetBatches
 from dust_rl.train.imitation import RESUMABLE_FIELDS, TrainConfig, train
 from dust_rl.train.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.train.readout.cache import READOUT_KIND
+from dust_rl.train.settings import GROUPS, DataSettings, OptimSettings, RuntimeSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 TINY_POLICY = {"horizon": 4, "execute_steps": 2, "d_model": 32, "n_heads": 2, "n_mmdit": 2, "n_dit": 0}
 # Through the command line: every setting at its own default (as TrainConfig in Python), tiny sizes.
-TINY_ARGS = ["--recipe=defaults", "--batch-size=8",
+TINY_ARGS = ["--recipe=defaults", "--optim.batch-size=8",
              *[f"--policy.{k.replace('_', '-')}={v}" for k, v in TINY_POLICY.items()]]
 POLICY_FIELDS = {f.name for f in dataclasses.fields(PolicyConfig)}
+GROUP_OF = {f.name: group for group, kind in GROUPS.items() for f in dataclasses.fields(kind) if f.name != "lr"}
 
 
 @pytest.fixture
@@ -59,12 +61,16 @@ def tiny_policy(encoder, **overrides) -> PolicyConfig:
 
 
 def tiny_config(run_inputs, out, **overrides) -> TrainConfig:
-    """A tiny run; overrides naming a :class:`PolicyConfig` field go to the policy."""
+    """A tiny run; overrides naming a :class:`PolicyConfig` field go to the policy, those naming a setting of one
+    group (``steps``, ``aux_frames``; not ``lr``, which two groups have) to its group."""
     dataset, encoder = run_inputs
-    fields = {"batch_size": 8, "steps": 12, "log_every": 3, "checkpoint_every": 4, "threads": 1,
-              "progress": False} | {k: v for k, v in overrides.items() if k not in POLICY_FIELDS}
+    settings = {"batch_size": 8, "steps": 12, "log_every": 3, "checkpoint_every": 4, "threads": 1,
+                "progress": False} | {k: v for k, v in overrides.items() if k not in POLICY_FIELDS}
+    groups = {group: kind(**{k: v for k, v in settings.items() if GROUP_OF.get(k) == group})
+              for group, kind in GROUPS.items()}
     policy = tiny_policy(encoder, **{k: v for k, v in overrides.items() if k in POLICY_FIELDS})
-    return TrainConfig(dataset=dataset, out=out, policy=policy, **fields)
+    return TrainConfig(dataset=dataset, out=out, policy=policy, **groups,
+                       **{k: v for k, v in settings.items() if k not in GROUP_OF})
 
 
 def trained_weights(path) -> dict[str, torch.Tensor]:
@@ -112,7 +118,7 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button", "open_drawer"]
     assert policy.info["image_size"] == [32, 32]  # the frames it was trained on, checked against an env on load
     stored = json.loads((out / "config.json").read_text())
-    assert stored["command"] == "dust-rl train ..." and stored["config"]["steps"] == 12
+    assert stored["command"] == "dust-rl train ..." and stored["config"]["optim"]["steps"] == 12
     rows = (out / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text().split()
     assert [int(r.split(",")[0]) for r in rows] == [3, 6, 9, 12]
     assert list((out / "logs" / "train").glob("events.out.tfevents.*"))
@@ -160,14 +166,14 @@ def test_training_logs_the_aux_frame_loss(readout, run_inputs, tmp_path):
     train(tiny_config(run_inputs, out, steps=2, log_every=2, lambda_aux=1.0, aux_frames=3, **readout))
     step, value = (out / "logs" / "train" / "scalars" / "train" / "loss_aux_frames.csv").read_text().split(",")
     assert int(step) == 2 and float(value) > 0
-    with pytest.raises(ConfigError, match="aux_frames needs --policy.lambda-aux > 0 and a read-out frames can"):
+    with pytest.raises(ConfigError, match="aux-frames needs --policy.lambda-aux > 0 and a read-out frames can"):
         tiny_config(run_inputs, out, keypoints=2, lambda_aux=1.0, aux_frames=3)
 
 
 def test_readout_warmup_freezes_the_readout_and_resumes(run_inputs, tmp_path):
     def run(out, steps, **extra):
         return train(tiny_config(run_inputs, out, steps=steps, checkpoint_every=2, keypoints=2,
-                                 keypoint_source="pixels", lambda_aux=1.0, aux_frames=3, readout_warmup=3, **extra))
+                                 keypoint_source="pixels", lambda_aux=1.0, aux_frames=3, warmup_steps=3, **extra))
 
     short, long = trained_weights(run(tmp_path / "short", 2).policy), trained_weights(run(tmp_path / "long", 4).policy)
     readout = [k for k in short if k.startswith(("condition.keypoints.", "state_readout."))]
@@ -183,14 +189,14 @@ def test_readout_warmup_freezes_the_readout_and_resumes(run_inputs, tmp_path):
     (tmp_path / "long" / "policy.pt").unlink()
     resumed = trained_weights(run(tmp_path / "long", 4, resume=True).policy)
     assert [k for k in long if not torch.equal(resumed[k], long[k])] == []
-    with pytest.raises(ConfigError, match="readout_warmup needs --aux-frames"):
+    with pytest.raises(ConfigError, match="warmup-steps needs --readout.aux-frames"):
         tiny_config(run_inputs, tmp_path / "x", keypoints=2, keypoint_source="pixels", lambda_aux=1.0,
-                    readout_warmup=3)
+                    warmup_steps=3)
 
 
 def test_a_warmed_readout_is_cached_shared_by_the_variants_and_changes_nothing_else(run_inputs, tmp_path):
-    readout = {"readout": "tokens", "lambda_aux": 1.0, "aux_state_input": True, "aux_frames": 3, "readout_warmup": 3,
-               "readout_demos": False, "steps": 2}
+    readout = {"readout": "tokens", "lambda_aux": 1.0, "aux_state_input": True, "aux_frames": 3, "warmup_steps": 3,
+               "demos": False, "steps": 2}
     cache = run_inputs[0] / "readout_cache"
     dust = trained_weights(train(tiny_config(run_inputs, tmp_path / "dust", **readout)).policy)
     assert len(list(cache.glob("*.pt"))) == 1
@@ -215,7 +221,8 @@ def test_a_warmed_readout_is_cached_shared_by_the_variants_and_changes_nothing_e
     refitted = trained_weights(train(tiny_config(run_inputs, tmp_path / "refit", **readout)).policy)
     assert all(torch.equal(dust[k], refitted[k]) for k in dust)
     # Another warm-up setting is another fit.
-    train(tiny_config(run_inputs, tmp_path / "lr", **{**readout, "readout_lr": 3e-3}))
+    other = tiny_config(run_inputs, tmp_path / "lr", **readout)
+    train(dataclasses.replace(other, readout=dataclasses.replace(other.readout, lr=3e-3)))
     assert len(list(cache.glob("*.pt"))) == 2
 
 
@@ -225,7 +232,8 @@ def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
     out = tmp_path / "killed"
     dataset, encoder = run_inputs
     args = ["train", "--dataset", str(dataset), "--out", str(out), "--policy.image-encoder", str(encoder),
-            "--steps", str(steps), "--checkpoint-every", "50", "--log-every", "3", "--threads", "1", "--no-progress",
+            "--optim.steps", str(steps), "--logging.checkpoint-every", "50", "--logging.log-every", "3",
+            "--runtime.threads", "1", "--runtime.no-progress",
             *TINY_ARGS]
     kill_after_first_checkpoint(args, out)
     assert not (out / "policy.pt").exists()
@@ -242,15 +250,26 @@ def test_resume_refuses_other_settings_and_broken_checkpoints(run_inputs, tmp_pa
         train(tiny_config(run_inputs, tmp_path / "none", resume=True))
     out = tmp_path / "run"
     train(tiny_config(run_inputs, out, steps=4))
-    with pytest.raises(ConfigError, match="other settings.*lr"):
-        train(tiny_config(run_inputs, out, steps=4, lr=1e-3, resume=True))
+    config = tiny_config(run_inputs, out, steps=4, resume=True)
+    with pytest.raises(ConfigError, match=r"other settings \(optim\.lr\)"):
+        train(dataclasses.replace(config, optim=dataclasses.replace(config.optim, lr=1e-3)))
     # A run started before a field existed stored none: it resumes at the field's default, not at another value.
     saved = json.loads((out / "config.json").read_text())
-    del saved["config"]["readout_lr"]
+    del saved["config"]["readout"]["lr"]
     (out / "config.json").write_text(json.dumps(saved))
-    train(tiny_config(run_inputs, out, steps=4, resume=True))
-    with pytest.raises(ConfigError, match="other settings.*readout_lr"):
-        train(tiny_config(run_inputs, out, steps=4, readout_lr=3e-3, resume=True))
+    train(config)
+    other_readout_lr = dataclasses.replace(config, readout=dataclasses.replace(config.readout, lr=3e-3))
+    with pytest.raises(ConfigError, match=r"other settings \(readout\.lr\)"):
+        train(other_readout_lr)
+    # A run started before the settings were grouped stored them at the top level: they are read as their groups'.
+    saved["config"] = as_before_the_groups(saved["config"])
+    (out / "config.json").write_text(json.dumps(saved))
+    assert saved["config"]["steps"] == 4 and "optim" not in saved["config"]
+    train(config)
+    (out / "config.json").write_text(json.dumps({**saved, "config": {**saved["config"], "lr": 1e-3}}))
+    with pytest.raises(ConfigError, match=r"other settings \(optim\.lr\)"):
+        train(config)
+    (out / "config.json").write_text(json.dumps(saved))
     latest = sorted((out / "checkpoints").iterdir())[-1]
     for state in latest.rglob("*.memmap"):
         state.write_bytes(b"garbage")
@@ -326,23 +345,24 @@ def test_action_free_episodes_train_the_world_model_but_not_the_actions(run_inpu
 def test_action_free_episodes_beside_a_read_out_need_it_frozen_and_the_same_tasks(run_inputs, demo_dir, tmp_path):
     video_dir = shutil.copytree(demo_dir, tmp_path / "video")
     readout = {"readout": "tokens", "lambda_aux": 1.0, "aux_frames": 2, "video_dataset": video_dir}
-    with pytest.raises(ConfigError, match="needs --readout-warmup"):
+    with pytest.raises(ConfigError, match="needs --readout.warmup-steps"):
         tiny_config(run_inputs, tmp_path / "x", **readout)
-    result = train(tiny_config(run_inputs, tmp_path / "run", steps=2, readout_warmup=2, **readout))
+    result = train(tiny_config(run_inputs, tmp_path / "run", steps=2, warmup_steps=2, **readout))
     assert load_policy(result.policy).info["video_dataset"] == str(video_dir)
     meta = json.loads((video_dir / "meta.json").read_text())
     (video_dir / "meta.json").write_text(json.dumps({**meta, "tasks": [*meta["tasks"], "stack"]}))
     with pytest.raises(DatasetError, match="object state means something else"):
-        train(tiny_config(run_inputs, tmp_path / "other", steps=2, readout_warmup=2, **readout))
+        train(tiny_config(run_inputs, tmp_path / "other", steps=2, warmup_steps=2, **readout))
 
 
 def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inputs, demo_dir, tmp_path):
-    readout = {"readout": "tokens", "lambda_aux": 1.0, "aux_frames": 2, "readout_warmup": 2}
+    readout = {"readout": "tokens", "lambda_aux": 1.0, "aux_frames": 2, "warmup_steps": 2}
     base = train(tiny_config(run_inputs, tmp_path / "base", steps=2, **readout)).policy
     extra_dir = shutil.copytree(demo_dir, tmp_path / "rollouts")
     dataset, encoder = run_inputs
-    config = TrainConfig(dataset=dataset, out=tmp_path / "tuned", init_policy=base, extra_dataset=extra_dir,
-                         batch_size=8, steps=3, threads=1, progress=False)
+    quiet = RuntimeSettings(threads=1, progress=False)
+    config = TrainConfig(dataset=dataset, out=tmp_path / "tuned", init_policy=base, runtime=quiet,
+                         data=DataSettings(extra_dataset=extra_dir), optim=OptimSettings(batch_size=8, steps=3))
     tuned = load_policy(train(config).policy)
     assert tuned.info["init_policy"] == str(base) and tuned.info["extra_dataset"] == str(extra_dir)
     # The frozen read-out keeps the object-state units it was trained in: an older policy's stay the pooled ones.
@@ -351,8 +371,8 @@ def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inpu
     payload = torch.load(base, weights_only=True)
     payload["info"].pop(ENV_STATE_NORM_INFO)
     torch.save(payload, older)
-    again = TrainConfig(dataset=dataset, out=tmp_path / "tuned_older", init_policy=older, batch_size=8, steps=1,
-                        threads=1, progress=False)
+    again = TrainConfig(dataset=dataset, out=tmp_path / "tuned_older", init_policy=older, runtime=quiet,
+                        optim=OptimSettings(batch_size=8, steps=1))
     assert load_policy(train(again).policy).info.get(ENV_STATE_NORM_INFO) is None
     assert any((extra_dir / "features").iterdir())  # its frames were encoded and cached
     before, after = trained_weights(base), trained_weights(tmp_path / "tuned" / "policy.pt")
@@ -366,9 +386,9 @@ def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inpu
     with pytest.raises(ConfigError, match="--policy.\\* flags do not apply with init_policy"):
         tiny_config(run_inputs, tmp_path / "x", init_policy=base)
     with pytest.raises(ConfigError, match="extra_fraction must be in"):
-        TrainConfig(dataset=dataset, extra_dataset=extra_dir, extra_fraction=0.0)
+        DataSettings(extra_dataset=extra_dir, extra_fraction=0.0)
     with pytest.raises(ConfigError, match=r"video_fraction \+ extra_fraction must be below 1"):
-        TrainConfig(dataset=dataset, extra_dataset=extra_dir, video_dataset=extra_dir, video_fraction=0.5)
+        DataSettings(extra_dataset=extra_dir, video_dataset=extra_dir, video_fraction=0.5)
     elsewhere = dataclasses.replace(config, out=tmp_path / "other", init_policy=tmp_path / "missing.pt")
     with pytest.raises(CheckpointError, match="missing.pt"):
         train(elsewhere)
@@ -435,7 +455,8 @@ def test_a_damaged_checkpoint_is_refused_and_nothing_is_overwritten(damage, prob
     out = tmp_path / "run"
     dataset, encoder = run_inputs
     args = ["train", "--dataset", str(dataset), "--out", str(out), "--policy.image-encoder", str(encoder),
-            "--steps", "4", "--checkpoint-every", "4", "--log-every", "3", "--threads", "1", "--no-progress",
+            "--optim.steps", "4", "--logging.checkpoint-every", "4", "--logging.log-every", "3",
+            "--runtime.threads", "1", "--runtime.no-progress",
             *TINY_ARGS]
     main(args)
     policy = (out / "policy.pt").read_bytes()
@@ -523,7 +544,7 @@ def test_a_read_only_dataset_keeps_its_caches_in_a_cache_folder(run_inputs, tmp_
     fallback = cache_root(dataset, identity)
     assert fallback.parent == tmp_path / "xdg" / "dust-rl"
     config = tiny_config(run_inputs, tmp_path / "run", steps=2, aux_frames=8, lambda_aux=1.0, readout="tokens",
-                         readout_warmup=2, readout_demos=False)
+                         warmup_steps=2, demos=False)
     train(config)
     assert list((fallback / "features").glob("*.npy")) and list((fallback / "aux_frames").iterdir())
     assert list((fallback / "readout_cache").iterdir())
@@ -537,7 +558,7 @@ def test_a_cache_changed_since_it_was_written_is_refused_and_dataset_info_lists_
     for folder in CACHE_FOLDERS:  # caches other tests left in the shared dataset are not this run's
         shutil.rmtree(dataset / folder, ignore_errors=True)
     config = tiny_config(run_inputs, tmp_path / "run", steps=2, aux_frames=8, lambda_aux=1.0, readout="tokens",
-                         readout_warmup=2, readout_demos=False)
+                         warmup_steps=2, demos=False)
     train(config)
     caches = {path.name: path for path, _ in cache_files(dataset)}
     listed = dataset_summary(DemoDataset(dataset))

@@ -1,4 +1,4 @@
-"""Data-parallel training (``--nproc``): two gloo processes on this CPU against one process."""
+"""Data-parallel training (``--runtime.nproc``): two gloo processes on this CPU against one process."""
 
 from __future__ import annotations
 
@@ -97,4 +97,4 @@ def test_nproc_refuses_what_it_cannot_split(run_inputs, tmp_path):
 
 def test_a_failing_process_ends_the_command_with_its_error(tmp_path):
     with pytest.raises(SystemExit, match=r"dust-rl: error: a process of the 2-process run failed: .*no meta\.json"):
-        main(["train", "--dataset", str(tmp_path / "missing"), "--out", str(tmp_path / "run"), "--nproc", "2"])
+        main(["train", "--dataset", str(tmp_path / "missing"), "--out", str(tmp_path / "run"), "--runtime.nproc", "2"])

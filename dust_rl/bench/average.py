@@ -29,10 +29,10 @@ from dust_rl.evaluate.closed_loop import wilson_interval
 from dust_rl.evaluate.report import save_png
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.train.imitation import RESUMABLE_FIELDS
-from dust_rl.train.settings import RETIRED_FIELDS
+from dust_rl.train.settings import RETIRED_FIELDS, grouped_json
 
 # Training settings that may differ between studies: they change how a run is carried out, not what it trains.
-NOT_THE_RECIPE = (*RESUMABLE_FIELDS, "seed", "log_every", "checkpoint_every", "nproc")
+NOT_THE_RECIPE = (*RESUMABLE_FIELDS, "seed", "logging.log_every", "logging.checkpoint_every", "runtime.nproc")
 SHARED = ("env", "main_demos", "eval_seeds")  # what every study must have in common besides the recipe
 READ = (*SHARED, "task", "train", "rows")  # the entries of results.json this command reads
 
@@ -76,16 +76,17 @@ def load_study(study: pathlib.Path) -> dict:
 
 
 def recipe(study: dict) -> dict:
-    """The study's training settings that decide what a cell learns, nested groups flattened (``policy.d_model``);
-    a retired setting at the value every run now has is left out (a study from before it was retired compares
-    with one from after)."""
+    """The study's training settings that decide what a cell learns, nested groups flattened (``policy.d_model``,
+    ``optim.lr``; a study from before the groups has its settings moved into them); a retired setting at the value
+    every run now has is left out (a study from before it was retired compares with one from after)."""
     flat = {}
-    for key, value in study["train"].items():
+    for key, value in grouped_json(study["train"]).items():
         if isinstance(value, dict):
             flat.update({f"{key}.{k}": v for k, v in value.items()})
-        elif key not in NOT_THE_RECIPE:
+        else:
             flat[key] = value
-    return {k: v for k, v in flat.items() if k not in RETIRED_FIELDS or RETIRED_FIELDS[k] != v}
+    return {k: v for k, v in flat.items()
+            if k not in NOT_THE_RECIPE and (k not in RETIRED_FIELDS or RETIRED_FIELDS[k] != v)}
 
 
 def check_comparable(studies: list[tuple[pathlib.Path, dict]]) -> None:

@@ -312,10 +312,9 @@ class GpuCheck:
         if not data.is_dir():
             return
         half = self.size.train_steps // 2
-        train_args = ["--recipe", "defaults", "--dataset", str(data), "--steps", str(self.size.train_steps),
-                      "--checkpoint-every", str(half), "--batch-size", str(self.size.train_batch), "--device",
-                      self.config.device, "--loggers", "csv",
-                      "--no-progress"]
+        train_args = ["--recipe", "defaults", "--dataset", str(data), "--optim.steps", str(self.size.train_steps),
+                      "--logging.checkpoint-every", str(half), "--optim.batch-size", str(self.size.train_batch),
+                      "--runtime.device", self.config.device, "--logging.loggers", "csv", "--runtime.no-progress"]
         if self.config.text_encoder is not None:
             train_args += ["--policy.text-encoder", str(self.config.text_encoder)]
         backend = "NCCL" if self.device.type == "cuda" else "gloo"

@@ -48,6 +48,7 @@ from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import check_run_folder
 from dust_rl.train.imitation import RESUMABLE_FIELDS, TrainConfig, TrainSettings, train
 from dust_rl.train.recipes import vision_readout
+from dust_rl.train.settings import grouped_json
 
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
@@ -72,7 +73,7 @@ class SuiteConfig:
     seeds: tuple[int, ...] = (0, 1)
     """Training seeds; each cell's episodes are pooled over them."""
     train: TrainSettings = field(default_factory=vision_readout)
-    """The recipe every cell trains with (`--train.steps`, `--train.policy.d-model` ...; its variant and
+    """The recipe every cell trains with (`--train.optim.steps`, `--train.policy.d-model` ...; its variant and
     seed are the cell's); default: the quickstart's, which solves press_button in minutes (a comparison means
     little where every variant fails)."""
     video_dataset: pathlib.Path | None = None
@@ -154,8 +155,9 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     tasks = env_tasks(config.env, config.task)
     jobs = plan(config)
     cells = list(dict.fromkeys(cell for cell, _ in jobs))
+    steps = config.train.optim.steps
     print(f"budget: collect {max(config.demos)} demonstrations x {len(tasks)} tasks; train {len(cells)} policies "
-          f"x {config.train.steps} steps ({len(cells) * config.train.steps} steps); evaluate {len(jobs)} x "
+          f"x {steps} steps ({len(cells) * steps} steps); evaluate {len(jobs)} x "
           f"{config.episodes} episodes x {len(tasks)} tasks ({len(jobs) * config.episodes * len(tasks)} episodes)")
     env_kwargs = {"image_size": config.image_size}
     for demos in sorted(config.demos):  # the first n seeds of every task: each smaller set is a prefix of the next
@@ -179,13 +181,17 @@ def train_cell(config: SuiteConfig, cell: Cell) -> pathlib.Path:
         ConfigError: the cell on disk was trained with other settings (``--train.*``) than the study asks for.
     """
     out = config.out / "train" / cell.name
-    settings = dataclasses.replace(config.train, seed=cell.seed, progress=config.progress,
-                                   policy=dataclasses.replace(config.train.policy, variant=cell.variant),
-                                   video_dataset=config.video_dataset if cell.video else config.train.video_dataset)
+    recipe = config.train
+    settings = dataclasses.replace(
+        recipe, seed=cell.seed, runtime=dataclasses.replace(recipe.runtime, progress=config.progress),
+        policy=dataclasses.replace(recipe.policy, variant=cell.variant),
+        data=dataclasses.replace(recipe.data, video_dataset=config.video_dataset if cell.video
+                                 else recipe.data.video_dataset))
     train_config = TrainConfig.from_settings(settings, dataset=config.out / "data" / str(cell.demos), out=out,
                                              resume=(out / "config.json").is_file())
     if (out / "policy.pt").is_file():
-        check_run_folder(train_config, RESUMABLE_FIELDS)  # a finished cell is reused only for the same study
+        # a finished cell is reused only for the same study
+        check_run_folder(train_config, RESUMABLE_FIELDS, upgrade=grouped_json)
     else:
         train(train_config)
     return out / "policy.pt"

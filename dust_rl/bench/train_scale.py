@@ -51,9 +51,9 @@ def run(dataset: pathlib.Path, nproc: int, steps: int, train_args: list[str]) ->
     with tempfile.TemporaryDirectory() as scratch:
         out = pathlib.Path(scratch) / "run"
         command = [sys.executable, "-m", "dust_rl.train", "--recipe", "defaults", "--dataset", str(dataset),
-                   "--out", str(out),
-                   "--steps", str(steps), "--nproc", str(nproc), "--log-every", str(max(1, steps // 2)),
-                   "--checkpoint-every", str(steps), "--loggers", "csv", "--no-progress", *train_args]
+                   "--out", str(out), "--optim.steps", str(steps), "--runtime.nproc", str(nproc),
+                   "--logging.log-every", str(max(1, steps // 2)), "--logging.checkpoint-every", str(steps),
+                   "--logging.loggers", "csv", "--runtime.no-progress", *train_args]
         process = subprocess.Popen(command, stdout=subprocess.DEVNULL)
         peak_anon = peak_file = 0
         while process.poll() is None:

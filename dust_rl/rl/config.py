@@ -25,7 +25,7 @@ from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.keys import EXPERT_ACTION_KEY
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import LoggerKind, check_loggers
-from dust_rl.train.imitation import TrainSettings
+from dust_rl.train.settings import DataSettings, OptimSettings, RuntimeSettings, TrainSettings, grouped_json
 
 VALIDATION_EVERY = 5  # every 5th rollout episode validates the scorer
 RL_AGENT_KIND = "dust-rl rl agent"
@@ -268,19 +268,42 @@ class WmSelectConfig(FinetuneSettings):
                               "validates the scorer")
 
 
-@dataclass
+@dataclass(kw_only=True)
+class RoundData(DataSettings):
+    """What each round's batches are drawn from besides the demonstrations; the round's rollouts are its
+    `extra_dataset`."""
+
+    extra_dataset: tyro.conf.Suppress[pathlib.Path | None] = None
+
+
+@dataclass(kw_only=True)
+class RoundRuntime(RuntimeSettings):
+    """Where each round trains; its threads, device and progress bars are the run's."""
+
+    threads: tyro.conf.Suppress[int | None] = None
+    device: tyro.conf.Suppress[str] = "auto"
+    progress: tyro.conf.Suppress[bool] = True
+
+
+@dataclass(kw_only=True)
 class RoundTraining(TrainSettings):
     """How each self-imitation round fine-tunes (`dust-rl train`'s settings): the policy's architecture is the
     starting policy's, and the starting policy, the rollouts, the seed, threads, device and progress bars are the
     round's."""
 
     policy: tyro.conf.Suppress[PolicyConfig] = field(default_factory=PolicyConfig)
+    data: RoundData = field(default_factory=RoundData)
+    runtime: RoundRuntime = field(default_factory=RoundRuntime)
     init_policy: tyro.conf.Suppress[pathlib.Path | None] = None
-    extra_dataset: tyro.conf.Suppress[pathlib.Path | None] = None
     seed: tyro.conf.Suppress[int] = 0
-    threads: tyro.conf.Suppress[int | None] = None
-    device: tyro.conf.Suppress[str] = "auto"
-    progress: tyro.conf.Suppress[bool] = True
+
+
+def grouped_round_training(stored: dict) -> dict:
+    """A stored self-imitation config with its round training's settings as this version groups them
+    (:func:`~dust_rl.train.settings.grouped_json`); other configs as stored."""
+    if not isinstance(stored.get("train"), dict):
+        return stored
+    return {**stored, "train": grouped_json(stored["train"])}
 
 
 @dataclass
@@ -292,15 +315,15 @@ class SelfImitationConfig(CurveSettings):
     """Rounds of rollouts and fine-tuning (`--resume` with more rounds extends a run)."""
     rollout_successes: int = 150
     """Successful rollouts each round collects (its failures are stored only for DAgger,
-    `--train.extra-action-key expert_action`)."""
+    `--train.data.extra-action-key expert_action`)."""
     rollout_seed: int = ROLLOUT_SEED
     """First seed of the rollouts; round r starts 10,000 seeds further on per round."""
     demos: pathlib.Path | None = None
     """The demonstrations fine-tuning keeps training on; default: the policy's training dataset
     (`info["dataset"]`)."""
-    train: RoundTraining = field(default_factory=lambda: RoundTraining(steps=3000, lr=1e-4))
-    """How each round fine-tunes (`--train.steps`, `--train.lr`, `--train.extra-fraction`,
-    `--train.start-rows` ...; `--train.extra-action-key expert_action`: DAgger)."""
+    train: RoundTraining = field(default_factory=lambda: RoundTraining(optim=OptimSettings(steps=3000, lr=1e-4)))
+    """How each round fine-tunes (`--train.optim.steps`, `--train.optim.lr`, `--train.data.extra-fraction`,
+    `--train.data.start-rows` ...; `--train.data.extra-action-key expert_action`: DAgger)."""
     control: bool = True
     """Also fine-tune the base policy on its demonstrations alone, for as many steps as all rounds together, and
     report it as a row: the gain a method is credited with is the one above that control (on push the

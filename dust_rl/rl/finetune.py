@@ -59,6 +59,7 @@ from dust_rl.rl.config import (
     SelfImitationConfig,
     SteerConfig,
     WmSelectConfig,
+    grouped_round_training,
     is_dagger,
 )
 from dust_rl.rl.critic_limits import LayerNormReLU, bound_critic
@@ -85,7 +86,7 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     is_ppo = not isinstance(config, (WmSelectConfig, SelfImitationConfig)) and config.algorithm.name == "ppo"
     resumable = PPO_RESUMABLE_FIELDS if is_ppo else RESUMABLE_FIELDS
     with torch_threads(config.threads):
-        check_run_folder(config, resumable)
+        check_run_folder(config, resumable, upgrade=grouped_round_training)
         policy = load_policy(config.policy)
         env_id, env_kwargs, task = policy_env(config, policy)
         if isinstance(config, SelfImitationConfig):
@@ -94,7 +95,7 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
                 raise ConfigError(f"self-imitation trains on the policy's demonstrations too; {demos} is not a "
                                   "dataset: pass --demos")
             config = dataclasses.replace(config, demos=demos)
-        with locked_run_folder(config, resumable, command):
+        with locked_run_folder(config, resumable, command, upgrade=grouped_round_training):
             return _finetune_in_folder(config, command, policy, env_id, env_kwargs, task)
 
 
@@ -311,12 +312,13 @@ def _markdown(report: dict) -> str:
         how = (f"a future scorer fitted on {report['config']['rollouts']} base-policy rollouts "
                f"({report['rollout_env_steps']} env steps, {report['train_seconds']:.0f} s; validation ROC AUC {auc})")
     elif report["method"] == "self_imitation":
-        config = report["config"]
-        taught = ("and the failures between them, taught the expert" if is_dagger(config["train"]["extra_action_key"])
+        config = grouped_round_training(report["config"])
+        taught = ("and the failures between them, taught the expert"
+                  if is_dagger(config["train"]["data"]["extra_action_key"])
                   else "taught their actions")
         how = (f"{config['rounds']} round(s) of {config['rollout_successes']} successful rollouts {taught} "
                f"({', '.join(str(r['rollouts']) for r in report['rounds'])} episodes; {report['rollout_env_steps']} "
-               f"env steps), each followed by {config['train']['steps']} fine-tuning steps "
+               f"env steps), each followed by {config['train']['optim']['steps']} fine-tuning steps "
                f"({report['train_seconds']:.0f} s in all)"
                + ("; the control: as many steps on the demonstrations alone" if config.get("control") else ""))
     else:

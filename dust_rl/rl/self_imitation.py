@@ -7,10 +7,10 @@ little to fit. Its own successes on fresh layouts are demonstrations it can repr
 reward alone. Each round rolls the current policy out on fresh seeds until it has ``rollout_successes``
 successes (``dust-rl collect --policy``: the episodes ``dust-rl eval`` would run on those seeds), then
 fine-tunes it on its demonstrations plus those successes with their executed actions (``dust-rl train
---init-policy --extra-dataset``): a policy-improvement step on the binary reward (filtered behaviour cloning,
+--init-policy --data.extra-dataset``): a policy-improvement step on the binary reward (filtered behaviour cloning,
 as in RoboCat's self-improvement loop), which changes the weights, not how the policy is sampled.
 
-``--train.extra-action-key expert_action`` turns it into DAgger (Ross et al., 2011), the reference with a
+``--train.data.extra-action-key expert_action`` turns it into DAgger (Ross et al., 2011), the reference with a
 teacher: every rollout is kept, failures included (there the expert's correction matters most), and the
 scripted expert's label at each visited state is taught instead of the executed action. It needs the
 privileged expert, so it measures how much of the gap a reward alone closes.
@@ -48,7 +48,7 @@ ROUND_SECONDS = "seconds.json"  # in each round's folder: its collecting and fin
 def self_imitation(config: SelfImitationConfig, task: str, env_id: str, env_kwargs: dict) -> dict:
     """Run (or resume) every round, then evaluate the base, the control (``config.control``: the base fine-tuned as
     long on its demonstrations alone) and the last round's policy on the held-out seeds; returns the report's parts."""
-    dagger = is_dagger(config.train.extra_action_key)
+    dagger = is_dagger(config.train.data.extra_action_key)
     name = "DAgger" if dagger else "self_imitation"
     policy, curve, rounds = config.policy, [_curve_point(config, config.policy, "round-0", 0)], []
     for r in range(config.rounds):
@@ -89,8 +89,9 @@ def control_row(config: SelfImitationConfig) -> tuple[str, dict]:
     """The base policy fine-tuned on its demonstrations alone, for as many steps as all rounds together, and its row
     on the held-out seeds (both cached in the run folder, by step count: a run resumed with more rounds gets its own
     control)."""
-    steps = config.rounds * config.train.steps
-    policy = _fine_tune(dataclasses.replace(config, train=dataclasses.replace(config.train, steps=steps)),
+    steps = config.rounds * config.train.optim.steps
+    longer = dataclasses.replace(config.train, optim=dataclasses.replace(config.train.optim, steps=steps))
+    policy = _fine_tune(dataclasses.replace(config, train=longer),
                         config.policy, None, config.out / "control" / f"steps-{steps}")
     row = _evaluate(config, policy, config.out / "eval" / f"control-steps-{steps}")
     return f"demonstrations alone ({steps} steps, the control)", row
@@ -101,8 +102,11 @@ def _fine_tune(config: SelfImitationConfig, policy: pathlib.Path, rollouts: path
     """``policy`` trained further on its demonstrations and ``rollouts`` (none: the demonstrations alone); a
     finished run is not trained again."""
     if not (out / "policy.pt").is_file():
-        settings = dataclasses.replace(config.train, init_policy=policy, extra_dataset=rollouts, seed=config.seed,
-                                       threads=config.threads, device=config.device, progress=config.progress)
+        rounds = config.train
+        settings = dataclasses.replace(
+            rounds, init_policy=policy, seed=config.seed, data=dataclasses.replace(rounds.data, extra_dataset=rollouts),
+            runtime=dataclasses.replace(rounds.runtime, threads=config.threads, device=config.device,
+                                        progress=config.progress))
         resume = (out / "config.json").is_file()
         train(TrainConfig.from_settings(settings, dataset=config.demos, out=out, resume=resume))
     return out / "policy.pt"

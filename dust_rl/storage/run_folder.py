@@ -13,7 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
 from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
@@ -27,10 +27,13 @@ from dust_rl.storage.config_json import config_json, package_versions
 from dust_rl.storage.lock import LOCK_FILE, folder_lock
 
 
-def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, object] | None = None) -> None:
+def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, object] | None = None,
+                     upgrade: Callable[[dict], dict] | None = None) -> None:
     """Raise unless ``config.out`` suits ``config.resume`` (a dataclass with ``out`` and ``resume``); ``retired``:
     settings earlier versions stored, at the one value this version honours
-    (:func:`~dust_rl.agents.config.without_retired`).
+    (:func:`~dust_rl.agents.config.without_retired`); ``upgrade``: the stored config as this version names its
+    settings (those an earlier version stored under other names moved to theirs). Settings are compared one by one,
+    those of nested configs by their dotted names (``resumable`` names them so: ``runtime.threads``).
 
     Raises:
         FileNotFoundError: ``resume`` without a run there.
@@ -51,10 +54,11 @@ def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, obj
         except ValueError as err:
             raise ConfigError(f"{config.out} was started with {err}; it cannot resume: start a new run with another "
                               "--out") from None
+        stored = upgrade(stored) if upgrade is not None else stored
         resumable = set(resumable)
         defaults = _defaults(config)
-        changed = [k for k, v in config_json(config).items()
-                   if k not in resumable and stored.get(k, defaults.get(k)) != v]
+        changed = [k for k, v in _dotted(config, config_json(config)).items()
+                   if k not in resumable and _at(stored, k, _at(defaults, k, None)) != v]
         if changed:
             raise ConfigError(f"{config.out} was started with other settings ({', '.join(changed)}); "
                               "resume with the same arguments or use a new --out")
@@ -76,9 +80,31 @@ def _defaults(config) -> dict:
     return json.loads(json.dumps(values, default=str))
 
 
+def _dotted(config, values: dict) -> dict:
+    """``values`` (``config`` as JSON values) by dotted name, the fields of nested dataclasses one by one."""
+    dotted = {}
+    for field in dataclasses.fields(config):
+        nested = getattr(config, field.name)
+        if dataclasses.is_dataclass(nested):
+            dotted |= {f"{field.name}.{k}": v for k, v in _dotted(nested, values[field.name]).items()}
+        else:
+            dotted[field.name] = values[field.name]
+    return dotted
+
+
+def _at(values: Mapping, dotted: str, missing: object) -> object:
+    """The value at the ``dotted`` name in nested ``values``; ``missing`` where there is none."""
+    for name in dotted.split("."):
+        if not isinstance(values, Mapping) or name not in values:
+            return missing
+        values = values[name]
+    return values
+
+
 @contextlib.contextmanager
 def locked_run_folder(config, resumable: Iterable[str], command: str | None,
-                      retired: Mapping[str, object] | None = None) -> Iterator[None]:
+                      retired: Mapping[str, object] | None = None,
+                      upgrade: Callable[[dict], dict] | None = None) -> Iterator[None]:
     """Hold ``config.out``'s lock for the ``with`` body, a new run's ``config.json`` written first.
 
     Two runs in one folder would interleave their logs and checkpoints. The folder is checked again under
@@ -87,13 +113,14 @@ def locked_run_folder(config, resumable: Iterable[str], command: str | None,
 
     Raises:
         FolderLockedError: another process holds the folder (the message names its pid).
-        FileExistsError, FileNotFoundError, ConfigError: as :func:`check_run_folder` (``retired`` too).
+        FileExistsError, FileNotFoundError, ConfigError: as :func:`check_run_folder` (``retired`` and ``upgrade``
+            too).
     """
     created = not config.out.exists()
     config.out.mkdir(parents=True, exist_ok=True)
     with folder_lock(config.out):
         try:
-            check_run_folder(config, resumable, retired)
+            check_run_folder(config, resumable, retired, upgrade)
             if not config.resume:
                 write_run_config(config, command)
         except BaseException:

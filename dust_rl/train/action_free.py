@@ -1,4 +1,4 @@
-"""Action-free episodes in training: ``dust-rl train --video-dataset DIR``.
+"""Action-free episodes in training: ``dust-rl train --data.video-dataset DIR``.
 
 DUST's loss takes samples without actions (``has_action = False``): their
 action tokens are pure noise at tau_A = 0 and left out of the action loss,

@@ -1,4 +1,4 @@
-"""Data-parallel training over processes: ``dust-rl train --nproc N`` or ``torchrun --nproc-per-node N -m
+"""Data-parallel training over processes: ``dust-rl train --runtime.nproc N`` or ``torchrun --nproc-per-node N -m
 dust_rl.train.imitation ...``, with PyTorch's ``DistributedDataParallel``.
 
 How the work is split, and why: every rank seeds torch's global generator alike and so draws the same
@@ -41,7 +41,7 @@ class RanksDivergedError(RuntimeError):
 
 
 class RankFailedError(UserError):
-    """A process of a ``--nproc`` run stopped with an error (its message follows)."""
+    """A process of a ``--runtime.nproc`` run stopped with an error (its message follows)."""
 
 
 @dataclass(frozen=True)

@@ -12,12 +12,12 @@ A run folder holds
   ``--resume`` continues from the newest one once it is checked (a damaged one, or one
   holding anything that could run code when loaded, is refused), and a run killed at any
   point and resumed ends with the same weights as one never interrupted;
-* ``logs/``: scalars through torchrl's ``get_logger`` (``--loggers``; by default CSV files
+* ``logs/``: scalars through torchrl's ``get_logger`` (``--logging.loggers``; by default CSV files
   in ``logs/train/scalars/`` and TensorBoard events in ``logs/train/``);
 * ``policy.pt``: the EMA policy (:func:`dust_rl.agents.save_policy`), whose ``info``
   names the env, tasks and dataset it was trained for; ``loss.png``.
 
-``--nproc N`` (or ``torchrun --nproc-per-node N -m dust_rl.train ...``) trains with
+``--runtime.nproc N`` (or ``torchrun --nproc-per-node N -m dust_rl.train ...``) trains with
 ``DistributedDataParallel`` over N processes, each on its slice of every global batch
 (:mod:`dust_rl.train.distributed`); rank 0 writes the run folder and holds its lock, so a second run into the
 same folder is refused, naming the first one's pid.
@@ -73,12 +73,13 @@ from dust_rl.train.readout.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HEL
 from dust_rl.train.readout.cache import readout_cache_path, warm_up_or_load
 from dust_rl.train.readout.warmup import warm_up_readout
 from dust_rl.train.recipes import LEGACY_RECIPE, RecipeName, recipe_help
-from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings
+from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings, grouped_json, setting
 
 # Fields that may differ between a run and its resumption (``recipe`` names where the settings started; they are
 # compared one by one).
-RESUMABLE_FIELDS = ("resume", "progress", "threads", "device", "compile", "eval_every", "eval_episodes", "eval_workers",
-                    "loggers", "cache_dir", "recipe")
+RESUMABLE_FIELDS = ("resume", "runtime.progress", "runtime.threads", "runtime.device", "runtime.compile",
+                    "logging.eval_every", "logging.eval_episodes", "logging.eval_workers", "logging.loggers",
+                    "cache_dir", "recipe")
 SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
 
 
@@ -137,17 +138,17 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
         NonFiniteLossError: training diverged (the message names the step).
         RankFailedError: with ``nproc`` > 1, a process stopped with one of the errors above.
     """
-    if config.nproc > 1 and "WORLD_SIZE" not in os.environ:  # not started by torchrun: start the processes
-        return spawn(config.nproc, _train_rank, config, command)
+    if config.runtime.nproc > 1 and "WORLD_SIZE" not in os.environ:  # not started by torchrun: start the processes
+        return spawn(config.runtime.nproc, _train_rank, config, command)
     return _train_rank(config, command)
 
 
 def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     """:func:`train` in this process, as one rank of the run when there are several."""
-    if config.threads:
-        torch.set_num_threads(config.threads)
+    if config.runtime.threads:
+        torch.set_num_threads(config.runtime.threads)
     ranks = _join(config)
-    check_run_folder(config, RESUMABLE_FIELDS, RETIRED_FIELDS)
+    check_run_folder(config, RESUMABLE_FIELDS, RETIRED_FIELDS, grouped_json)
     ranks.barrier()  # every rank has seen the folder before rank 0 writes it
 
     # Data, env check, policy (all checked before the run folder is written), cached frozen features.
@@ -157,12 +158,12 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     dataset.check_env(probe)
     torch.manual_seed(config.seed)
     try:
-        policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.device), ranks))
+        policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.runtime.device), ranks))
     finally:
         probe.close()
     with (no_space_left(f"training into {config.out}", "free some space and run again (with --resume once a "
                         "checkpoint exists): checkpoints are only ever replaced whole"),
-          locked_run_folder(config, RESUMABLE_FIELDS, command, RETIRED_FIELDS) if ranks.is_main
+          locked_run_folder(config, RESUMABLE_FIELDS, command, RETIRED_FIELDS, grouped_json) if ranks.is_main
           else contextlib.nullcontext()):
         return _train_in_folder(config, ranks, dataset, policy)
 
@@ -174,16 +175,18 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     # A fine-tuned policy's read-out keeps the object-state units it was trained in (dust_rl.data.env_state_norm).
     state_units = PER_TASK if config.init_policy is None else policy.info.get(ENV_STATE_NORM_INFO)
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
-                   "dataset": str(config.dataset), "variant": policy.config.variant, "steps": config.steps,
+                   "dataset": str(config.dataset), "variant": policy.config.variant, "steps": config.optim.steps,
                    ENV_STATE_NORM_INFO: state_units, IMAGE_SIZE_INFO: frame_size(dataset.meta["spec"]["image_shape"]),
-                   **{name: str(getattr(config, name)) if getattr(config, name) else None
+                   **{name: str(setting(config, name)) if setting(config, name) else None
                       for name in ("video_dataset", "extra_dataset", "init_policy")}}
     features = _cached_features(config, dataset, policy, ranks)
-    start_rows = {"start_rows": config.start_rows,
-                  "start_fraction": config.start_fraction if config.start_rows else 0.0}
-    n_video, n_extra = (_share(config.batch_size, fraction) if path else 0 for path, fraction in
-                        ((config.video_dataset, config.video_fraction), (config.extra_dataset, config.extra_fraction)))
-    windows = DemoWindows(dataset, horizon=policy.config.horizon, batch_size=config.batch_size - n_video - n_extra,
+    start_rows = {"start_rows": config.data.start_rows,
+                  "start_fraction": config.data.start_fraction if config.data.start_rows else 0.0}
+    n_video, n_extra = (_share(config.optim.batch_size, fraction) if path else 0 for path, fraction in
+                        ((config.data.video_dataset, config.data.video_fraction),
+                         (config.data.extra_dataset, config.data.extra_fraction)))
+    windows = DemoWindows(dataset, horizon=policy.config.horizon,
+                          batch_size=config.optim.batch_size - n_video - n_extra,
                           images=False, **start_rows)
     if config.init_policy is None:  # a fine-tuned policy keeps the normalisation its weights were trained with
         policy.normalizer.set_vision_stats(features.image_tokens)
@@ -191,16 +194,16 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
             policy.normalizer.set_future_change_scale(_future_change_rms(policy, features, windows))
     # A fixed draw of windows on which every periodic evaluation also scores the world model (wm/skill).
     skill_windows = (windows_of(policy, features, SKILL_WINDOWS, config.seed)
-                     if config.eval_every and policy.config.has_vision and ranks.is_main else None)
-    video = _action_free_batches(config, dataset, policy, n_video) if config.video_dataset else None
-    extra = (DatasetBatches(DemoDataset(config.extra_dataset, cache_dir=config.cache_dir), policy, n_extra,
-                            config.extra_action_key, progress=config.progress, **start_rows)
-             if config.extra_dataset else None)
+                     if config.logging.eval_every and policy.config.has_vision and ranks.is_main else None)
+    video = _action_free_batches(config, dataset, policy, n_video) if config.data.video_dataset else None
+    extra = (DatasetBatches(DemoDataset(config.data.extra_dataset, cache_dir=config.cache_dir), policy, n_extra,
+                            config.data.extra_action_key, progress=config.runtime.progress, **start_rows)
+             if config.data.extra_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
-    loggers = make_loggers(config.loggers, out / "logs", "train") if ranks.is_main else []
-    progress = config.progress and ranks.is_main
+    loggers = make_loggers(config.logging.loggers, out / "logs", "train") if ranks.is_main else []
+    progress = config.runtime.progress and ranks.is_main
     policy.train()
-    if config.compile:
+    if config.runtime.compile:
         policy.model.compile()
 
     # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it, so
@@ -209,48 +212,49 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     aux = None
     if config.init_policy is not None and policy.config.aux_state_dim and policy.reads_frames_for_readout:
         policy.readout_modules().requires_grad_(False)
-    elif config.readout_warmup:
+    elif config.readout.warmup_steps:
         if not (config.resume and rotation.latest() is not None):
             _warm_up_readout(config, dataset, policy,
-                             (lambda: features.batch(windows.sample())) if config.readout_demos else None,
+                             (lambda: features.batch(windows.sample())) if config.readout.demos else None,
                              lambda scalars, step: log_scalars(loggers, scalars, step))
         policy.readout_modules().requires_grad_(False)
-    elif config.aux_frames:
+    elif config.readout.aux_frames:
         aux = _aux_frame_batches(config, dataset, policy)
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
     trained = policy.trainable_modules()
-    optimizer = torch.optim.AdamW([p for p in trained.parameters() if p.requires_grad], lr=config.lr,
-                                  betas=config.betas, weight_decay=config.weight_decay)
-    schedule = warmup_cosine(optimizer, config.steps, config.warmup)
-    ema = weight_average(trained, config.ema_decay)
+    optimizer = torch.optim.AdamW([p for p in trained.parameters() if p.requires_grad], lr=config.optim.lr,
+                                  betas=config.optim.betas, weight_decay=config.optim.weight_decay)
+    schedule = warmup_cosine(optimizer, config.optim.steps, config.optim.warmup)
+    ema = weight_average(trained, config.optim.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
     start = _resumed_step(restore(checkpoint, rotation), dataset) if config.resume else 0
     loss_of = data_parallel(_ShardLoss(policy, ranks.shard), ranks)
 
     # The loop.
-    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc="training", disable=not progress)
+    bar = tqdm(range(start, config.optim.steps), initial=start, total=config.optim.steps, desc="training",
+               disable=not progress)
     tick, samples, losses = time.perf_counter(), 0, None
     began = tick
     for step in bar:
-        batch = features.batch(windows.sample())[ranks.shard.rows(config.batch_size - n_video - n_extra)]
+        batch = features.batch(windows.sample())[ranks.shard.rows(config.optim.batch_size - n_video - n_extra)]
         if extra is not None:
             batch = torch.cat([batch, extra.sample()])
-        with autocast(policy.weights_device, config.precision):
+        with autocast(policy.weights_device, config.runtime.precision):
             losses = loss_of(batch if video is None else with_action_free(batch, video.sample()))
         if aux is not None:
-            losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.batch_size)))
+            losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.optim.batch_size)))
             losses.set("loss", losses.get("loss") + policy.config.lambda_aux * losses.get("loss_aux_frames"))
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
-        grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.grad_clip)
+        grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.optim.grad_clip)
         done = step + 1
         _check_finite(losses["loss"], grad_norm, done, rotation)
         optimizer.step()
         schedule.step()
         ema.update_parameters(trained)
-        samples += config.batch_size
-        if done % config.log_every == 0 or done == config.steps:
+        samples += config.optim.batch_size
+        if done % config.logging.log_every == 0 or done == config.optim.steps:
             speed = samples / (time.perf_counter() - tick)
             scalars = {f"train/{k}": ranks.mean(v).item() for k, v in losses.items()}
             scalars |= {"train/lr": schedule.get_last_lr()[0], "train/grad_norm": grad_norm.item(),
@@ -258,9 +262,10 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
             log_scalars(loggers, scalars, done)
             bar.set_postfix(loss=f"{scalars['train/loss']:.4f}", samples_s=f"{speed:.0f}")
             tick, samples = time.perf_counter(), 0
-        if ranks.is_main and (done % config.checkpoint_every == 0 or done == config.steps):
+        if ranks.is_main and (done % config.logging.checkpoint_every == 0 or done == config.optim.steps):
             save_checkpoint_dir(checkpoint, rotation, done, {"step": done, "dataset": dataset.identity})
-        if ranks.is_main and config.eval_every and (done % config.eval_every == 0 or done == config.steps):
+        if ranks.is_main and config.logging.eval_every and (done % config.logging.eval_every == 0
+                                                            or done == config.optim.steps):
             with averaged_weights(ema, trained):
                 log_scalars(loggers, _periodic_eval(config, policy, done, skill_windows), done)
     bar.close()
@@ -277,9 +282,9 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
         with averaged_weights(ema, trained):
             save_policy(policy, path)
         _plot_losses(out)
-    trained_steps = config.steps - start
-    return TrainResult(path, out, config.steps, final, seconds,
-                       trained_steps * config.batch_size / seconds if seconds and trained_steps else 0.0)
+    trained_steps = config.optim.steps - start
+    return TrainResult(path, out, config.optim.steps, final, seconds,
+                       trained_steps * config.optim.batch_size / seconds if seconds and trained_steps else 0.0)
 
 
 def train_command(config: TrainConfig, command: str | None = None) -> None:
@@ -289,16 +294,16 @@ def train_command(config: TrainConfig, command: str | None = None) -> None:
         return
     print(f"trained {result.steps} steps in {result.seconds:.0f} s ({result.samples_per_second:.0f} samples/s); "
           f"final loss {result.final_loss:.4f}")
-    print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} ({', '.join(config.loggers)}); "
+    print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} ({', '.join(config.logging.loggers)}); "
           f"loss curve: {result.out / 'loss.png'}")
 
 
 def _join(config: TrainConfig) -> Ranks:
     """This process's ranks; under torchrun, ``nproc`` must be 1 or torchrun's process count."""
-    ranks = join_process_group(resolve_device(config.device))
-    if config.nproc not in (1, ranks.world_size):
-        raise ConfigError(f"--nproc {config.nproc}, but this process is one of {ranks.world_size} (torchrun); "
-                          "give one of the two")
+    ranks = join_process_group(resolve_device(config.runtime.device))
+    if config.runtime.nproc not in (1, ranks.world_size):
+        raise ConfigError(f"--runtime.nproc {config.runtime.nproc}, but this process is one of {ranks.world_size} "
+                          "(torchrun); give one of the two")
     config.check_data_parallel(ranks.world_size)
     return ranks
 
@@ -306,10 +311,11 @@ def _join(config: TrainConfig) -> Ranks:
 def _cached_features(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, ranks: Ranks) -> FeatureCache:
     """The dataset's frozen features: rank 0 encodes and stores them, the other ranks then read the file."""
     if ranks.is_main:
-        features = FeatureCache(dataset, policy, progress=config.progress, store=True, views=config.augment_views)
+        features = FeatureCache(dataset, policy, progress=config.runtime.progress, store=True,
+                                views=config.data.augment_views)
     ranks.barrier()
     if not ranks.is_main:
-        features = FeatureCache(dataset, policy, progress=False, store=True, views=config.augment_views)
+        features = FeatureCache(dataset, policy, progress=False, store=True, views=config.data.augment_views)
     return features
 
 
@@ -383,11 +389,12 @@ def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPoli
                                                                 feature_key(dataset, policy))
 
     def warm_up(log_fit: Callable[[dict[str, float], int], None]) -> None:
-        heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.aux_frames),
+        heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.readout.aux_frames),
                                      HELDOUT_FIRST_SEED)
-        warm_up_readout(policy, demo_batch, _aux_frame_batches(config, dataset, policy), config.readout_warmup,
-                        config.readout_lr, log_fit, config.batch_size, heldout=heldout,
-                        progress=config.progress)
+        warm_up_readout(policy, demo_batch, _aux_frame_batches(config, dataset, policy),
+                        config.readout.warmup_steps,
+                        config.readout.lr, log_fit, config.optim.batch_size, heldout=heldout,
+                        progress=config.runtime.progress)
 
     if warm_up_or_load(path, policy.readout_modules(), config.seed, warm_up, log):
         print(f"read-out warm-up: the fit cached by an earlier run of the same read-out settings ({path})")
@@ -398,8 +405,9 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
     """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed): ``aux_frames``
     of them to fit, or ``count`` from ``first_seed`` on (frames that only measure)."""
     stored = cached_aux_frames(dataset.cache_root / "aux_frames", dataset.meta["env_id"], dataset.meta["env_kwargs"],
-                               dataset.tasks, policy.cameras, count or config.aux_frames, env_state_width(dataset),
-                               seed=config.seed, first_seed=first_seed, progress=config.progress)
+                               dataset.tasks, policy.cameras, count or config.readout.aux_frames,
+                               env_state_width(dataset),
+                               seed=config.seed, first_seed=first_seed, progress=config.runtime.progress)
     return AuxFrameBatches(stored.rows, stored.instructions, policy, EnvStateNorm.of_dataset(dataset),
                            encode=lambda frames: cached_frame_tokens(stored.path, policy, frames))
 
@@ -422,12 +430,12 @@ def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: Dust
     Raises:
         DatasetError: a policy with a read-out and action-free episodes of other tasks.
     """
-    video = DemoDataset(config.video_dataset, cache_dir=config.cache_dir)
+    video = DemoDataset(config.data.video_dataset, cache_dir=config.cache_dir)
     if policy.config.aux_state_dim and set(video.tasks) - set(dataset.tasks):
-        raise DatasetError(f"{config.video_dataset}: action-free episodes of tasks {sorted(video.tasks)} beside a "
-                           f"read-out of {sorted(dataset.tasks)}: their object state means something else; use "
+        raise DatasetError(f"{config.data.video_dataset}: action-free episodes of tasks {sorted(video.tasks)} beside "
+                           f"a read-out of {sorted(dataset.tasks)}: their object state means something else; use "
                            "episodes of the demonstrations' tasks, or a policy without --policy.lambda-aux")
-    return ActionFreeBatches(video, policy, batch_size, progress=config.progress)
+    return ActionFreeBatches(video, policy, batch_size, progress=config.runtime.progress)
 
 
 
@@ -441,12 +449,13 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int,
     folder = config.out / "eval" / f"step-{step:07d}"
     path = save_policy(policy, folder / "policy.pt")
     with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
-        report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.eval_episodes,
-                                     workers=config.eval_workers, videos=0, progress=False, device=config.device))
+        report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.logging.eval_episodes,
+                                     workers=config.logging.eval_workers, videos=0, progress=False,
+                                     device=config.runtime.device))
     scalars = {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
         "eval/success_rate": report["overall"]["success_rate"]}
     if skill_windows is not None:
-        skill = vision_skill(policy, skill_windows, buckets=1, seed=config.seed, batch_size=config.batch_size)
+        skill = vision_skill(policy, skill_windows, buckets=1, seed=config.seed, batch_size=config.optim.batch_size)
         scalars["wm/skill"] = skill["joint_sample"]["skill"]
     return scalars
 

@@ -22,7 +22,7 @@ from dust_rl.agents.config import POLICY_PRESETS, PolicyConfig
 from dust_rl.data import DatasetError, DemoDataset
 from dust_rl.data.features import env_state_width
 from dust_rl.errors import ConfigError
-from dust_rl.train.settings import DEFAULT_OUT, TrainSettings
+from dust_rl.train.settings import DEFAULT_OUT, DataSettings, OptimSettings, ReadoutSettings, TrainSettings
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ def vision_readout() -> TrainSettings:
     than the paper's 1e-4: a small model trained for minutes."""
     return replace(plain(), policy=replace(plain().policy, readout="tokens", readout_grid=(16, 16), lambda_aux=1.0,
                                            aux_state_input=True),
-                   aux_frames=8000, readout_warmup=4000, readout_demos=False)
+                   readout=ReadoutSettings(aux_frames=8000, warmup_steps=4000, demos=False))
 
 
 def pick_place_readout() -> TrainSettings:
@@ -53,8 +53,10 @@ def pick_place_readout() -> TrainSettings:
     four-head read-out fitted on 32,000 rendered frames for 16,000 steps, and 20,000 policy steps checkpointed every
     2,000."""
     settings = vision_readout()
-    return replace(settings, policy=replace(settings.policy, variant="action_only", readout_heads=4), steps=20000,
-                   aux_frames=32000, readout_warmup=16000, checkpoint_every=2000)
+    return replace(settings, policy=replace(settings.policy, variant="action_only", readout_heads=4),
+                   optim=replace(settings.optim, steps=20000),
+                   readout=replace(settings.readout, aux_frames=32000, warmup_steps=16000),
+                   logging=replace(settings.logging, checkpoint_every=2000))
 
 
 def plain() -> TrainSettings:
@@ -62,7 +64,7 @@ def plain() -> TrainSettings:
     EfficientNet-Lite0 tokens at stride 8 pooled to 8x8, text fused into them, three quarters of each batch from an
     episode's first 4 rows, 2,000 steps at lr 3e-4; no read-out."""
     return TrainSettings(policy=PolicyConfig(image_encoder="efficientnet-lite0-s8", cond_grid=(8, 8), text_fusion=True),
-                         steps=2000, lr=3e-4, start_rows=4, start_fraction=0.75)
+                         optim=OptimSettings(steps=2000, lr=3e-4), data=DataSettings(start_rows=4, start_fraction=0.75))
 
 
 RECIPES: dict[str, Recipe] = {
@@ -75,7 +77,7 @@ RECIPES: dict[str, Recipe] = {
     "plain": Recipe(plain, "Lite0 stride-8 tokens, text fusion, first rows, 2,000 steps at lr 3e-4; no privileged "
                     "state", "docs/results/2026-11-28-world-model-diagnosis.md"),
     "defaults": Recipe(TrainSettings, "every setting at its own default: the committed conv-ae encoder, 3,000 steps "
-                       "at lr 1e-4 (runs from before recipes resume with it)", "README row 1 (with --lr 3e-4)"),
+                       "at lr 1e-4 (runs from before recipes resume with it)", "README row 1 (with --optim.lr 3e-4)"),
 }
 RecipeName = Literal[tuple(RECIPES)]  # type: ignore[valid-type]
 LEGACY_RECIPE = "defaults"  # what a run folder that records no recipe was trained from

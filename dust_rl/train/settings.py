@@ -1,14 +1,20 @@
 """What ``dust-rl train`` is told, wherever the data and the run folder are: :class:`TrainSettings`.
 
 Its own module so the named recipes (:mod:`dust_rl.train.recipes`) can build settings that the training loop
-(:mod:`dust_rl.train.imitation`) then reads.
+(:mod:`dust_rl.train.imitation`) then reads. The settings come in one small group per concern (``--optim.lr``,
+``--data.start-rows``, ``--readout.aux-frames``, ``--runtime.device``, ``--logging.eval-every``), each checking
+its own values; :class:`TrainSettings` checks the few rules that join groups. Earlier versions kept every setting
+at the top level (``--lr``): :data:`GROUPED_SETTINGS` maps those names to the grouped ones, for every reader of
+files such versions wrote (run folders, studies, cache keys).
 """
 
 from __future__ import annotations
 
 import os
 import pathlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from operator import attrgetter
 from typing import Literal
 
 from dust_rl.agents.config import RETIRED_SETTINGS, PolicyConfig
@@ -18,28 +24,16 @@ from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import LoggerKind, check_loggers
 
 DEFAULT_OUT = pathlib.Path("runs/train")  # dust-rl train's run folder when --out is not given
-# Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
-NOT_DATA_PARALLEL = ("aux_frames", "readout_warmup", "video_dataset", "extra_dataset")
-# Settings earlier versions had, each at the value every run now has (their other values were measured and did not
-# help; docs/franka_results.md): a run or cached read-out fit stored with one of them at that value is still this
-# version's, one stored at another value is not.
-RETIRED_FIELDS: dict[str, object] = {
-    "aux_expert_fraction": 0.0, "aux_approach_fraction": 0.0, "aux_approach_displacement": 0.0,
-    "aux_expert_displacement": 0.0, "readout_lr_decay": False,
-    **{f"policy.{name}": value for name, value in RETIRED_SETTINGS.items()}}
 
 
 @dataclass(kw_only=True)
-class TrainSettings:
-    """How to train a policy by imitation, wherever the data and the run folder are (`dust-rl quickstart
-    --train.*` nests these)."""
+class OptimSettings:
+    """The optimiser and its schedule (`--optim.*`)."""
 
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
-    """The policy to build: variant, trunk size, losses, image encoder (`--policy.d-model` ...)."""
     steps: int = 3000
     """Optimiser steps."""
     batch_size: int = 64
-    """Training windows per step (over all processes: each of `nproc` takes `batch_size / nproc`)."""
+    """Training windows per step (over all processes: each of `runtime.nproc` takes `batch_size / nproc`)."""
     lr: float = 1e-4
     """Peak learning rate (paper: 1e-4)."""
     betas: tuple[float, float] = (0.95, 0.999)
@@ -52,36 +46,20 @@ class TrainSettings:
     """Gradient-norm clipping threshold."""
     ema_decay: float = 0.999
     """Decay of the exponential moving average of the weights (the saved policy uses the average)."""
-    aux_frames: int = 0
-    """Frames of random resets and random arm motions (objects independent of the arm,
-    `dust_rl.train.readout.aux_frames`) rendered once at the start (and kept in `<dataset>/aux_frames/` for
-    any run that asks for the same, `dust_rl.train.readout.aux_frame_cache`); every step adds the read-out's
-    error on a batch of them to the loss (weight `lambda_aux`), so the read-out cannot settle for "the target is
-    where the gripper is". Needs `lambda_aux` and `readout tokens` or `keypoint_source pixels`; 0: off."""
-    readout_warmup: int = 0
-    """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
-    the policy trains; they are then frozen (`dust_rl.train.readout.warmup`). Needs `aux_frames`; 0: off."""
-    readout_lr: float = 1e-3
-    """Learning rate of that warm-up (constant)."""
-    readout_demos: bool = True
-    """Also fit the warm-up on demonstration rows (half of each batch); without them it sees aux frames only."""
-    video_dataset: pathlib.Path | None = None
-    """A dataset of the same robot and cameras whose episodes train without their actions (action-free video,
-    `dust_rl.train.action_free`): the world-model stream learns from them, the action loss does not."""
-    video_fraction: float = 0.25
-    """Share of each batch taken from `video_dataset`."""
-    extra_dataset: pathlib.Path | None = None
-    """A second dataset of the same robot and cameras whose windows join every batch with their actions
-    (`dust_rl.train.dataset_batches`), e.g. a policy's successful rollouts on fresh layouts (`dust-rl collect
-    --policy`)."""
-    extra_fraction: float = 0.5
-    """Share of each batch taken from `extra_dataset`."""
-    extra_action_key: Literal["action", "expert_action"] = "action"
-    """The actions `extra_dataset` teaches: the executed ones (self-imitation of a policy's successes) or the
-    scripted expert's label at each state (DAgger)."""
-    init_policy: pathlib.Path | None = None
-    """Start from this trained policy (weights, normalisation, read-out) instead of a new one: fine-tuning.
-    Its own settings are kept (no `--policy.*` flags) and its frame read-out stays frozen (no warm-up)."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "steps", "batch_size")
+        check_finite(self, "lr", "grad_clip", positive=True)
+        check_finite(self, "weight_decay")
+        check_fraction(self, "warmup", "ema_decay")
+        if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
+            raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
+
+
+@dataclass(kw_only=True)
+class DataSettings:
+    """What each batch is drawn from besides the dataset's demonstration windows (`--data.*`)."""
+
     augment_views: int = 1
     """Cached views per frame: the frame itself plus `augment_views - 1` random shifts with colour jitter
     (`dust_rl.data.augment`); each training window conditions on one of them. Encoding costs that many times
@@ -92,20 +70,67 @@ class TrainSettings:
     0: every row equally likely."""
     start_fraction: float = 0.25
     """Share of each batch drawn from those `start_rows` rows."""
-    seed: int = 0
-    """Seed of the initial weights, batch sampling and flow-matching noise."""
-    log_every: int = 50
-    """Steps between logged scalars."""
-    checkpoint_every: int = 500
-    """Steps between checkpoints (one is always written at the end)."""
-    eval_every: int = 0
-    """Steps between closed-loop evaluations of the EMA policy (0: none); with a vision stream each also logs
-    `wm/skill`, the skill of the sampled future against the present frame on a fixed draw of training windows
-    (`dust_rl.diagnose.world_model`)."""
-    eval_episodes: int = 10
-    """Episodes per task of each periodic evaluation."""
-    eval_workers: int = 2
-    """Env processes of each periodic evaluation."""
+    extra_dataset: pathlib.Path | None = None
+    """A second dataset of the same robot and cameras whose windows join every batch with their actions
+    (`dust_rl.train.dataset_batches`), e.g. a policy's successful rollouts on fresh layouts (`dust-rl collect
+    --policy`)."""
+    extra_fraction: float = 0.5
+    """Share of each batch taken from `extra_dataset`."""
+    extra_action_key: Literal["action", "expert_action"] = "action"
+    """The actions `extra_dataset` teaches: the executed ones (self-imitation of a policy's successes) or the
+    scripted expert's label at each state (DAgger)."""
+    video_dataset: pathlib.Path | None = None
+    """A dataset of the same robot and cameras whose episodes train without their actions (action-free video,
+    `dust_rl.train.action_free`): the world-model stream learns from them, the action loss does not."""
+    video_fraction: float = 0.25
+    """Share of each batch taken from `video_dataset`."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "augment_views")
+        check_at_least(self, 0, "start_rows")
+        for name in ("start_fraction", "video_fraction", "extra_fraction"):
+            if not 0 < getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be in (0, 1), got {getattr(self, name)}")
+        if len(self.mixed_in) == 2 and self.video_fraction + self.extra_fraction >= 1:
+            raise ConfigError(f"video_fraction + extra_fraction must be below 1 (the rest are demonstrations), got "
+                              f"{self.video_fraction} + {self.extra_fraction}")
+
+    @property
+    def mixed_in(self) -> list[str]:
+        """The datasets given besides the demonstrations (``video_dataset``, ``extra_dataset``)."""
+        return [name for name in ("video_dataset", "extra_dataset") if getattr(self, name) is not None]
+
+
+@dataclass(kw_only=True)
+class ReadoutSettings:
+    """How the object-state read-out learns from rendered frames (`--readout.*`)."""
+
+    aux_frames: int = 0
+    """Frames of random resets and random arm motions (objects independent of the arm,
+    `dust_rl.train.readout.aux_frames`) rendered once at the start (and kept in `<dataset>/aux_frames/` for
+    any run that asks for the same, `dust_rl.train.readout.aux_frame_cache`); every step adds the read-out's
+    error on a batch of them to the loss (weight `lambda_aux`), so the read-out cannot settle for "the target is
+    where the gripper is". Needs `lambda_aux` and `readout tokens` or `keypoint_source pixels`; 0: off."""
+    warmup_steps: int = 0
+    """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
+    the policy trains; they are then frozen (`dust_rl.train.readout.warmup`). Needs `aux_frames`; 0: off."""
+    lr: float = 1e-3
+    """Learning rate of that warm-up (constant)."""
+    demos: bool = True
+    """Also fit the warm-up on demonstration rows (half of each batch); without them it sees aux frames only."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 0, "aux_frames", "warmup_steps")
+        check_finite(self, "lr", positive=True)
+        if self.warmup_steps and not self.aux_frames:
+            raise ConfigError("--readout.warmup-steps needs --readout.aux-frames > 0: without them the read-out "
+                              "learns 'the target is where the gripper is' (dust_rl.train.readout.aux_frames)")
+
+
+@dataclass(kw_only=True)
+class RuntimeSettings:
+    """Where and how the training runs; none of it changes what is learnt but `precision` (`--runtime.*`)."""
+
     threads: int | None = None
     """torch threads, per process (default: torch's choice)."""
     nproc: int = 1
@@ -122,58 +147,126 @@ class TrainSettings:
     cost on a 2-core x86 CPU is in BENCHMARKS.md)."""
     progress: bool = True
     """Show a progress bar."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "threads", "nproc")
+        resolve_device(self.device)
+        cores = os.cpu_count() or 1
+        if self.nproc > cores and resolve_device(self.device).type == "cpu":
+            raise ConfigError(f"--runtime.nproc {self.nproc} processes on the CPU of a machine with {cores} cores: "
+                              f"each would wait on the others; give --runtime.nproc at most {cores}")
+
+
+@dataclass(kw_only=True)
+class LoggingSettings:
+    """What the run records while it trains: scalars, checkpoints, periodic evaluations (`--logging.*`)."""
+
+    log_every: int = 50
+    """Steps between logged scalars."""
+    checkpoint_every: int = 500
+    """Steps between checkpoints (one is always written at the end)."""
+    eval_every: int = 0
+    """Steps between closed-loop evaluations of the EMA policy (0: none); with a vision stream each also logs
+    `wm/skill`, the skill of the sampled future against the present frame on a fixed draw of training windows
+    (`dust_rl.diagnose.world_model`)."""
+    eval_episodes: int = 10
+    """Episodes per task of each periodic evaluation."""
+    eval_workers: int = 2
+    """Env processes of each periodic evaluation."""
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
     """Where the scalars go, each through torchrl's `get_logger` into `out/logs` (experiment `train`);
     `wandb` and `mlflow` need their package installed. `loss.png` is drawn from the CSV files."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "steps", "batch_size", "augment_views", "log_every", "checkpoint_every",
-                       "eval_episodes", "eval_workers", "threads", "nproc")
-        check_at_least(self, 0, "eval_every", "aux_frames", "readout_warmup", "start_rows")
-        check_finite(self, "lr", "grad_clip", "readout_lr", positive=True)
-        check_finite(self, "weight_decay")
+        check_at_least(self, 1, "log_every", "checkpoint_every", "eval_episodes", "eval_workers")
+        check_at_least(self, 0, "eval_every")
+        check_loggers(self.loggers)
+
+
+GROUPS = {"optim": OptimSettings, "data": DataSettings, "readout": ReadoutSettings, "runtime": RuntimeSettings,
+          "logging": LoggingSettings}
+# Each grouped setting under the top-level name earlier versions gave it (what a run folder's config.json, a study's
+# results.json or a read-out cache key of theirs holds): its name in the group, but for the read-out's three.
+_OLD_NAMES = {"readout.warmup_steps": "readout_warmup", "readout.lr": "readout_lr", "readout.demos": "readout_demos"}
+GROUPED_SETTINGS: dict[str, str] = {
+    _OLD_NAMES.get(f"{group}.{name}", name): f"{group}.{name}"
+    for group, settings in GROUPS.items() for name in settings.__dataclass_fields__}
+# Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
+NOT_DATA_PARALLEL = ("readout.aux_frames", "readout.warmup_steps", "data.video_dataset", "data.extra_dataset")
+# Settings earlier versions had, each at the value every run now has (their other values were measured and did not
+# help; docs/franka_results.md): a run or cached read-out fit stored with one of them at that value is still this
+# version's, one stored at another value is not.
+RETIRED_FIELDS: dict[str, object] = {
+    "aux_expert_fraction": 0.0, "aux_approach_fraction": 0.0, "aux_approach_displacement": 0.0,
+    "aux_expert_displacement": 0.0, "readout_lr_decay": False,
+    **{f"policy.{name}": value for name, value in RETIRED_SETTINGS.items()}}
+
+
+def setting(settings: object, name: str) -> object:
+    """The value of ``settings``' setting ``name``: a grouped one (``optim.lr``) or its earlier top-level name
+    (``lr``, :data:`GROUPED_SETTINGS`)."""
+    return attrgetter(GROUPED_SETTINGS.get(name, name))(settings)
+
+
+def grouped_json(stored: Mapping) -> dict:
+    """``stored`` (train settings as JSON values) with the top-level settings of earlier versions moved into their
+    groups (:data:`GROUPED_SETTINGS`), so files written before the groups read as this version's."""
+    grouped = {k: dict(v) if k in GROUPS and isinstance(v, Mapping) else v for k, v in stored.items()
+               if k not in GROUPED_SETTINGS}
+    for old, new in GROUPED_SETTINGS.items():
+        if old in stored:
+            group, _, name = new.partition(".")
+            grouped.setdefault(group, {})[name] = stored[old]
+    return grouped
+
+
+@dataclass(kw_only=True)
+class TrainSettings:
+    """How to train a policy by imitation, wherever the data and the run folder are (`dust-rl quickstart
+    --train.*` nests these)."""
+
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    """The policy to build: variant, trunk size, losses, image encoder (`--policy.d-model` ...)."""
+    optim: OptimSettings = field(default_factory=OptimSettings)
+    """The optimiser and its schedule."""
+    data: DataSettings = field(default_factory=DataSettings)
+    """What each batch is drawn from besides the demonstration windows."""
+    readout: ReadoutSettings = field(default_factory=ReadoutSettings)
+    """How the object-state read-out learns from rendered frames."""
+    runtime: RuntimeSettings = field(default_factory=RuntimeSettings)
+    """Where and how the training runs."""
+    logging: LoggingSettings = field(default_factory=LoggingSettings)
+    """Scalars, checkpoints, periodic evaluations."""
+    init_policy: pathlib.Path | None = None
+    """Start from this trained policy (weights, normalisation, read-out) instead of a new one: fine-tuning.
+    Its own settings are kept (no `--policy.*` flags) and its frame read-out stays frozen (no warm-up)."""
+    seed: int = 0
+    """Seed of the initial weights, batch sampling and flow-matching noise."""
+
+    def __post_init__(self) -> None:
         readout_on_frames = self.policy.readout == "tokens" or self.policy.keypoint_source == "pixels"
-        if self.aux_frames and not (self.policy.lambda_aux and readout_on_frames):
-            raise ConfigError("aux_frames needs --policy.lambda-aux > 0 and a read-out frames can train: "
+        if self.readout.aux_frames and not (self.policy.lambda_aux and readout_on_frames):
+            raise ConfigError("--readout.aux-frames needs --policy.lambda-aux > 0 and a read-out frames can train: "
                               "--policy.readout tokens, or --policy.keypoint-source pixels")
-        if not 0 < self.start_fraction < 1:
-            raise ConfigError(f"start_fraction must be in (0, 1), got {self.start_fraction}")
-        for name in ("video_fraction", "extra_fraction"):
-            if not 0 < getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be in (0, 1), got {getattr(self, name)}")
-        mixed = [name for name in ("video_dataset", "extra_dataset") if getattr(self, name) is not None]
-        if self.batch_size < 1 + len(mixed):
-            raise ConfigError(f"{' and '.join(mixed)} need --batch-size >= {1 + len(mixed)}: each batch holds "
+        mixed = self.data.mixed_in
+        if self.optim.batch_size < 1 + len(mixed):
+            raise ConfigError(f"{' and '.join(mixed)} need --optim.batch-size >= {1 + len(mixed)}: each batch holds "
                               "demonstrations and a share of each")
-        if len(mixed) == 2 and self.video_fraction + self.extra_fraction >= 1:
-            raise ConfigError(f"video_fraction + extra_fraction must be below 1 (the rest are demonstrations), got "
-                              f"{self.video_fraction} + {self.extra_fraction}")
         if self.init_policy is not None and self.policy != PolicyConfig():
             raise ConfigError("--policy.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
                               "settings (and its read-out, so no aux frames or read-out warm-up either)")
-        if self.video_dataset is not None and self.policy.lambda_aux and not self.readout_warmup:
-            raise ConfigError("video_dataset with --policy.lambda-aux needs --readout-warmup: the read-out is then "
-                              "fitted first and frozen, so the action-free episodes never train it")
-        if self.readout_warmup and not self.aux_frames:
-            raise ConfigError("readout_warmup needs --aux-frames > 0: without them the read-out learns 'the target "
-                              "is where the gripper is' (dust_rl.train.readout.aux_frames)")
-        check_fraction(self, "warmup", "ema_decay")
-        resolve_device(self.device)
-        check_loggers(self.loggers)
-        if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
-            raise ConfigError(f"betas must be two numbers in [0, 1), got {self.betas}")
-        self.check_data_parallel(self.nproc)
-        cores = os.cpu_count() or 1
-        if self.nproc > cores and resolve_device(self.device).type == "cpu":
-            raise ConfigError(f"--nproc {self.nproc} processes on the CPU of a machine with {cores} cores: each "
-                              f"would wait on the others; give --nproc at most {cores}")
+        if self.data.video_dataset is not None and self.policy.lambda_aux and not self.readout.warmup_steps:
+            raise ConfigError("--data.video-dataset with --policy.lambda-aux needs --readout.warmup-steps: the "
+                              "read-out is then fitted first and frozen, so the action-free episodes never train it")
+        self.check_data_parallel(self.runtime.nproc)
 
     def check_data_parallel(self, nproc: int) -> None:
         """Raise unless these settings can train over ``nproc`` processes."""
         if nproc == 1:
             return
-        if self.batch_size % nproc:
-            raise ConfigError(f"--batch-size {self.batch_size} does not split evenly over {nproc} processes")
-        used = [name for name in NOT_DATA_PARALLEL if getattr(self, name)]
+        if self.optim.batch_size % nproc:
+            raise ConfigError(f"--optim.batch-size {self.optim.batch_size} does not split evenly over {nproc} "
+                              "processes")
+        used = [name for name in NOT_DATA_PARALLEL if setting(self, name)]
         if used:
             raise ConfigError(f"{', '.join(used)} cannot train over several processes yet; train them with one")

@@ -7,7 +7,7 @@ is 15 cm from the target cube at step 0 (where the gripper is 17 cm away),
 no better than guessing, with pixel keypoints and frozen features alike
 (``experiments/readout_error.py``, docs/franka_results.md). These frames break that shortcut:
 each is a random reset of a training task followed by 0..39 uniformly random
-actions, so the cubes lie anywhere relative to the arm. ``--aux-frames N``
+actions, so the cubes lie anywhere relative to the arm. ``--readout.aux-frames N``
 renders N of them once at the start of training and adds their read-out
 error to every step's loss beside the demonstrations'.
 

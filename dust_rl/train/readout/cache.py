@@ -1,6 +1,6 @@
 """A warmed-up read-out cached in the dataset folder: runs that would fit the same one load it instead.
 
-``--readout-warmup`` fits the state read-out alone on aux frames before the policy trains
+``--readout.warmup-steps`` fits the state read-out alone on aux frames before the policy trains
 (:mod:`dust_rl.train.readout.warmup`), and nothing in that fit reads the policy's trunk. So every run that starts the
 read-out from the same weights and fits it on the same frames, with the same settings and random draws, ends with
 the same read-out whatever its variant or trunk: ``dust-rl bench suite``'s dust and action_only cells of one
@@ -32,10 +32,11 @@ from dust_rl.agents import DustPolicy
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.data.features import hash_weights
 from dust_rl.storage.cache_files import cached, record_cache
-from dust_rl.train.settings import RETIRED_FIELDS
+from dust_rl.train.settings import RETIRED_FIELDS, setting
 
 READOUT_KIND = "dust-rl/readout-warmup"
-# What the warm-up reads from the training settings (dust_rl.train.settings.TrainSettings) and the policy config.
+# What the warm-up reads from the training settings (dust_rl.train.settings.TrainSettings, by the top-level names
+# they had before the settings were grouped, so fits cached then are still found) and the policy config.
 WARMUP_SETTINGS = ("seed", "batch_size", "aux_frames", "readout_warmup", "readout_lr")
 READOUT_POLICY_SETTINGS = ("readout", "readout_grid", "readout_heads", "keypoints", "keypoint_source")
 
@@ -49,7 +50,7 @@ def readout_cache_path(folder: pathlib.Path, policy: DustPolicy, settings: objec
     digest = hashlib.sha256()
     # The retired settings stay in the key at the value every run now has, so fits cached before are still found.
     retired = {name.partition(".")[::2]: value for name, value in RETIRED_FIELDS.items()}
-    described = {"settings": {k: getattr(settings, k) for k in WARMUP_SETTINGS}
+    described = {"settings": {k: setting(settings, k) for k in WARMUP_SETTINGS}
                  | {name: value for (name, rest), value in retired.items() if not rest},
                  "features": features,
                  "policy": {k: getattr(policy.config, k) for k in READOUT_POLICY_SETTINGS}

@@ -6,8 +6,8 @@ its estimate was still 12.8 cm from the target at step 0 of validation
 episodes (pick_place; docs/franka_results.md). The same network trained on nothing but the
 read-out error, at lr 1e-3, keeps improving for thousands of steps
 (``experiments/pixel_probe.py``: 12.2 cm after 500 steps, 4.1 cm after 3,000,
-still falling). So ``--readout-warmup N`` first fits the keypoint networks and
-the read-out for N steps on aux frames (and, unless ``--no-readout-demos``,
+still falling). So ``--readout.warmup-steps N`` first fits the keypoint networks and
+the read-out for N steps on aux frames (and, unless ``--readout.no-demos``,
 demonstration rows in half of each batch), then freezes them: a locator
 trained on the simulator's labels, as a pose-estimation stage would be, whose
 keypoints and estimate (``--policy.aux-state-input``) the policy reads but cannot
