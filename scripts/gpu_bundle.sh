@@ -15,14 +15,8 @@ PY=${1:-3.12}
 BUNDLE=gpu_bundle
 rm -rf $BUNDLE && mkdir -p $BUNDLE/wheels $BUNDLE/debs
 
-# Pinned packages take their pins from pyproject.toml (declared once); the rest are what those need.
-pinned=$(.venv/bin/python - <<'EOF'
-import re, tomllib
-deps = tomllib.load(open("pyproject.toml", "rb"))["project"]["dependencies"]
-wanted = {"mujoco", "torchrl", "tensordict", "gymnasium", "mink", "tyro", "stable-baselines3"}
-print(" ".join(d for d in deps if re.split(r"[=<>\[ ]", d)[0] in wanted))
-EOF
-)
+# Pinned packages take their exact versions from constraints.txt (declared once); the rest are what those need.
+pinned=$(grep -E '^(mujoco|torchrl|tensordict|gymnasium|mink|tyro|stable-baselines3)==' constraints.txt)
 unpinned="farama-notifications quadprog daqp qpsolvers mujoco-menagerie pyopengl glfw websockets importlib_metadata
 lazy-importer orjson pyvers hoptorch docstring-parser typeguard"
 for requirement in $pinned $unpinned; do

@@ -35,6 +35,7 @@ from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, collect_demos
 from dust_rl.data.lerobot_export import EPISODES_FILE
 from dust_rl.data.video import write_mp4
+from dust_rl.storage.memmap_io import check_memmap_dir
 from dust_rl.train.imitation import TrainConfig, train
 from dust_rl.train.settings import OptimSettings, RuntimeSettings
 
@@ -84,11 +85,21 @@ def test_a_pickle_in_a_dataset_never_runs(copy, marker, tmp_path, tiny_encoder, 
     assert not marker.exists()
 
 
-def test_only_whole_tensors_of_known_dtypes_are_read(copy):
+@pytest.mark.parametrize("field", [{"dtype": "torch.load"}, {"device": "os.system('x')"}, {"is_nested": True}])
+def test_only_whole_tensors_of_known_dtypes_are_read(copy, field):
     data = _data_dir(copy)
-    edit_json(data / "meta.json", action={"device": "cpu", "shape": [3], "dtype": "torch.load", "is_nested": False})
-    with pytest.raises(DatasetError, match=r"entry 'action' is not a plain CPU tensor of a known dtype"):
+    entry = json.loads((data / "meta.json").read_text())["action"]
+    edit_json(data / "meta.json", action=entry | field)
+    with pytest.raises(DatasetError, match=r"entry 'action' is not a plain tensor of a known dtype"):
         DemoDataset(copy)
+
+
+@pytest.mark.parametrize("device", ["cuda:0", "cuda", "mps"])
+def test_tensors_recorded_on_an_accelerator_pass_the_check(copy, device):
+    """A checkpoint written during GPU training records ``cuda:0`` for its tensors: a device name, not code."""
+    data = _data_dir(copy)
+    edit_json(data / "meta.json", action=json.loads((data / "meta.json").read_text())["action"] | {"device": device})
+    check_memmap_dir(data)
 
 
 @pytest.mark.parametrize("where", ["parent", "absolute", "symlink"])

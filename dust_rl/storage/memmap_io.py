@@ -6,7 +6,8 @@ registered class, and a ``NonTensorData`` entry or a tensorclass brings an
 the dataset; a truncated ``.memmap`` file loads silently and reads as zeros (or
 crashes the process with SIGBUS on access). Datasets are downloaded and shared,
 so every ``meta.json`` is checked against a whitelist of what this package writes
-(plain ``TensorDict`` folders of CPU tensors with the dtypes below), every file
+(plain ``TensorDict`` folders of tensors with the dtypes below, on a device named as torch names one: a
+checkpoint written on a GPU records ``cuda:0``), every file
 must lie inside the folder (no symlink out) and hold its recorded size, and only
 then is the folder loaded, with ``allow_pickle=False`` besides. Anything else is
 a :class:`DatasetError` naming the file.
@@ -17,6 +18,7 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+import re
 
 import torch
 from tensordict import TensorDict
@@ -30,7 +32,12 @@ _DTYPES = {str(dtype): dtype for dtype in (torch.uint8, torch.bool, torch.int32,
                                             torch.float64)}
 _HEADER_KEYS = ("_type", "shape", "device")
 _LEAF_KEYS = {"shape", "dtype", "device", "is_nested"}
-_CPU = (None, "None", "cpu")
+_DEVICE = re.compile(r"(cpu|cuda|mps|xpu)(:[0-9]+)?")
+
+
+def _is_device(value: object) -> bool:
+    """None (tensordict's "wherever"), or a device name such as ``cpu`` or ``cuda:0``."""
+    return value in (None, "None") or (isinstance(value, str) and _DEVICE.fullmatch(value) is not None)
 
 
 def check_memmap_dir(path: pathlib.Path, root: pathlib.Path | None = None) -> None:
@@ -53,7 +60,7 @@ def check_memmap_dir(path: pathlib.Path, root: pathlib.Path | None = None) -> No
         found = meta.get("_type") if isinstance(meta, dict) else type(meta).__name__
         raise DatasetError(f"{meta_path}: holds {found!r}, not a TensorDict of tensors; refusing to load it "
                            "(non-tensor entries are pickles, which would run code on load)")
-    if not _is_shape(meta.get("shape")) or meta.get("device") not in _CPU:
+    if not _is_shape(meta.get("shape")) or not _is_device(meta.get("device")):
         raise DatasetError(f"{meta_path}: bad batch shape {meta.get('shape')!r} or device {meta.get('device')!r}")
     for key, entry in meta.items():
         if key in _HEADER_KEYS:
@@ -76,8 +83,8 @@ def _is_shape(value: object) -> bool:
 
 def _check_leaf(file: pathlib.Path, entry: dict, root: pathlib.Path, meta_path: pathlib.Path) -> None:
     if (not set(entry) <= _LEAF_KEYS or entry.get("dtype") not in _DTYPES or not _is_shape(entry.get("shape"))
-            or entry.get("is_nested", False) is not False or entry.get("device") not in _CPU):
-        raise DatasetError(f"{meta_path}: entry {file.stem!r} is not a plain CPU tensor of a known dtype: {entry}")
+            or entry.get("is_nested", False) is not False or not _is_device(entry.get("device"))):
+        raise DatasetError(f"{meta_path}: entry {file.stem!r} is not a plain tensor of a known dtype: {entry}")
     expected = math.prod(entry["shape"]) * _DTYPES[entry["dtype"]].itemsize
     if not file.is_file():
         if expected:  # tensordict writes no file for an empty tensor
