@@ -139,8 +139,12 @@ class ModelConfig:
     then hold about half the trunk parameters of the two-stream ones; evaluation reports count them)."""
     horizon: int = 16
     """Action chunk length H (paper: 16); the world-model target is the frame at t+H."""
+    future_offset: int | None = None
+    """Env steps from the present frame to the world-model target; None: H (the paper's: the frame after the
+    chunk). A target past an episode's end is its last frame and carries no vision loss."""
     vision_grid: tuple[int, int] = (4, 4)
-    """(rows, cols) of the future-vision token grid; N_o tokens = rows * cols."""
+    """(rows, cols) of the future-vision token grid (the target's tokens are the camera's pooled to it and then
+    standardised per channel, so each has unit variance at any grid); N_o tokens = rows * cols."""
     future_target: FutureTarget = "frame"
     """What the vision stream predicts: `frame` (the paper's: the standardised tokens at t+H) or `change`
     (those minus the present frame's, in units of their RMS over the dataset). The front camera's coarse grid
@@ -191,7 +195,9 @@ class ModelConfig:
     mlp_ratio: float = 4.0
     """MLP hidden size over d_model."""
     lambda_wm: float = 1.0
-    """Weight of the world-model (future vision) loss (paper: 1.0)."""
+    """Weight of the world-model (future vision) loss (paper: 1.0). Both losses are per-element means of
+    unit-variance targets (normalised actions; the target tokens standardised after pooling), so a weight means the
+    same at every vision grid and camera."""
     tau_s: float = 0.999
     """GR00T's s in tau = (s - u) / s."""
     tau_alpha: float = 1.5
@@ -202,6 +208,8 @@ class ModelConfig:
             raise ValueError(f"unknown variant {self.variant!r}; expected one of {VARIANTS}")
         check_size("d_model", self.d_model, MAX_WIDTH)
         check_size("horizon", self.horizon, MAX_HORIZON)
+        if self.future_offset is not None:
+            check_size("future_offset", self.future_offset, MAX_HORIZON)
         check_size("keypoints", self.keypoints, MAX_KEYPOINTS, minimum=0)
         check_size("readout_heads", self.readout_heads, MAX_READOUT_HEADS)
         check_size("n_heads", self.n_heads, self.d_model)
@@ -257,6 +265,11 @@ class ModelConfig:
     def decoupled(self) -> bool:
         """Whether each modality has its own timestep."""
         return self.variant in ("dust", "decoupled", "action_only")
+
+    @property
+    def future_steps(self) -> int:
+        """Env steps from the present frame to the world-model target (``future_offset``, default H)."""
+        return self.horizon if self.future_offset is None else self.future_offset
 
     @property
     def has_vision(self) -> bool:

@@ -6,6 +6,12 @@ standardised per dimension; the chunk it samples is mapped back to env units
 and the future it predicts back to the encoder's units. Image-token
 statistics matter for pretrained encoders: EfficientNet-Lite features have
 per-channel means up to +-10 and standard deviations of 4-12 on our frames.
+
+The world-model target is standardised a second time, after pooling to the
+vision grid (``future_mean``, ``future_std``): averaging a 16x16 grid of
+standardised tokens down to 4x4 leaves per-channel variances well below one,
+which would make ``lambda_wm`` weigh a coarse target less than a fine one. With
+unit-variance targets the per-element loss means the same at every grid.
 The statistics are buffers, so they travel in the policy's
 checkpoint and a policy never runs with stats other than those it was trained with.
 """
@@ -13,7 +19,7 @@ checkpoint and a policy never runs with stats other than those it was trained wi
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -31,12 +37,16 @@ class Normalizer(nn.Module):
     """
 
     # Buffers that policy files written before they existed lack (identity then).
-    OPTIONAL_BUFFERS = ("vision_mean", "vision_std", "future_change_scale")
+    FUTURE_STATS = ("future_mean", "future_std")  # the world-model target's standardisation after pooling
+    OPTIONAL_BUFFERS = ("vision_mean", "vision_std", "future_change_scale", *FUTURE_STATS)
 
     def __init__(self, state_dim: int, action_dim: int, vision_dim: int) -> None:
         super().__init__()
         self.register_buffer("vision_mean", torch.zeros(vision_dim))
         self.register_buffer("vision_std", torch.ones(vision_dim))
+        # Per channel, of the standardised tokens pooled to the world-model target's grid (module doc)
+        self.register_buffer("future_mean", torch.zeros(vision_dim))
+        self.register_buffer("future_std", torch.ones(vision_dim))
         # RMS of the standardised future's change over H steps (a ``future_target="change"`` policy's target unit)
         self.register_buffer("future_change_scale", torch.ones(()))
         self.register_buffer("state_mean", torch.zeros(state_dim))
@@ -63,20 +73,34 @@ class Normalizer(nn.Module):
     @torch.no_grad()
     def set_vision_stats(self, tokens: Tensor) -> None:
         """Per-channel statistics of image tokens [..., vision_dim] (e.g. every cached token of the dataset)."""
-        n = tokens.numel() // tokens.shape[-1] if tokens.numel() else 0
-        if tokens.shape[-1] != self.vision_mean.shape[0] or n < 2:
-            raise ValueError(f"need >= 2 tokens of size {self.vision_mean.shape[0]}, got shape {tuple(tokens.shape)}")
-        mean = torch.zeros(self.vision_mean.shape, dtype=torch.float64, device=tokens.device)  # where the tokens are
-        square = torch.zeros_like(mean)
-        rows = max(1, (1 << 16) * tokens.shape[0] // n)  # about 65,536 tokens per chunk
-        for chunk in tokens.split(rows):  # float64 sums in chunks: the cache may be float16, large, memory-mapped
-            chunk = chunk.reshape(-1, tokens.shape[-1]).double()
-            mean += chunk.sum(0)
-            square += chunk.square().sum(0)
-        mean /= n
+        rows = max(1, (1 << 16) * tokens.shape[0] // max(1, tokens.numel() // tokens.shape[-1]))
+        self._set_moments("vision", tokens.split(rows))  # about 65,536 tokens per chunk
+
+    @torch.no_grad()
+    def set_future_stats(self, targets: Iterable[Tensor]) -> None:
+        """Per-channel statistics of world-model targets, given in chunks [..., vision_dim] of standardised tokens
+        pooled to the vision grid (every row of the dataset)."""
+        self._set_moments("future", targets)
+
+    def _set_moments(self, name: str, chunks: Iterable[Tensor]) -> None:
+        """``<name>_mean`` and ``<name>_std`` from float64 sums over ``chunks`` (the cache may be float16, large,
+        memory-mapped)."""
+        size = self.vision_mean.shape[0]
+        total = square = None  # on the chunks' device
+        n = 0
+        for chunk in chunks:
+            if chunk.shape[-1] != size:
+                raise ValueError(f"need tokens of size {size}, got shape {tuple(chunk.shape)}")
+            chunk = chunk.reshape(-1, size).double()
+            total = chunk.sum(0) if total is None else total + chunk.sum(0)
+            square = chunk.square().sum(0) if square is None else square + chunk.square().sum(0)
+            n += len(chunk)
+        if n < 2:
+            raise ValueError(f"need >= 2 tokens of size {size} for the {name} statistics, got {n}")
+        mean = total / n
         var = (square / n - mean.square()).clamp_min(0.0) * n / (n - 1)
-        self.vision_mean.copy_(mean)
-        self.vision_std.copy_(var.sqrt().clamp_min(MIN_STD))
+        getattr(self, f"{name}_mean").copy_(mean)
+        getattr(self, f"{name}_std").copy_(var.sqrt().clamp_min(MIN_STD))
 
     @torch.no_grad()
     def set_future_change_scale(self, rms: float) -> None:
@@ -91,6 +115,13 @@ class Normalizer(nn.Module):
 
     def denormalize_vision(self, tokens: Tensor) -> Tensor:
         return tokens * self.vision_std + self.vision_mean
+
+    def standardise_future(self, pooled: Tensor) -> Tensor:
+        """Standardised tokens pooled to the vision grid -> the world-model target's units (module doc)."""
+        return (pooled - self.future_mean) / self.future_std
+
+    def unstandardise_future(self, target: Tensor) -> Tensor:
+        return target * self.future_std + self.future_mean
 
     def normalize_state(self, state: Tensor) -> Tensor:
         return (state - self.state_mean) / self.state_std

@@ -326,25 +326,38 @@ class DustPolicy(VLAWrapperBase):
         if self.config.aux_state_input:
             batch.set("state", torch.cat([batch.get("state"), batch.get("env_state_estimate")], dim=-1))
         if "future_tokens" in features.keys():
-            future = self.normalizer.normalize_vision(features.get("future_tokens"))
+            future = self.standardised_future(features.get("future_tokens"))
             if self.config.future_target == "change":
-                future = (future - self.future_targets(image)) / self.normalizer.future_change_scale
+                future = (future - self._present_target(image)) / self.normalizer.future_change_scale
             batch.set("future_tokens", future)
         return batch
+
+    def standardised_future(self, future_tokens: Tensor) -> Tensor:
+        """Future tokens [*B, N_o, Dv] on the vision grid, in the encoder's units (a training target, or the
+        ``future_tokens`` a plan returns) -> the world model's frame units (standardised after pooling).
+
+        The units the future scorer and the diagnostics compare frames in."""
+        return self.normalizer.standardise_future(self.normalizer.normalize_vision(future_tokens))
+
+    def present_target(self, features: TensorDictBase) -> Tensor:
+        """The present frame of a feature batch as a world-model frame [B, N_o, Dv]: "nothing moves"."""
+        return self._present_target(self.normalizer.normalize_vision(features.get("image_tokens")))
+
+    def _present_target(self, image: Tensor) -> Tensor:
+        """:meth:`present_target` of standardised tokens [B, C, N, Dv] on the token grid."""
+        return self.normalizer.standardise_future(self.future_targets(image))
 
     def future_changes(self, features: TensorDictBase) -> Tensor:
         """Standardised changes [B', N_o, Dv] from the present frame to t+H of a training feature batch, the
         clamped futures (t+H past the episode's end) left out: what sets a change target's unit."""
-        image = self.normalizer.normalize_vision(features.get("image_tokens"))
-        change = self.normalizer.normalize_vision(features.get("future_tokens")) - self.future_targets(image)
+        change = self.standardised_future(features.get("future_tokens")) - self.present_target(features)
         return change[~features.get("future_is_clamped")] if "future_is_clamped" in features.keys() else change
 
     def _predicted_frame(self, future: Tensor, features: TensorDictBase) -> Tensor:
         """The trunk's future [B, N_o, Dv] as a standardised frame (a change target adds the present frame)."""
         if self.config.future_target == "frame":
             return future
-        present = self.future_targets(self.normalizer.normalize_vision(features.get("image_tokens")))
-        return present + future * self.normalizer.future_change_scale
+        return self.present_target(features) + future * self.normalizer.future_change_scale
 
     @torch.no_grad()
     def estimate_env_state(self, features: TensorDictBase) -> Tensor:
@@ -453,7 +466,8 @@ class DustPolicy(VLAWrapperBase):
         chunk = self.normalizer.denormalize_action(out.get("action_chunk"))
         out.set("action_chunk", chunk.clamp(self.action_low, self.action_high))
         if "future_tokens" in out.keys():
-            out.set("future_tokens", self.normalizer.denormalize_vision(out.get("future_tokens")))
+            out.set("future_tokens", self.normalizer.denormalize_vision(
+                self.normalizer.unstandardise_future(out.get("future_tokens"))))
         return out
 
     def future_scores(self, future_tokens: Tensor) -> Tensor:

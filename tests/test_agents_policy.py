@@ -267,7 +267,7 @@ def test_best_of_k_executes_the_sample_whose_predicted_future_scores_best(tiny_e
     scored.set_sampler(SamplerConfig(candidates=k))
     chosen = scored.plan(obs, torch.Generator().manual_seed(1))
     every = policy.plan(obs[torch.arange(2).repeat_interleave(k)], torch.Generator().manual_seed(1))
-    scores = scored.future_scores(policy.normalizer.normalize_vision(every["future_tokens"])).view(2, k)
+    scores = scored.future_scores(policy.standardised_future(every["future_tokens"])).view(2, k)
     best = every["action_chunk"].view(2, k, 6, 3)[torch.arange(2), scores.argmax(-1)]
     assert torch.equal(chosen["action_chunk"], best) and scores.std() > 0
     # The scorer and K travel in the policy file.

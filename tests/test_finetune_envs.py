@@ -232,7 +232,7 @@ def test_the_residual_agent_can_see_the_future_dust_sampled_with_the_chunk(steer
     check_env(env)
     obs, _ = env.reset(seed=5)
     plan = policy.plan_features(env.features, episode_generator(5))  # the same first draw as the env's plan
-    expected = policy.normalizer.normalize_vision(plan["future_tokens"])[0].flatten()
+    expected = policy.standardised_future(plan["future_tokens"])[0].flatten()
     torch.testing.assert_close(torch.from_numpy(obs["predicted_future"]), expected, rtol=0, atol=0)
     assert np.array_equal(obs["base_action"], plan["action_chunk"][0, 0].numpy())
     td = torchrl_env(env).reset(seed=5)  # torchrl's agent sees what SB3's does: the base action and the future too

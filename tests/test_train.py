@@ -289,6 +289,36 @@ def test_the_world_model_target_can_be_another_camera(run_inputs, tmp_path):
         train(tiny_config(run_inputs, tmp_path / "top", steps=4, future_camera="top"))
 
 
+@pytest.mark.parametrize("vision_grid", [(1, 1), (2, 2)])
+def test_the_world_model_target_is_standardised_after_pooling(run_inputs, tmp_path, vision_grid):
+    """Each target channel has zero mean and unit variance over the dataset's frames at any grid, so lambda_wm
+    weighs a coarse target as much as a fine one."""
+    policy = load_policy(train(tiny_config(run_inputs, tmp_path / "run", steps=1, vision_grid=vision_grid)).policy)
+    dataset = DemoDataset(run_inputs[0])
+    windows = DemoWindows(dataset, horizon=policy.config.horizon, images=False)
+    frames = policy.present_target(FeatureCache(dataset, policy, progress=False).batch(
+        next(windows.iterate(len(dataset))))).double().flatten(0, 1)  # every row's frame, each token
+    assert frames.shape == (len(dataset) * math.prod(vision_grid), policy.config.vision_dim)
+    tolerance = 10 * torch.finfo(torch.float32).eps * frames.abs().max().item()
+    torch.testing.assert_close(frames.mean(0), torch.zeros(frames.shape[-1], dtype=torch.float64),
+                               rtol=0, atol=tolerance)
+    torch.testing.assert_close(frames.std(0), torch.ones(frames.shape[-1], dtype=torch.float64),
+                               rtol=0, atol=tolerance)
+    assert not torch.equal(policy.normalizer.future_std, torch.ones_like(policy.normalizer.future_std))
+
+
+def test_the_world_model_target_can_be_nearer_than_the_chunks_end(run_inputs, tmp_path):
+    policy = load_policy(train(tiny_config(run_inputs, tmp_path / "near", steps=1, future_offset=1)).policy)
+    assert policy.config.future_steps == 1 and PolicyConfig(horizon=5).future_steps == 5  # default: the chunk's end
+    dataset = DemoDataset(run_inputs[0])
+    windows = DatasetBatches(dataset, policy, 4, progress=False).windows
+    every = next(windows.iterate(len(dataset)))
+    last = dataset.row_episode_end[every["index"]] - 1
+    assert torch.equal(every["future", "index"], torch.minimum(every["index"] + 1, last))
+    with pytest.raises(ValueError, match=r"future_offset must be an int in \[1, "):
+        tiny_config(run_inputs, tmp_path / "bad", future_offset=0)
+
+
 def test_a_change_target_is_the_motion_in_units_of_its_rms(run_inputs, tmp_path):
     policy = load_policy(train(tiny_config(run_inputs, tmp_path / "change", steps=4,
                                            future_target="change")).policy)
@@ -303,7 +333,7 @@ def test_a_change_target_is_the_motion_in_units_of_its_rms(run_inputs, tmp_path)
     assert math.isclose(target[moving].double().square().mean().sqrt().item(), 1.0,
                         rel_tol=100 * torch.finfo(torch.float32).eps)
     # Acting adds the present frame back: the target, decoded, is the real future frame.
-    frame = policy.normalizer.normalize_vision(batch.get("future_tokens"))
+    frame = policy.standardised_future(batch.get("future_tokens"))
     torch.testing.assert_close(policy._predicted_frame(target, batch), frame)
     with pytest.raises(ValueError, match="unknown future_target 'delta'"):
         tiny_config(run_inputs, tmp_path / "bad", future_target="delta")

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -172,9 +172,11 @@ def feature_key(dataset: DemoDataset, policy: DustPolicy, views: int = 1, batch_
     return digest.hexdigest()[:16]
 
 
-def hash_weights(digest: hashlib._Hash, module: torch.nn.Module) -> None:
-    """Add every tensor of ``module``'s state, by name, to ``digest``: the key of a cache derived from those weights
-    (any dtype, any device: the bytes are read on the CPU)."""
+def hash_weights(digest: hashlib._Hash, module: torch.nn.Module, exclude: Collection[str] = ()) -> None:
+    """Add every tensor of ``module``'s state but those named in ``exclude``, by name, to ``digest``: the key of a
+    cache derived from those weights (any dtype, any device: the bytes are read on the CPU)."""
     for name, tensor in sorted(module.state_dict().items()):
+        if name in exclude:
+            continue
         digest.update(name.encode())
         digest.update(tensor.detach().cpu().contiguous().flatten().view(torch.uint8).numpy().tobytes())

@@ -146,7 +146,8 @@ def windows_of(policy: DustPolicy, features: FeatureCache, count: int, seed: int
     """``count`` windows of ``features``' dataset drawn with ``seed`` (torch's global generator is left as it
     was), in the trunk's units: the trunk's normalisation must be set before."""
     dataset = features.dataset
-    windows = DemoWindows(dataset, horizon=policy.config.horizon, batch_size=min(count, len(dataset)), images=False)
+    windows = DemoWindows(dataset, horizon=policy.config.horizon, future_offset=policy.config.future_steps,
+                          batch_size=min(count, len(dataset)), images=False)
     parts, presents = [], []
     with torch.random.fork_rng(devices=[]), torch.no_grad():  # cached views may be drawn at random too
         torch.manual_seed(seed)
@@ -166,8 +167,7 @@ def windows_of(policy: DustPolicy, features: FeatureCache, count: int, seed: int
 
 def present_frame(policy: DustPolicy, features: TensorDict) -> Tensor:
     """The world-model target if nothing moved: the present frame (a frame target), no change (a change target)."""
-    image = policy.normalizer.normalize_vision(features.get("image_tokens"))
-    present = policy.future_targets(image)
+    present = policy.present_target(features)
     return present if policy.config.future_target == "frame" else torch.zeros_like(present)
 
 

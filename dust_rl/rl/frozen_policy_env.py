@@ -151,7 +151,7 @@ class FrozenPolicyEnv(gym.Env):
         out = self.policy.plan_features(self.features, self.generator, action_noise)
         future = out.get("future_tokens", None)
         self.predicted_future = (None if future is None else
-                                 self.policy.normalizer.normalize_vision(future)[0].flatten().cpu().numpy())
+                                 self.policy.standardised_future(future)[0].flatten().cpu().numpy())
         return out.get("action_chunk")[0].cpu()
 
     def close(self) -> None:

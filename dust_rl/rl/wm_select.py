@@ -60,7 +60,7 @@ def collect_rollouts(config: WmSelectConfig, task: str) -> Rollouts:
     for index, record in enumerate(episodes):
         trajectory = trajectories[record.seed]
         plans = trajectory[torch.tensor([replans(t, setup.execute_steps) for t in range(record.length)])]
-        futures.append(policy.normalizer.normalize_vision(plans.get(PREDICTED_FUTURE_KEY)))
+        futures.append(policy.standardised_future(plans.get(PREDICTED_FUTURE_KEY)))
         success.append(torch.full((plans.shape[0],), float(record.success)))
         episode.append(torch.full((plans.shape[0],), index))
     return Rollouts(torch.cat(futures), torch.cat(success), torch.cat(episode), sum(e.length for e in episodes))

@@ -42,8 +42,9 @@ class DatasetBatches:
                                f"{spec['action_dim']} numbers, the policy's {config.state_dim} and "
                                f"{config.action_dim}; episodes mixed into training must come from the same robot")
         self.features = FeatureCache(dataset, policy, progress=progress, store=True)
-        self.windows = DemoWindows(dataset, horizon=config.horizon, batch_size=batch_size, action_key=action_key,
-                                   images=False, start_rows=start_rows, start_fraction=start_fraction)
+        self.windows = DemoWindows(dataset, horizon=config.horizon, future_offset=config.future_steps,
+                                   batch_size=batch_size, action_key=action_key, images=False, start_rows=start_rows,
+                                   start_fraction=start_fraction)
 
     def sample(self) -> TensorDict:
         """A feature batch of ``batch_size`` windows."""

@@ -185,11 +185,15 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     n_video, n_extra = (_share(config.optim.batch_size, fraction) if path else 0 for path, fraction in
                         ((config.data.video_dataset, config.data.video_fraction),
                          (config.data.extra_dataset, config.data.extra_fraction)))
-    windows = DemoWindows(dataset, horizon=policy.config.horizon,
+    windows = DemoWindows(dataset, horizon=policy.config.horizon, future_offset=policy.config.future_steps,
                           batch_size=config.optim.batch_size - n_video - n_extra,
                           images=False, **start_rows)
     if config.init_policy is None:  # a fine-tuned policy keeps the normalisation its weights were trained with
         policy.normalizer.set_vision_stats(features.image_tokens)
+        if policy.config.has_vision:  # every row's frame, as the world model's target sees frames
+            policy.normalizer.set_future_stats(
+                policy.future_targets(policy.normalizer.normalize_vision(rows.to(policy.weights_device)))
+                for rows in features.image_tokens.split(1024))
         if policy.config.has_vision and policy.config.future_target == "change":
             policy.normalizer.set_future_change_scale(_future_change_rms(policy, features, windows))
     # A fixed draw of windows on which every periodic evaluation also scores the world model (wm/skill).
