@@ -124,7 +124,7 @@ def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: Dus
     else:
         policy.to(resolve_device(config.device))
         make, task = finetune_env_factory(config, policy)
-        episodes, trained_s = train_rl(config, make, closed_loop(config, policy, task))
+        episodes, trained_s = train_rl(config, make, eval_runner(config, policy, task))
         extra = {"algorithm": config.algorithm.name, "steps": config.steps,
                  "rl_agent": str(config.out / "rl_agent.pt")}
     report = {
@@ -145,7 +145,7 @@ Run = Callable[[range, TensorDictModuleBase | None], list[Episode]]
 """Closed-loop episodes on seeds, of an actor (None: the base policy)."""
 
 
-def closed_loop(config: RLConfig, policy: DustPolicy, task: str) -> Run:
+def eval_runner(config: RLConfig, policy: DustPolicy, task: str) -> Run:
     """Episodes of ``task`` through ``dust-rl eval``'s runner (:func:`~dust_rl.evaluate.closed_loop.evaluate_task`,
     one worker in this process): of ``policy`` as ``dust-rl eval`` runs it, or of an actor built around it."""
     settings = EvalConfig(policy=config.policy, out=config.out, tasks=(task,), workers=1, videos=0,
@@ -163,7 +163,7 @@ def closed_loop(config: RLConfig, policy: DustPolicy, task: str) -> Run:
 def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv],
              run: Run) -> tuple[dict[str, list[Episode]], float]:
     """Train the SB3 agent on the fine-tuning env (resuming from the newest checkpoint), save it, and run the
-    base and the fine-tuned policy on the evaluation seeds through ``run`` (:func:`closed_loop`); returns their
+    base and the fine-tuned policy on the evaluation seeds through ``run`` (:func:`eval_runner`); returns their
     episodes by row name and the training seconds."""
     began = time.perf_counter()
     env = make()
