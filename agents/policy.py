@@ -493,6 +493,12 @@ class DustPolicy(VLAWrapperBase):
         sets the initial action noise (:meth:`plan`).
         """
         planned = self.plan(tensordict, action_noise=tensordict.get(ACTION_NOISE_KEY, None))
+        return self.write_plan(tensordict, planned, tensordict_out)
+
+    def write_plan(self, tensordict: TensorDictBase, planned: TensorDictBase,
+                   tensordict_out: TensorDictBase | None = None) -> TensorDictBase:
+        """What :meth:`forward` writes of ``planned`` (:meth:`plan`'s output for ``tensordict``), for a caller that
+        plans from features it reads too (a steering agent's policy, :class:`~dust_rl.rl.steering.SteeredPolicy`)."""
         chunk = planned.get("action_chunk")
         out = TensorDict({ACTION_KEY: chunk[..., 0, :]}, batch_size=chunk.shape[:-2], device=chunk.device)
         self._set_action(out, chunk=chunk)

@@ -1,5 +1,5 @@
 """RL fine-tuning envs (noise steering, residual): SB3's env checker, the base policy recovered exactly, bad
-actions named, SAC runs on them with DUST frozen."""
+actions named, SAC runs on them with DUST frozen; their agents play the same episodes in dust-rl eval's runner."""
 
 from __future__ import annotations
 
@@ -11,10 +11,11 @@ import torch
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_checker import check_env
 
-from dust_rl.agents import make_policy
+from dust_rl.agents import make_policy, save_policy
 from dust_rl.agents.execution import episode_generator
 from dust_rl.envs.factory import make_env
-from dust_rl.rl.frozen_policy_env import observation_td
+from dust_rl.evaluate.closed_loop import Episode, EvalConfig, eval_collector, eval_setup, evaluate_task
+from dust_rl.rl.frozen_policy_env import FrozenPolicyEnv, observation_td
 from dust_rl.rl.residual import ResidualEnv
 from dust_rl.rl.steering import NoiseSteeringEnv
 from dust_rl.rl.torchrl_sac import FIXED_STD_ALPHA, torchrl_env, train_sac
@@ -252,3 +253,83 @@ def test_the_residual_agent_can_see_the_future_dust_sampled_with_the_chunk(steer
     with pytest.raises(ValueError, match="world_model needs a policy that predicts the future"):
         ResidualEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE}), action_only,
                     world_model=True)
+
+
+RUNNER_STEPS = 6  # three chunks of execute_steps 2
+
+
+def runner_episodes(policy, tmp_path, actor, seeds: range) -> list[Episode]:
+    """The episodes of ``actor`` (None: the policy itself) in dust-rl eval's runner."""
+    policy.info = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": IMAGE}, "tasks": ["press_button"]}
+    config = EvalConfig(policy=save_policy(policy, tmp_path / "policy.pt"), episodes=len(seeds), seed=seeds.start,
+                        workers=1, videos=0, max_steps=RUNNER_STEPS, device="cpu", progress=False)
+    return evaluate_task(eval_setup(config, policy), "press_button", policy, config, actor)[0]
+
+
+def env_episodes(env: FrozenPolicyEnv, act, seeds: range) -> list[Episode]:
+    """The episodes of the agent ``act`` stepping ``env`` itself."""
+    episodes = []
+    for seed in seeds:
+        obs, _ = env.reset(seed=seed)
+        done = False
+        while not done:
+            obs, _, terminated, truncated, info = env.step(act(obs))
+            done = terminated or truncated
+        episodes.append(Episode.of(seed, info["is_success"], torch.from_numpy(np.stack(env.executed)),
+                                   torch.from_numpy(obs["robot_state"])))
+    return episodes
+
+
+class RecordingAgent:
+    """A deterministic agent whose action depends on every entry it observes; it keeps what it saw."""
+
+    def __init__(self, shape: tuple[int, ...]) -> None:
+        self.shape, self.seen = shape, []
+
+    def __call__(self, obs: dict) -> np.ndarray:
+        self.seen.append(obs)
+        entries = np.concatenate([obs[name].ravel() for name in sorted(obs)])
+        return np.tanh(np.resize(entries, self.shape)).astype(np.float32)
+
+
+def assert_same_views(a: list[dict], b: list[dict]) -> None:
+    assert len(a) == len(b) and all(x.keys() == y.keys() for x, y in zip(a, b, strict=True))
+    assert all(np.array_equal(x[k], y[k]) and x[k].dtype == y[k].dtype for x, y in zip(a, b) for k in x)
+
+
+@pytest.mark.parametrize("method", ["steer", "residual"])
+def test_the_agent_plays_the_envs_episodes_in_the_eval_runner(steering, tmp_path, method):
+    _, policy = steering
+    raw = make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE, "max_episode_steps": RUNNER_STEPS})
+    env = (NoiseSteeringEnv(raw, policy, finite_horizon=True) if method == "steer"
+           else ResidualEnv(raw, policy, world_model=True, finite_horizon=True))
+    seeds = range(7, 9)
+    in_env, in_runner = RecordingAgent(env.action_space.shape), RecordingAgent(env.action_space.shape)
+    expected = env_episodes(env, in_env, seeds)
+    # The same agent, asked through the runner: it sees what the env showed it (the time left and, for the residual,
+    # the base action and the predicted future too), and the episodes are the env's, action for action. (torchrl's
+    # collector asks the policy once on the first reset before it starts, and runs on past the last seed until its
+    # batch of frames is full.)
+    got = runner_episodes(policy, tmp_path, env.closed_loop_actor(in_runner), seeds)
+    assert "time_left" in in_env.seen[0] and len(in_env.seen) == RUNNER_STEPS // (2 if method == "steer" else 1) * 2
+    probe, *played = in_runner.seen
+    assert_same_views([probe, *played[:len(in_env.seen)]], in_env.seen[:1] + in_env.seen)
+    assert got == expected
+    base = runner_episodes(policy, tmp_path, None, seeds)  # the policy alone plays other episodes
+    assert all(e.digest != b.digest for e, b in zip(got, base))
+    env.close()
+
+
+def test_the_runner_names_a_bad_agent_action_and_keeps_a_live_actor_in_this_process(steering, tmp_path):
+    _, policy = steering
+    env = NoiseSteeringEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE}), policy)
+    with pytest.raises(ValueError, match=r"the action must have shape \(28,\)"):
+        runner_episodes(policy, tmp_path, env.closed_loop_actor(lambda obs: np.zeros(7, np.float32)), range(1))
+    residual = ResidualEnv(env.env, policy)
+    with pytest.raises(ValueError, match="NaN"):
+        runner_episodes(policy, tmp_path, residual.closed_loop_actor(lambda obs: np.full(7, np.nan)), range(1))
+    config = EvalConfig(policy=tmp_path / "policy.pt", workers=2, videos=0, device="cpu", progress=False)
+    with pytest.raises(ValueError, match="runs in one local worker, not 2"):
+        eval_collector(eval_setup(config, policy), "press_button", policy, config.worker_pool(), 0,
+                       env.closed_loop_actor(lambda obs: np.zeros(28, np.float32)))
+    env.close()

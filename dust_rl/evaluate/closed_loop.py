@@ -35,8 +35,9 @@ from typing import Annotated, NamedTuple
 import torch
 import tyro
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector
-from torchrl.envs import InitTracker, TransformedEnv
+from torchrl.envs import InitTracker, StepCounter, TransformedEnv
 from tqdm import tqdm
 
 from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy
@@ -48,7 +49,7 @@ from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate.report import plot_loss_curves, write_report
 from dust_rl.evaluate.video import write_episode_video
-from dust_rl.keys import SEED_KEY, STATE_KEY, SUCCESS_KEY
+from dust_rl.keys import SEED_KEY, STATE_KEY, STEP_KEY, SUCCESS_KEY
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import episode_collector, torch_threads
 from dust_rl.runtime.workers import Backend, Workers, ray_runtime
@@ -198,9 +199,13 @@ def paired_comparison(base: Sequence[Episode], other: Sequence[Episode]) -> dict
     return {"gained": gained, "lost": lost, "p_value": min(1.0, 2 * tail)}
 
 
-def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule) -> TransformedEnv:
-    """A torchrl env (VLA keys) resetting from ``schedule``, with ``episode_seed``, ``is_success`` and ``is_init``."""
+def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule, count_steps: bool = False) -> TransformedEnv:
+    """A torchrl env (VLA keys) resetting from ``schedule``, with ``episode_seed``, ``is_success`` and ``is_init``;
+    ``count_steps``: also ``step_count``, the env steps since the reset (torchrl's ``StepCounter``), for an actor
+    that reads it."""
     env = make_torchrl_env(EpisodeSeedWrapper(make_env(env_id, env_kwargs), schedule))
+    if count_steps:
+        env.append_transform(StepCounter())
     env.append_transform(InitTracker())
     return env
 
@@ -220,8 +225,19 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
         CheckpointError: missing or corrupt policy file, or a policy that does not fit the env.
         ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
     """
+    policy = load_policy(config.policy, execute_steps=config.execute_steps)  # checks the range
+    return policy, eval_setup(config, policy.to(resolve_device(config.device)))
+
+
+def eval_setup(config: EvalConfig, policy: DustPolicy) -> EvalSetup:
+    """:func:`prepare` of a policy already loaded from ``config.policy`` and on ``config.device`` (a fine-tuning run
+    evaluates the policy it holds): resolve env, tasks and sampler, check them, set the policy's sampler and runtime.
+
+    Raises:
+        CheckpointError: a policy that does not fit the env.
+        ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
+    """
     device = resolve_device(config.device)
-    policy = load_policy(config.policy, execute_steps=config.execute_steps).to(device)  # checks the range
     env_id = config.env_id or policy.info.get("env_id")
     tasks = tuple(config.tasks or policy.info.get("tasks", ()))
     if not env_id or not tasks:
@@ -243,22 +259,32 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
         raise ConfigError(f"{config.policy}: sampling {config_json(config.sampling)} does not apply: {err}") from err
     sampler = replace(policy.config.sampler_settings, sampler=policy.config.sampler_name)
     policy.set_runtime(config.precision, config.compile)
-    return policy, EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps, str(device),
-                             config.precision, config.compile)
+    return EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps, str(device),
+                     config.precision, config.compile)
 
 
-def eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: Workers,
-                   seed: int) -> contextlib.AbstractContextManager[BaseCollector]:
+def eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: Workers, seed: int,
+                   actor: TensorDictModuleBase | None = None) -> contextlib.AbstractContextManager[BaseCollector]:
     """A collector yielding one whole episode of ``task`` at a time, seeds from ``seed`` on (a context).
 
-    One local worker runs in this process with ``policy``; other workers build theirs from the checkpoint.
+    One local worker runs in this process with ``policy.executor(seeded=True)``, or with ``actor``, a torchrl
+    policy built here around ``policy`` (a fine-tuned RL agent's, :mod:`dust_rl.rl.finetune`; its env counts its
+    steps when it reads ``step_count``); other workers build theirs from the checkpoint.
+
+    Raises:
+        ValueError: an ``actor`` with workers other than one local one (it lives in this process).
     """
+    local = workers.count == 1 and workers.backend == "local"
+    if actor is not None and not local:
+        raise ValueError(f"an actor built in this process runs in one local worker, not {workers.count} "
+                         f"({workers.backend})")
+    count_steps = actor is not None and STEP_KEY in actor.in_keys
     env_fns = [functools.partial(make_eval_env, setup.env_id, {**setup.env_kwargs, "task": task},
-                                 SeedSchedule(seed, worker=worker, num_workers=workers.count))
+                                 SeedSchedule(seed, worker=worker, num_workers=workers.count), count_steps)
                for worker in range(workers.count)]
-    return episode_collector(env_fns, workers, policy=policy.executor(seeded=True),
-                             policy_factory=None if workers.count == 1 and workers.backend == "local"
-                             else functools.partial(make_eval_policy, setup), policy_device=setup.device)
+    return episode_collector(env_fns, workers, policy=policy.executor(seeded=True) if actor is None else actor,
+                             policy_factory=None if local else functools.partial(make_eval_policy, setup),
+                             policy_device=setup.device)
 
 
 def episode_of(trajectory: TensorDictBase) -> Episode:
@@ -307,12 +333,13 @@ def task_row(task: str, episodes: Sequence[Episode], videos: list[dict]) -> dict
             "per_episode": [list(e) for e in episodes], "videos": videos}
 
 
-def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy,
-                  config: EvalConfig) -> tuple[list[Episode], dict[int, TensorDictBase], float, float]:
+def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy, config: EvalConfig,
+                  actor: TensorDictModuleBase | None = None,
+                  ) -> tuple[list[Episode], dict[int, TensorDictBase], float, float]:
     """The episodes of ``task``, the trajectories of the first ``config.videos`` of them, the collector's
-    start-up seconds and the seconds spent running episodes."""
+    start-up seconds and the seconds spent running episodes; ``actor``: see :func:`eval_collector`."""
     start = time.perf_counter()
-    with (eval_collector(setup, task, policy, config.worker_pool(), config.seed) as collector,
+    with (eval_collector(setup, task, policy, config.worker_pool(), config.seed, actor) as collector,
           tqdm(total=config.episodes, desc=f"eval {task}", disable=not config.progress) as bar):
         started = time.perf_counter()
         episodes, kept = run_task(collector, range(config.seed, config.seed + config.episodes), bar, config.videos)

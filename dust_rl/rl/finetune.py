@@ -9,10 +9,16 @@ The imitation policy's weights never change (except with ``self_imitation``,
 which writes new policy files beside it), so the base policy stays one
 flag away. The RL agent's weights are saved as a plain state dict
 (``rl_agent.pt``, read with ``weights_only=True``) rather than SB3's zip,
-whose loader unpickles objects. The base row of the comparison is the base
-policy run through the same env with its own noise (steering; the bounded
-action space cannot hold every draw) or a zero residual, which reproduces its
-evaluated episodes exactly (tested).
+whose loader unpickles objects.
+
+SB3 trains on the gymnasium envs, but every closed-loop episode of the report (the learning curve's points, the
+base, noise-centre and fine-tuned rows) runs through ``dust-rl eval``'s one runner
+(:func:`dust_rl.evaluate.closed_loop.evaluate_task`: a torchrl collector, the seeded chunk executor, the same
+episode records), so an evaluation here and there cannot drift apart. The base row is the policy as ``dust-rl
+eval`` runs it, so its episodes are ``dust-rl eval``'s, digest for digest (tested); the agent acts through the
+env's :meth:`~dust_rl.rl.frozen_policy_env.FrozenPolicyEnv.closed_loop_actor` (steering: a
+:class:`~dust_rl.rl.steering.SteeredPolicy` picks each chunk's noise; residual: a
+:class:`~dust_rl.rl.residual.ResidualCorrection` after the executor), seeing what the env shows it in training.
 
 Every ``checkpoint_every`` RL steps the whole learning state (networks,
 optimisers, replay buffer, counters, RNG; :mod:`dust_rl.rl.checkpoint`) goes
@@ -34,17 +40,24 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-import torch
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
+from tensordict.nn import TensorDictModuleBase
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
-from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, load_policy
 from dust_rl.agents.checkpoint_io import save_checkpoint
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate.closed_loop import BASE_ROW, Episode, paired_comparison, summary_row
+from dust_rl.evaluate.closed_loop import (
+    BASE_ROW,
+    Episode,
+    EvalConfig,
+    eval_setup,
+    evaluate_task,
+    paired_comparison,
+    summary_row,
+)
 from dust_rl.evaluate.report import plot_learning_curve
 from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
@@ -64,7 +77,7 @@ from dust_rl.rl.config import (
 )
 from dust_rl.rl.critic_limits import LayerNormReLU, bound_critic
 from dust_rl.rl.critic_warmup import CriticWarmup
-from dust_rl.rl.frozen_policy_env import FrozenPolicyEnv
+from dust_rl.rl.frozen_policy_env import Act, FrozenPolicyEnv
 from dust_rl.rl.residual import ResidualEnv
 from dust_rl.rl.sb3_logger import sb3_logger
 from dust_rl.rl.self_imitation import self_imitation
@@ -110,7 +123,8 @@ def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: Dus
         trained_s = result["train_seconds"]
     else:
         policy.to(resolve_device(config.device))
-        episodes, trained_s = train_rl(config, finetune_env_factory(config, policy)[0])
+        make, task = finetune_env_factory(config, policy)
+        episodes, trained_s = train_rl(config, make, eval_runner(config, policy, task))
         extra = {"algorithm": config.algorithm.name, "steps": config.steps,
                  "rl_agent": str(config.out / "rl_agent.pt")}
     report = {
@@ -127,10 +141,30 @@ def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: Dus
     return report
 
 
-def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv]) -> tuple[dict[str, list[Episode]], float]:
+Run = Callable[[range, TensorDictModuleBase | None], list[Episode]]
+"""Closed-loop episodes on seeds, of an actor (None: the base policy)."""
+
+
+def eval_runner(config: RLConfig, policy: DustPolicy, task: str) -> Run:
+    """Episodes of ``task`` through ``dust-rl eval``'s runner (:func:`~dust_rl.evaluate.closed_loop.evaluate_task`,
+    one worker in this process): of ``policy`` as ``dust-rl eval`` runs it, or of an actor built around it."""
+    settings = EvalConfig(policy=config.policy, out=config.out, tasks=(task,), workers=1, videos=0,
+                          threads=config.threads, max_steps=config.max_steps, progress=config.progress,
+                          device=config.device)
+    setup = eval_setup(settings, policy)
+
+    def run(seeds: range, actor: TensorDictModuleBase | None) -> list[Episode]:
+        on_seeds = dataclasses.replace(settings, seed=seeds.start, episodes=len(seeds))
+        return evaluate_task(setup, task, policy, on_seeds, actor)[0]
+
+    return run
+
+
+def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv],
+             run: Run) -> tuple[dict[str, list[Episode]], float]:
     """Train the SB3 agent on the fine-tuning env (resuming from the newest checkpoint), save it, and run the
-    base and the fine-tuned policy on the evaluation seeds; returns their episodes by row name and the
-    training seconds."""
+    base and the fine-tuned policy on the evaluation seeds through ``run`` (:func:`eval_runner`); returns their
+    episodes by row name and the training seconds."""
     began = time.perf_counter()
     env = make()
     agent = build_agent(config, env)
@@ -148,9 +182,7 @@ def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv]) -> tuple[dic
     curve = [p for p in _read_curve(curve_path) if p["rl_steps"] <= agent.num_timesteps]  # none past the checkpoint
     curve_seeds = range(config.curve_seed, config.curve_seed + config.curve_episodes)
     if config.eval_every and not curve:  # the curve starts at the base policy (the RL agent's "off" action)
-        curve.append({"rl_steps": 0, "env_steps": 0,
-                      **summary_row(BASE_ROW, _run_episodes(make, lambda obs, env: env.step_base(),
-                                                                 curve_seeds, config.progress))})
+        curve.append({"rl_steps": 0, "env_steps": 0, **summary_row(BASE_ROW, run(curve_seeds, None))})
     sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
     warmup = (CriticWarmup(config.algorithm.critic_warmup)
               if isinstance(config.algorithm, PpoSettings) and config.algorithm.critic_warmup else None)
@@ -160,7 +192,7 @@ def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv]) -> tuple[dic
         last_eval = curve[-1]["rl_steps"] if curve else 0
         if config.eval_every and (agent.num_timesteps >= last_eval + config.eval_every
                                   or agent.num_timesteps >= config.steps):
-            episodes = _run_episodes(make, _tuned_step(agent), curve_seeds, config.progress)
+            episodes = run(curve_seeds, env.closed_loop_actor(_deterministic(agent)))
             curve.append({"rl_steps": agent.num_timesteps, "env_steps": env.env_steps,
                           **summary_row("fine-tuned", episodes)})
             agent.logger.record("eval/curve_success_rate", curve[-1]["success_rate"])
@@ -170,7 +202,6 @@ def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv]) -> tuple[dic
         save_checkpoint_dir(checkpoint, rotation, agent.num_timesteps,
                             {"step": agent.num_timesteps, "env_steps": env.env_steps,
                              "train_seconds": trained_seconds()})
-    env.close()
     trained_s = trained_seconds()
     save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
                     config.out / "rl_agent.pt", RL_AGENT_KIND)
@@ -178,16 +209,17 @@ def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv]) -> tuple[dic
     # The base policy and the fine-tuned one on the same held-out seeds; when steering, also the base policy with
     # the centre of its noise (the RL action 0), which a deterministic steering agent starts from.
     seeds = range(config.eval_seed, config.eval_seed + config.eval_episodes)
-    step_functions = {"base": lambda obs, env: env.step_base()}
+    actors: dict[str, TensorDictModuleBase | None] = {"base": None}
     if isinstance(config, SteerConfig):
         centre = np.zeros(env.action_space.shape, np.float32)
-        step_functions["centre"] = lambda obs, env: env.step(centre)
-    step_functions["fine_tuned"] = _tuned_step(agent)
+        actors["centre"] = env.closed_loop_actor(lambda obs: centre)
+    actors["fine_tuned"] = env.closed_loop_actor(_deterministic(agent))
+    env.close()
     names = {"base": BASE_ROW, "centre": f"{BASE_ROW}, noise at its centre",
              "fine_tuned": f"fine-tuned ({config.method}, {config.algorithm.name})"}
     rows = {}
-    for key, step in step_functions.items():
-        rows[names[key]] = episodes = _run_episodes(make, step, seeds, config.progress)
+    for key, actor in actors.items():
+        rows[names[key]] = episodes = run(seeds, actor)
         agent.logger.record(f"eval/success_rate_{key}", summary_row(key, episodes)["success_rate"])
     agent.logger.dump(agent.num_timesteps)
     return rows, trained_s
@@ -273,31 +305,14 @@ def finetune_env_factory(config: RLConfig, policy: DustPolicy) -> tuple[Callable
     return make, task
 
 
-def _tuned_step(agent: BaseAlgorithm) -> Callable[[dict, FrozenPolicyEnv], tuple]:
-    """An env step with the RL agent's deterministic action."""
-    return lambda obs, env: env.step(agent.predict(obs, deterministic=True)[0])
+def _deterministic(agent: BaseAlgorithm) -> Act:
+    """The RL agent's deterministic action for an observation."""
+    return lambda obs: agent.predict(obs, deterministic=True)[0]
 
 
 def _read_curve(path: pathlib.Path) -> list[dict]:
     """The learning curve written so far (a resumed run continues it); empty for a new run."""
     return json.loads(path.read_text()) if path.is_file() else []
-
-
-def _run_episodes(make: Callable[[], FrozenPolicyEnv], step: Callable[[dict, FrozenPolicyEnv], tuple],
-                  seeds: range, progress: bool) -> list[Episode]:
-    """Closed-loop episodes on ``seeds``; success is the env's ``is_success`` at the end, recorded as
-    :func:`dust_rl.evaluate.closed_loop.evaluate` records its own (equal records: the same episode)."""
-    env, episodes = make(), []
-    for seed in tqdm(seeds, desc="episodes", disable=not progress):
-        obs, _ = env.reset(seed=seed)
-        done, info = False, {}
-        while not done:
-            obs, _, terminated, truncated, info = step(obs, env)
-            done = terminated or truncated
-        episodes.append(Episode.of(seed, info.get("is_success", False), torch.from_numpy(np.stack(env.executed)),
-                                   torch.from_numpy(obs["robot_state"])))
-    env.close()
-    return episodes
 
 
 def _versus_base(row: dict) -> str:
