@@ -209,7 +209,7 @@ def test_bad_tasks_and_sampler_settings_fail_before_any_episode(policy_path, tmp
     with pytest.raises(ConfigError, match="episodes must be >= 1"):
         evaluate(dataclasses.replace(config, episodes=0))
     bare = tiny_policy_file(tmp_path / "bare.pt", minilm, info={})
-    with pytest.raises(ConfigError, match="give env_id and tasks"):
+    with pytest.raises(ConfigError, match="give --env and --tasks"):
         evaluate(EvalConfig(policy=bare, out=tmp_path / "eval"))
     assert not (tmp_path / "eval").exists()
 

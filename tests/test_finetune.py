@@ -31,7 +31,7 @@ from dust_rl.rl.config import (
     SelfImitationConfig,
     SteerConfig,
     WmSelectConfig,
-    grouped_round_training,
+    as_this_version,
     rl_config_from_json,
 )
 from dust_rl.rl.critic_limits import LayerNormReLU
@@ -147,7 +147,7 @@ def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path)
 
 def test_critic_warmup_holds_the_actor_at_the_base_policy_while_the_critic_learns(policy_path):
     config = ResidualConfig(policy=policy_path, steps=16, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
-                            initial_std=0.05, learning_rate=1e-3, progress=False,
+                            initial_std=0.05, lr=1e-3, progress=False,
                             algorithm=PpoSettings(n_steps=8, n_epochs=2, target_kl=0.5, critic_warmup=8))
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
@@ -243,8 +243,8 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         SacSettings(gradient_steps=0)
     with pytest.raises(ConfigError, match="target_kl must be a finite number > 0"):
         PpoSettings(target_kl=0.0)
-    with pytest.raises(ConfigError, match="learning_rate must be a finite number > 0"):
-        SteerConfig(policy=policy_path, learning_rate=float("nan"))
+    with pytest.raises(ConfigError, match="lr must be a finite number > 0"):
+        SteerConfig(policy=policy_path, lr=float("nan"))
     with pytest.raises(ConfigError, match="net_arch"):
         SteerConfig(policy=policy_path, net_arch=())
     with pytest.raises(ConfigError, match="rollouts >= 5"):
@@ -416,9 +416,10 @@ def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
 
 def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own_settings():
     old = {"method": "residual", "policy": "p.pt", "out": "runs/ft", "algorithm": "ppo", "n_steps": 512,
-           "target_kl": 0.01, "gradient_steps": 1, "net_arch": [16], "world_model_obs": True}
+           "target_kl": 0.01, "gradient_steps": 1, "net_arch": [16], "world_model_obs": True, "learning_rate": 1e-3}
     config = rl_config_from_json(old, device="cpu")
     assert isinstance(config, ResidualConfig) and config.world_model_obs and config.device == "cpu"
+    assert config.lr == 1e-3  # the learning rate's earlier name
     assert config.algorithm == PpoSettings(n_steps=512, target_kl=0.01) and config.net_arch == (16,)
     new = SteerConfig(policy=pathlib.Path("p.pt"), algorithm=SacSettings(q_bounds=(0.0, 1.0)))
     assert rl_config_from_json(json.loads(json.dumps(dataclasses.asdict(new), default=str))) == new
@@ -429,5 +430,5 @@ def test_a_self_imitation_run_from_before_the_settings_groups_reads_as_todays():
         optim=OptimSettings(steps=7), data=RoundData(extra_action_key="expert_action"))))
     before = {**today, "train": as_before_the_groups(today["train"])}
     assert before["train"]["steps"] == 7 and "optim" not in before["train"]
-    assert grouped_round_training(before) == today
-    assert grouped_round_training({"method": "steer"}) == {"method": "steer"}
+    assert as_this_version(before) == today
+    assert as_this_version({"method": "steer"}) == {"method": "steer"}

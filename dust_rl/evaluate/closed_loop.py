@@ -64,7 +64,7 @@ class EvalConfig:
     """Policy file written by training (save_policy)."""
     out: pathlib.Path = pathlib.Path("runs/eval")
     """Folder for report.json, report.md, success.png, loss.png and videos/."""
-    env_id: str | None = None
+    env: str | None = None
     """Gymnasium env id; default: the one the policy was trained in (policy.info["env_id"])."""
     tasks: tuple[str, ...] = ()
     """Tasks to evaluate; default: the policy's training tasks (policy.info["tasks"])."""
@@ -238,10 +238,10 @@ def eval_setup(config: EvalConfig, policy: DustPolicy) -> EvalSetup:
         ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
     """
     device = resolve_device(config.device)
-    env_id = config.env_id or policy.info.get("env_id")
+    env_id = config.env or policy.info.get("env_id")
     tasks = tuple(config.tasks or policy.info.get("tasks", ()))
     if not env_id or not tasks:
-        raise ConfigError(f"{config.policy} does not record its env id and tasks: give env_id and tasks")
+        raise ConfigError(f"{config.policy} does not record its env id and tasks: give --env and --tasks")
     env_kwargs = {k: v for k, v in policy.info.get("env_kwargs", {}).items() if k != "task"}
     if config.max_steps is not None:
         env_kwargs["max_episode_steps"] = config.max_steps

@@ -173,7 +173,7 @@ class RLSettings(CurveSettings):
     learnt, uniformly random warm-up)."""
     batch_size: int = 256
     """Minibatch size."""
-    learning_rate: float = 3e-4
+    lr: float = 3e-4
     """Optimiser step size (SB3's default)."""
     net_arch: tuple[int, ...] = (256, 256)
     """Hidden layers of the RL actor and critic."""
@@ -200,7 +200,7 @@ class RLSettings(CurveSettings):
         super().__post_init__()
         check_at_least(self, 1, "steps", "batch_size", "checkpoint_every")
         check_at_least(self, 0, "eval_every")
-        check_finite(self, "learning_rate", positive=True)
+        check_finite(self, "lr", positive=True)
         if not 0 < self.gamma <= 1:
             raise ConfigError(f"gamma must be a discount factor in (0, 1], got {self.gamma}")
         if self.initial_std is not None:
@@ -298,9 +298,11 @@ class RoundTraining(TrainSettings):
     seed: tyro.conf.Suppress[int] = 0
 
 
-def grouped_round_training(stored: dict) -> dict:
-    """A stored self-imitation config with its round training's settings as this version groups them
-    (:func:`~dust_rl.train.settings.grouped_json`); other configs as stored."""
+def as_this_version(stored: dict) -> dict:
+    """A stored fine-tuning config by this version's names: the RL learning rate ``lr`` (earlier
+    ``learning_rate``, the one name of ``--lr`` across commands), a self-imitation round's training settings grouped
+    (:func:`~dust_rl.train.settings.grouped_json`)."""
+    stored = {("lr" if key == "learning_rate" else key): value for key, value in stored.items()}
     if not isinstance(stored.get("train"), dict):
         return stored
     return {**stored, "train": grouped_json(stored["train"])}
@@ -359,8 +361,9 @@ ALGORITHM_CONFIGS: dict[str, type] = {"sac": SacSettings, "ppo": PpoSettings}
 
 def rl_config_from_json(values: dict, **changes) -> RLConfig:
     """The config of an SB3 run as its ``config.json`` (or ``rl_agent.pt``) records it, with ``changes``; fields the
-    run predates keep their defaults, and a run from before the algorithm had its own settings (``"algorithm":
-    "sac"``, its settings beside the others) reads too."""
+    run predates keep their defaults, earlier names read as today's (:func:`as_this_version`), and a run from before
+    the algorithm had its own settings (``"algorithm": "sac"``, its settings beside the others) reads too."""
+    values = as_this_version(values)
     cls = METHOD_CONFIGS[values["method"]]
     kwargs = {f.name: values[f.name] for f in dataclasses.fields(cls) if f.init and f.name in values}
     kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in kwargs.items()}

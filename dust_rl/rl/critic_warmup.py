@@ -7,7 +7,7 @@ push (residual PPO from the 58% action-only policy, dense reward, SB3's defaults
 each update moving the policy by an approximate KL of about 0.04 with 40% of its ratios clipped. Fitting the
 critic first on rollouts of the unchanged actor (the policy-evaluation warm-up of fine-tuning recipes such as
 PA-RL and DPPO) gives the first actor update advantages of a fitted value function. It removes one cause of the
-decline, not all: on the same base with ``--learning-rate 1e-4 --target-kl 0.01 --critic-warmup 10240`` the
+decline, not all: on the same base with ``--lr 1e-4 --target-kl 0.01 --critic-warmup 10240`` the
 rollouts held 52-56% through the warm-up and then still fell, more slowly, to 38-44% after 45k env steps
 (BENCHMARKS.md, "Push: residual PPO and steering PPO").
 

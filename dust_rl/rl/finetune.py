@@ -72,7 +72,7 @@ from dust_rl.rl.config import (
     SelfImitationConfig,
     SteerConfig,
     WmSelectConfig,
-    grouped_round_training,
+    as_this_version,
     is_dagger,
 )
 from dust_rl.rl.critic_limits import LayerNormReLU, bound_critic
@@ -99,7 +99,7 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     is_ppo = not isinstance(config, (WmSelectConfig, SelfImitationConfig)) and config.algorithm.name == "ppo"
     resumable = PPO_RESUMABLE_FIELDS if is_ppo else RESUMABLE_FIELDS
     with torch_threads(config.threads):
-        check_run_folder(config, resumable, upgrade=grouped_round_training)
+        check_run_folder(config, resumable, upgrade=as_this_version)
         policy = load_policy(config.policy)
         env_id, env_kwargs, task = policy_env(config, policy)
         if isinstance(config, SelfImitationConfig):
@@ -108,7 +108,7 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
                 raise ConfigError(f"self-imitation trains on the policy's demonstrations too; {demos} is not a "
                                   "dataset: pass --demos")
             config = dataclasses.replace(config, demos=demos)
-        with locked_run_folder(config, resumable, command, upgrade=grouped_round_training):
+        with locked_run_folder(config, resumable, command, upgrade=as_this_version):
             return _finetune_in_folder(config, command, policy, env_id, env_kwargs, task)
 
 
@@ -229,7 +229,7 @@ def build_agent(config: RLConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
     """The SB3 agent ``config`` asks for, on ``env`` (the same settings rebuild it to resume)."""
     settings = config.algorithm
     algorithm = ALGORITHMS[settings.name]
-    kwargs: dict = {"gamma": config.gamma, "learning_rate": config.learning_rate}
+    kwargs: dict = {"gamma": config.gamma, "learning_rate": config.lr}
     target_entropy = None
     if isinstance(settings, SacSettings):  # a replay buffer no larger than the run
         target_entropy = settings.target_entropy
@@ -327,7 +327,7 @@ def _markdown(report: dict) -> str:
         how = (f"a future scorer fitted on {report['config']['rollouts']} base-policy rollouts "
                f"({report['rollout_env_steps']} env steps, {report['train_seconds']:.0f} s; validation ROC AUC {auc})")
     elif report["method"] == "self_imitation":
-        config = grouped_round_training(report["config"])
+        config = as_this_version(report["config"])
         taught = ("and the failures between them, taught the expert"
                   if is_dagger(config["train"]["data"]["extra_action_key"])
                   else "taught their actions")
