@@ -24,7 +24,7 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
                           logging=LoggingSettings(log_every=1, checkpoint_every=2),
                           runtime=RuntimeSettings(threads=1, progress=False))
     config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1, 2), variants=("dust", "action_only"),
-                         seeds=(0,), train=train, vision_steps=(4, 8), episodes=1, image_size=32, max_steps=6,
+                         seeds=(0,), train=train, vision_steps=(4, 8), eval_episodes=1, image_size=32, max_steps=6,
                          video_dataset=tmp_path / "suite" / "data" / "1", progress=False)  # collected by the suite
     results = run_suite(config, "dust-rl bench suite ...")
     assert "budget: collect 2 demonstrations x 1 tasks; train 5 policies x 2 steps" in capsys.readouterr().out
@@ -63,7 +63,7 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     with pytest.raises(ConfigError, match="other settings"):
         run_suite(longer)
     with pytest.raises(ConfigError, match="holds an evaluation of seeds"):
-        run_suite(dataclasses.replace(config, episodes=2))
+        run_suite(dataclasses.replace(config, eval_episodes=2))
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
 
 

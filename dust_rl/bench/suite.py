@@ -82,7 +82,7 @@ class SuiteConfig:
     the demonstrations: `dust-rl collect --seed N`); None: no such row."""
     vision_steps: tuple[int, ...] = (4, 8, 16, 32)
     """N_o of DUST's test-time scaling (async, N_A = 4) and of the synchronous control (N_A = N_o)."""
-    episodes: int = 20
+    eval_episodes: int = 20
     """Evaluation episodes per task and cell."""
     eval_seed: int = HELDOUT_SEED
     """First held-out seed (training data: seeds from 0)."""
@@ -96,7 +96,7 @@ class SuiteConfig:
     """Show progress bars."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "episodes", "image_size", "max_steps", "workers")
+        check_at_least(self, 1, "eval_episodes", "image_size", "max_steps", "workers")
         check_at_least(self, 0, "eval_seed")
         if not self.demos or min(self.demos) < 1 or not self.seeds:
             raise ConfigError("demos and seeds must each list at least one value (demos >= 1)")
@@ -158,7 +158,8 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     steps = config.train.optim.steps
     print(f"budget: collect {max(config.demos)} demonstrations x {len(tasks)} tasks; train {len(cells)} policies "
           f"x {steps} steps ({len(cells) * steps} steps); evaluate {len(jobs)} x "
-          f"{config.episodes} episodes x {len(tasks)} tasks ({len(jobs) * config.episodes * len(tasks)} episodes)")
+          f"{config.eval_episodes} episodes x {len(tasks)} tasks "
+          f"({len(jobs) * config.eval_episodes * len(tasks)} episodes)")
     env_kwargs = {"image_size": config.image_size}
     for demos in sorted(config.demos):  # the first n seeds of every task: each smaller set is a prefix of the next
         collect_demos(config.out / "data" / str(demos), config.env, tasks, demos, env_kwargs=env_kwargs,
@@ -205,11 +206,11 @@ def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Pa
     """
     out = config.out / "eval" / cell.name / name.replace(" ", "_").replace("=", "")
     if not (out / "report.json").is_file():
-        evaluate(EvalConfig(policy=policy, out=out, episodes=config.episodes, seed=config.eval_seed,
+        evaluate(EvalConfig(policy=policy, out=out, episodes=config.eval_episodes, seed=config.eval_seed,
                             workers=config.workers, videos=0, max_steps=config.max_steps,
                             sampling=samplers(config, cell.variant)[name], progress=config.progress), command)
     report = json.loads((out / "report.json").read_text())
-    seeds, max_steps = [config.eval_seed, config.eval_seed + config.episodes - 1], config.max_steps
+    seeds, max_steps = [config.eval_seed, config.eval_seed + config.eval_episodes - 1], config.max_steps
     if report["seeds"] != seeds or report["env_kwargs"].get("max_episode_steps") != max_steps:
         raise ConfigError(f"{out} holds an evaluation of seeds {report['seeds']} (step limit "
                           f"{report['env_kwargs'].get('max_episode_steps')}), the study asks for seeds {seeds} (step "
@@ -235,7 +236,7 @@ def summarise(config: SuiteConfig, jobs: list[tuple[Cell, str]], reports: dict) 
         row["success_rate"] = row["successes"] / row["episodes"]
         row["ci95_low"], row["ci95_high"] = wilson_interval(row["successes"], row["episodes"])
     return {"env": config.env, "task": config.task, "main_demos": max(config.demos),
-            "eval_seeds": [config.eval_seed, config.eval_seed + config.episodes - 1],
+            "eval_seeds": [config.eval_seed, config.eval_seed + config.eval_episodes - 1],
             "train": config_json(config.train),
             "video_dataset": None if config.video_dataset is None else str(config.video_dataset),
             "rows": list(rows.values())}
