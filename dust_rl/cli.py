@@ -1,6 +1,6 @@
 """``dust-rl`` command line.
 
-``dust-rl train --recipe NAME ...`` (and ``quickstart``) starts from a named, measured recipe
+``dust-rl train --recipe NAME ...`` (and ``quickstart``, ``bench suite``) starts from a named, measured recipe
 (:data:`dust_rl.train.recipes.RECIPES`; ``dust-rl train`` without it picks one by the dataset), ``--preset NAME``
 from a named policy size (:data:`dust_rl.agents.config.POLICY_PRESETS`, laid over the recipe's policy); flags
 given beside them (anywhere) still override them.
@@ -101,16 +101,17 @@ def check_utf8(argv: list[str]) -> None:
 
 def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:
     """``args`` without ``--recipe NAME`` and ``--preset NAME``, and the default config they give (None: the
-    command's own), train and quickstart starting from a named recipe (:mod:`dust_rl.train.recipes`).
+    command's own), train, quickstart and bench suite starting from a named recipe (:mod:`dust_rl.train.recipes`).
 
     Raises:
         ConfigError: ``--recipe`` or ``--preset`` where it does not apply, without a name, or with an unknown one.
     """
-    if name not in ("train", "quickstart"):
+    if name not in ("train", "quickstart", "bench suite"):
         for flag in ("--recipe", "--preset"):
             if any(arg == flag or arg.startswith(f"{flag}=") for arg in args):
-                raise ConfigError(f"{flag} applies to dust-rl train and quickstart, not dust-rl {name}")
+                raise ConfigError(f"{flag} applies to dust-rl train, quickstart and bench suite, not dust-rl {name}")
         return args, None
+    from dust_rl.bench.suite import SuiteConfig
     from dust_rl.quickstart import QuickstartConfig
     from dust_rl.train.imitation import TrainConfig
     from dust_rl.train.recipes import starting_settings
@@ -118,9 +119,9 @@ def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:
     args, recipe, settings = starting_settings(name, args)
     if settings is None:
         return args, None
-    if name == "quickstart":
-        return args, QuickstartConfig(recipe=recipe, train=settings)
-    return args, TrainConfig.from_settings(settings, dataset=tyro.MISSING, recipe=recipe)
+    if name == "train":
+        return args, TrainConfig.from_settings(settings, dataset=tyro.MISSING, recipe=recipe)
+    return args, {"quickstart": QuickstartConfig, "bench suite": SuiteConfig}[name](recipe=recipe, train=settings)
 
 
 if __name__ == "__main__":

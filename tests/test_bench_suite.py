@@ -6,12 +6,32 @@ import dataclasses
 import json
 
 import pytest
+import tyro
 from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder
-from dust_rl.bench.suite import AS_TRAINED, VISION_AS_NOISE, WITH_VIDEO, Cell, SuiteConfig, markdown, plan, run_suite
+from dust_rl.bench.suite import (
+    AS_TRAINED,
+    VISION_AS_NOISE,
+    WITH_VIDEO,
+    Cell,
+    SuiteConfig,
+    arm_policy,
+    compare,
+    markdown,
+    pairs,
+    plan,
+    rows_of,
+    run_suite,
+    t_critical,
+    t_interval,
+    trunk_parameters,
+)
+from dust_rl.cli import with_preset
+from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.errors import ConfigError
 from dust_rl.train.imitation import TrainSettings
+from dust_rl.train.recipes import RECIPES, plain, vision_readout
 from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -23,29 +43,67 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
                           optim=OptimSettings(steps=2, batch_size=8),
                           logging=LoggingSettings(log_every=1, checkpoint_every=2),
                           runtime=RuntimeSettings(threads=1, progress=False))
-    config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1, 2), variants=("dust", "action_only"),
-                         seeds=(0,), train=train, vision_steps=(4, 8), eval_episodes=1, image_size=32, max_steps=6,
-                         video_dataset=tmp_path / "suite" / "data" / "1", progress=False)  # collected by the suite
+    config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1, 2),
+                         variants=("dust", "action_only", "dust_no_wm", "action_only_wide"), seeds=(0,),
+                         recipe="plain", train=train, vision_steps=(4, 8), eval_episodes=1, val_episodes=1,
+                         image_size=32, max_steps=6, video_dataset=tmp_path / "suite" / "data" / "1",  # collected
+                         progress=False)                                                               # by the suite
     results = run_suite(config, "dust-rl bench suite ...")
-    assert "budget: collect 2 demonstrations x 1 tasks; train 5 policies x 2 steps" in capsys.readouterr().out
+    assert ("budget: collect 2 demonstrations x 1 tasks; train 7 policies x 2 steps (14 steps); evaluate 12 x 1 "
+            "episodes x 1 tasks and validate 7 x 1 episodes x 1 tasks (19 episodes)") in capsys.readouterr().out
     rows = {(r["variant"], r["demos"], r["sampler"]): r for r in results["rows"]}
-    assert set(rows) == {("dust", 2, AS_TRAINED), ("action_only", 2, AS_TRAINED),
+    assert set(rows) == {("dust", 2, AS_TRAINED), ("action_only", 2, AS_TRAINED), ("dust_no_wm", 2, AS_TRAINED),
+                         ("action_only_wide", 2, AS_TRAINED),
                          ("dust", 2, "async N_A=4 N_o=4"), ("dust", 2, "sync N_A=N_o=4"),
                          ("dust", 2, "async N_A=4 N_o=8"), ("dust", 2, "sync N_A=N_o=8"),
                          ("dust", 2, VISION_AS_NOISE),
                          ("dust", 1, AS_TRAINED), ("action_only", 1, AS_TRAINED), (WITH_VIDEO, 2, AS_TRAINED)}
     assert all(r["episodes"] == 1 and 0 <= r["ci95_low"] <= r["ci95_high"] <= 1 for r in rows.values())
-    assert rows["dust", 2, AS_TRAINED]["trainable_parameters"] > rows["action_only", 2, AS_TRAINED][
-        "trainable_parameters"]
+    assert all(r["per_seed_successes"] == [r["successes"]] and r["seed_ci95"] is None  # one training seed
+               and r["outcomes"] == {"press_button": {"0": "1" if r["successes"] else "0"}} for r in rows.values())
+    parameters = {v: rows[v, 2, AS_TRAINED]["trainable_parameters"] for v in config.variants}
+    assert parameters["dust"] == parameters["dust_no_wm"] > parameters["action_only"]
+    assert parameters["action_only_wide"] >= parameters["dust"]
+    cell = tmp_path / "suite" / "train"
+    no_wm, wide = (load_policy(cell / f"{v}_seed0_demos2" / "policy.pt").config for v in ("dust_no_wm",
+                                                                                         "action_only_wide"))
+    assert (no_wm.variant, no_wm.lambda_wm, no_wm.d_model) == ("dust", 0.0, TINY_POLICY["d_model"])
+    assert wide.variant == "action_only" and wide.d_model > TINY_POLICY["d_model"]
+    assert wide.d_model % wide.n_heads == 0
+    assert results["arms"]["dust_no_wm"] == {"variant": "dust", "policy": {"lambda_wm": 0.0},
+                                             "description": "DUST's network with the world model's loss off "
+                                             "(lambda_wm = 0)"}
+    assert results["arms"]["action_only_wide"]["policy"] == {"d_model": wide.d_model}
+    assert results["arms"]["dust"]["policy"] == {} and results["recipe"] == "plain"
+    assert json.loads((cell / "dust_seed0_demos2" / "config.json").read_text())["config"]["recipe"] == "plain"
     sync8 = json.loads((tmp_path / "suite" / "eval" / "dust_seed0_demos2" / "sync_N_AN_o8" / "report.json").read_text())
     assert sync8["sampler"] == {"name": "sync", "n_action_steps": 8, "vision_steps": 8, "candidates": 1,
                                 "noise_scale": 1.0}
     noise = json.loads((tmp_path / "suite" / "eval" / "dust_seed0_demos2" / "vision_as_noise_N_A4" /
                         "report.json").read_text())
     assert noise["sampler"]["name"] == "action_only"
+    assert [(c["variant"], c["reference"], c["demos"], c["episodes"]) for c in results["comparisons"]] == [
+        ("dust", "action_only", 2, 1), ("dust_no_wm", "dust", 2, 1), ("action_only_wide", "dust", 2, 1),
+        (WITH_VIDEO, "dust", 2, 1), ("dust", "action_only", 1, 1)]
+
+    # Validation: every cell as trained on its own seeds, reported apart.
+    validation = results["validation"]
+    assert validation["seeds"] == [VALIDATION_SEED, VALIDATION_SEED]
+    assert {(r["variant"], r["demos"]) for r in validation["rows"]} == {(v, d) for v, d, s in rows if s == AS_TRAINED}
+    assert all(r["sampler"] == AS_TRAINED for r in validation["rows"])
+    assert len(validation["comparisons"]) == len(results["comparisons"])
+    report = json.loads((tmp_path / "suite" / "validation" / "dust_seed0_demos2" / "as_trained" /
+                         "report.json").read_text())
+    assert report["seeds"] == [VALIDATION_SEED, VALIDATION_SEED]
     markdown = (tmp_path / "suite" / "results.md").read_text()
     assert "## Data scaling" in markdown and "| action_only | 1 | as trained |" in markdown
-    assert f"| {WITH_VIDEO} | 2 | as trained |" in markdown
+    assert f"| {WITH_VIDEO} | 2 | as trained |" in markdown and "recipe plain" in markdown
+    assert "## Paired comparisons" in markdown and "| dust_no_wm | dust | 2 | 1 |" in markdown
+    assert f"- action_only_wide (action_only, d_model {wide.d_model}): action_only with its trunk" in markdown
+    assert f"{parameters['action_only_wide'] / 1e6:.2f}M trainable parameters against dust's" in markdown
+    assert markdown.index("# Validation") > markdown.index("## Paired comparisons") > 0
+    assert "## Paired comparisons on validation seeds" in markdown
+    assert f"Validation seeds {VALIDATION_SEED}..{VALIDATION_SEED}" in markdown
     video_policy = tmp_path / "suite" / "train" / "dust_video_seed0_demos2" / "policy.pt"
     assert load_policy(video_policy).info["video_dataset"] == str(config.video_dataset)
     assert (tmp_path / "suite" / "results.png").read_bytes()[:4] == b"\x89PNG"
@@ -53,8 +111,8 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     # A rerun finds every cell on disk: no training, no evaluation.
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "suite").rglob("*") if p.name in ("policy.pt",
                                                                                             "report.json")}
-    assert len(stamps) == 5 + len(rows)
-    assert run_suite(config)["rows"] == results["rows"]
+    assert len(stamps) == 7 + len(rows) + len(validation["rows"])
+    assert run_suite(config) == results
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
 
     # Cells on disk from other settings are refused, not passed off as this study's.
@@ -64,6 +122,8 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
         run_suite(longer)
     with pytest.raises(ConfigError, match="holds an evaluation of seeds"):
         run_suite(dataclasses.replace(config, eval_episodes=2))
+    with pytest.raises(ConfigError, match="holds an evaluation of seeds"):
+        run_suite(dataclasses.replace(config, val_episodes=2))
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
 
 
@@ -74,6 +134,88 @@ def test_suite_settings_are_checked():
         SuiteConfig(seeds=())
     with pytest.raises(ConfigError, match="would train nothing"):
         SuiteConfig(variants=())
+    with pytest.raises(ConfigError, match="unknown variants"):
+        SuiteConfig(variants=("dust", "wide"))
+    with pytest.raises(ConfigError, match="--reference joint is not one of --variants dust action_only"):
+        SuiteConfig(variants=("dust", "action_only"), reference="joint")
+    with pytest.raises(ConfigError, match="reach the held-out seeds"):
+        SuiteConfig(val_seed=HELDOUT_SEED - 5, val_episodes=10)
+    assert SuiteConfig(val_seed=HELDOUT_SEED - 5, val_episodes=5).validation.seeds == [HELDOUT_SEED - 5,
+                                                                                        HELDOUT_SEED - 1]
+    assert SuiteConfig().validation is None  # no validation unless asked for
+
+
+def test_recipe_gives_the_settings_every_cell_trains_with_and_flags_override_it():
+    args, default = with_preset("bench suite", ["--recipe", "plain", "--train.optim.steps", "7", "--variants",
+                                                "dust_no_wm", "action_only_wide"])
+    config = tyro.cli(SuiteConfig, args=args, default=default)
+    assert config.recipe == "plain" and config.train == dataclasses.replace(plain(), optim=dataclasses.replace(
+        plain().optim, steps=7))
+    assert config.variants == ("dust_no_wm", "action_only_wide")
+    args, default = with_preset("bench suite", ["--train.optim.steps", "7"])
+    config = tyro.cli(SuiteConfig, args=args, default=default)
+    assert (config.recipe, config.train.policy, config.train.readout) == ("vision-readout", vision_readout().policy,
+                                                                          vision_readout().readout)
+    with pytest.raises(ConfigError, match="--preset applies to dust-rl train, not dust-rl bench suite"):
+        with_preset("bench suite", ["--preset", "gpu-base"])
+
+
+def test_a_widened_arm_holds_at_least_the_parameters_of_the_arm_it_widens_to_and_no_more_width():
+    sizes = {"action_dim": 7, "state_dim": 17, "vision_dim": 40, "aux_state_dim": 0}
+    policy = RECIPES["plain"].settings().policy
+    dust = trunk_parameters(arm_policy("dust", policy, sizes), sizes)
+    wide = arm_policy("action_only_wide", policy, sizes)
+    assert wide.variant == "action_only" and wide.d_model % policy.n_heads == 0
+    assert trunk_parameters(wide, sizes) >= dust > trunk_parameters(
+        dataclasses.replace(wide, d_model=wide.d_model - policy.n_heads), sizes)
+    assert arm_policy("dust_no_wm", policy, sizes) == dataclasses.replace(policy, lambda_wm=0.0)
+    assert arm_policy("joint", policy, sizes) == dataclasses.replace(policy, variant="joint")
+
+
+def test_t_interval_is_students_over_the_training_seeds():
+    assert [round(t_critical(df), 3) for df in (1, 2, 4, 9, 29)] == [12.706, 4.303, 2.776, 2.262, 2.045]
+    low, high = t_interval([0.5, 0.6, 0.7])  # mean 0.6, sd 0.1: 0.6 -/+ 4.303 * 0.1 / sqrt(3)
+    assert low == pytest.approx(0.6 - 0.24841, abs=1e-5) and high == pytest.approx(0.6 + 0.24841, abs=1e-5)
+    assert t_interval([0.9, 1.0]) == [pytest.approx(0.95 - 12.706 * 0.05, abs=1e-4), 1.0]  # clipped to [0, 1]
+    assert t_interval([0.4]) is None
+
+
+def report(task_outcomes: dict[str, str], first_seed: int = 100) -> dict:
+    """An evaluation report (the entries the study reads) of each task's episodes, "1" a success, from
+    ``first_seed``, listed in reverse seed order (worker processes finish in any order)."""
+    tasks = [{"task": task, "per_episode": [[first_seed + i, flag == "1", 5, ""] for i, flag in enumerate(flags)][::-1]}
+             for task, flags in task_outcomes.items()]
+    successes = sum(flags.count("1") for flags in task_outcomes.values())
+    episodes = sum(len(flags) for flags in task_outcomes.values())
+    return {"trainable_parameters": 1000, "tasks": tasks,
+            "overall": {"successes": successes, "episodes": episodes, "success_rate": successes / episodes}}
+
+
+def test_rows_keep_each_episode_and_the_comparisons_pair_them_by_task_evaluation_and_training_seed():
+    outcomes = {("dust", 0): {"a": "1101", "b": "0011"}, ("dust", 1): {"a": "1111", "b": "0000"},
+                ("action_only", 0): {"a": "0101", "b": "0010"}, ("action_only", 1): {"a": "0111", "b": "1000"},
+                ("joint", 0): {"a": "1101", "b": "0011"}, ("joint", 1): {"a": "1111", "b": "0000"}}
+    jobs = [(Cell(v, s, 10), AS_TRAINED) for v, s in outcomes]
+    rows = rows_of(jobs, {(Cell(v, s, 10), AS_TRAINED): report(o) for (v, s), o in outcomes.items()}, [100, 103])
+    dust = rows[0]
+    assert dust["outcomes"] == {"a": {"0": "1101", "1": "1111"}, "b": {"0": "0011", "1": "0000"}}
+    assert (dust["seeds"], dust["per_seed_successes"], dust["per_seed"]) == ([0, 1], [5, 4], [5 / 8, 4 / 8])
+    assert (dust["successes"], dust["episodes"]) == (9, 16) and dust["seed_ci95"] == t_interval([5 / 8, 4 / 8])
+    # dust wins a's first and b's last episode of seed 0 and a's first of seed 1, loses b's first of seed 1:
+    # 3 won, 1 lost, p = 2 * (1 + 4) / 2**4
+    assert compare(rows, None) == [{"variant": "dust", "reference": "action_only", "demos": 10, "episodes": 16,
+                                    "gained": 3, "lost": 1, "p_value": 0.625},
+                                   {"variant": "joint", "reference": "dust", "demos": 10, "episodes": 16,
+                                    "gained": 0, "lost": 0, "p_value": 1.0}]
+    assert compare(rows, "action_only")[1] == {"variant": "joint", "reference": "action_only", "demos": 10,
+                                               "episodes": 16, "gained": 3, "lost": 1, "p_value": 0.625}
+
+
+def test_pairs_compare_dust_with_action_only_and_every_other_arm_with_dust_or_all_with_the_reference():
+    arms = ["dust", "action_only", "joint", "dust_no_wm"]
+    assert pairs(arms) == [("dust", "action_only"), ("joint", "dust"), ("dust_no_wm", "dust")]
+    assert pairs(arms, "joint") == [("dust", "joint"), ("action_only", "joint"), ("dust_no_wm", "joint")]
+    assert pairs(["action_only", "joint"]) == [] and pairs(["dust", "joint"], "action_only") == []
 
 
 def test_no_variants_with_a_video_dataset_plans_only_the_action_free_row(tmp_path):
@@ -84,8 +226,12 @@ def test_no_variants_with_a_video_dataset_plans_only_the_action_free_row(tmp_pat
 
 def test_the_tables_leave_out_parts_the_study_did_not_run():
     row = {"variant": "joint", "demos": 200, "sampler": AS_TRAINED, "trainable_parameters": 2e6, "success_rate": 0.8,
-           "successes": 40, "episodes": 50, "ci95_low": 0.67, "ci95_high": 0.89, "per_seed": [0.8]}
+           "successes": 80, "episodes": 100, "ci95_low": 0.71, "ci95_high": 0.87, "per_seed": [0.76, 0.84],
+           "seeds": [0, 1], "per_seed_successes": [38, 42], "seed_ci95": [0.29, 1.0]}
     text = markdown({"task": "press_button", "env": "DustFranka-v0", "eval_seeds": [10000, 10049], "main_demos": 200,
-                     "rows": [row, {**row, "variant": "action_only"}]}, None)
-    assert "| joint | 200 | as trained | 2.00M | 80% (40/50) | 67-89% | 80% |" in text
+                     "recipe": "plain", "arms": {"joint": {"variant": "joint", "policy": {}, "description": "."}},
+                     "rows": [row, {**row, "variant": "action_only"}], "comparisons": [], "validation": None}, None)
+    assert ("| joint | 200 | as trained | 2.00M | 80% (80/100) | 71-87% | 29-100% | 0: 76% (38/50) / 1: 84% (42/50) "
+            "|") in text
     assert "## Variants" in text and "## Data scaling" not in text and "## DUST's samplers" not in text
+    assert "## Paired comparisons" not in text and "# Validation" not in text and "- joint" not in text

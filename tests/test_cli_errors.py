@@ -244,7 +244,8 @@ def test_preset_sets_the_policy_size_over_the_recipe_and_flags_override_both(tra
     assert "--preset applies to dust-rl train, not dust-rl quickstart" in error_of(["quickstart", "--preset",
                                                                                   "gpu-base"])
     for flag in ("--preset", "--recipe=plain"):
-        assert "applies to dust-rl train and quickstart" in error_of(["eval", "--policy", "p.pt", flag, "gpu-base"])
+        assert "applies to dust-rl train, quickstart and bench suite" in error_of(["eval", "--policy", "p.pt", flag,
+                                                                                  "gpu-base"])
     assert not (tmp_path / "r").exists()
 
 

@@ -24,40 +24,104 @@ folder take turns (the second waits while the first collects). The budget (episo
 steps, evaluation episodes) is printed before anything runs. Output:
 ``results.json``, ``results.md`` (the paper's form: success with 95%
 intervals, episodes pooled over training seeds) and ``results.png`` (bars).
+
+Every cell trains from one named recipe (``--recipe``, :data:`dust_rl.train.recipes.RECIPES`; ``plain`` feeds
+no privileged state), recorded in ``results.json``. Beside the paper's five variants the comparison has two
+control arms (:data:`ARMS`): ``dust_no_wm``, DUST's network without the world model's loss (does the world model,
+or the second stream's capacity, make the difference?), and ``action_only_wide``, action_only widened to at least
+DUST's parameters. A seed-level interval (the training seed is the unit a claim generalises over) stands beside
+the pooled Wilson interval, and every arm is compared with its reference on the same episodes (same task,
+evaluation seed and training seed: the discordant pairs and their exact McNemar p). ``--val-episodes`` also
+evaluates every cell on validation seeds, reported apart from the held-out ones, to choose settings (a step
+count: one study per ``--train.optim.steps``) on validation and report them on held-out seeds.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import pathlib
+import statistics
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 from matplotlib.figure import Figure
 
-from dust_rl.agents import VARIANTS, SamplerConfig
-from dust_rl.agents.config import MAX_STEPS, Variant
-from dust_rl.data import collect_demos
-from dust_rl.data.seeding import HELDOUT_SEED
+from dust_rl.agents import VARIANTS, PolicyConfig, SamplerConfig
+from dust_rl.agents.backbone import resolve_image_encoder
+from dust_rl.agents.config import MAX_STEPS, DustConfig, Variant
+from dust_rl.data import DemoDataset, collect_demos
+from dust_rl.data.features import dataset_policy_kwargs, env_state_width
+from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.envs.factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
-from dust_rl.evaluate.closed_loop import EvalConfig, evaluate, wilson_interval
+from dust_rl.evaluate.closed_loop import Episode, EvalConfig, evaluate, paired_comparison, wilson_interval
 from dust_rl.evaluate.report import save_png
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import check_run_folder
 from dust_rl.train.imitation import RESUMABLE_FIELDS, TrainConfig, TrainSettings, train
-from dust_rl.train.recipes import vision_readout
+from dust_rl.train.recipes import RECIPES, RecipeName
 from dust_rl.train.settings import grouped_json
 
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
 VISION_AS_NOISE = "vision as noise N_A=4"  # DUST's actions sampled with its world-model stream left as noise
+DEFAULT_RECIPE = "vision-readout"  # the quickstart's: a comparison means little where every variant fails
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One arm of the comparison: a network variant trained with the study's recipe, with some of the recipe's
+    policy settings changed."""
+
+    variant: Variant
+    description: str
+    policy: tuple[tuple[str, object], ...] = ()
+    """Policy settings (fields of :class:`~dust_rl.agents.PolicyConfig`) laid over the recipe's."""
+    widen_to: Variant | None = None
+    """Widen ``d_model`` (in steps of ``n_heads``) until the trunk holds at least as many parameters as this
+    variant's at the recipe's width."""
+
+
+# Every arm of the study, by the name `--variants` takes: the paper's five variants, then two controls.
+ARMS: dict[str, Arm] = {
+    "dust": Arm("dust", "two MMDiT streams, decoupled noise (the paper's DUST)"),
+    "mmdit_shared": Arm("mmdit_shared", "two MMDiT streams, one shared noise level"),
+    "decoupled": Arm("decoupled", "one DiT stream holding both modalities, decoupled noise"),
+    "joint": Arm("joint", "one DiT stream holding both modalities, one shared noise level"),
+    "action_only": Arm("action_only", "the actions alone, no vision stream"),
+    "dust_no_wm": Arm("dust", "DUST's network with the world model's loss off (lambda_wm = 0)",
+                      policy=(("lambda_wm", 0.0),)),
+    "action_only_wide": Arm("action_only", "action_only with its trunk widened to at least DUST's parameters",
+                            widen_to="dust"),
+}
+ArmName = Literal[tuple(ARMS)]  # type: ignore[valid-type]
+# The default comparisons: DUST against action_only, every other arm against DUST.
+MAIN_ARM, BASELINE_ARM = "dust", "action_only"
+
+
+@dataclass(frozen=True)
+class Split:
+    """A range of evaluation seeds: held-out (to report) or validation (to choose settings on)."""
+
+    folder: str
+    """Folder of its evaluations under the study's ``out``."""
+    first: int
+    episodes: int
+
+    @property
+    def seeds(self) -> list[int]:
+        """The first and last seed."""
+        return [self.first, self.first + self.episodes - 1]
 
 
 @dataclass
 class SuiteConfig:
-    """Train the paper's five variants on the same data and seeds, evaluate them on the same held-out seeds."""
+    """Train the paper's five variants (and two control arms) on the same data and seeds, evaluate them on the
+    same held-out seeds."""
 
     out: pathlib.Path = pathlib.Path("runs/bench/suite")
     """Folder of every cell (data, train, eval) and of results.json / .md / .png; rerun to resume."""
@@ -67,15 +131,22 @@ class SuiteConfig:
     """Task name, comma-separated names, or `all` (one language-conditioned policy per cell)."""
     demos: tuple[int, ...] = (50, 100, 200)
     """Demonstrations per task; the largest trains every variant, the others give the data-scaling row."""
-    variants: tuple[Variant, ...] = VARIANTS
-    """Variants to compare (the first two of the data-scaling row: dust and action_only, when listed); none, with
-    `video_dataset`: only the action-free row (its baseline DUST cells trained elsewhere)."""
+    variants: tuple[ArmName, ...] = VARIANTS
+    """Arms to compare: the paper's five variants and the controls dust_no_wm (DUST without its world-model
+    loss) and action_only_wide (action_only widened to at least DUST's parameters); dust and action_only also
+    give the data-scaling row. None, with `video_dataset`: only the action-free row (its baseline DUST cells
+    trained elsewhere)."""
     seeds: tuple[int, ...] = (0, 1)
     """Training seeds; each cell's episodes are pooled over them."""
-    train: TrainSettings = field(default_factory=vision_readout)
-    """The recipe every cell trains with (`--train.optim.steps`, `--train.policy.d-model` ...; its variant and
-    seed are the cell's); default: the quickstart's, which solves press_button in minutes (a comparison means
-    little where every variant fails)."""
+    recipe: RecipeName = DEFAULT_RECIPE
+    """The named recipe every cell trains from (`dust-rl train --help` lists them; `plain`: no privileged state;
+    `--train.*` flags override it); default: the quickstart's, which solves press_button in minutes."""
+    train: TrainSettings = field(default_factory=RECIPES[DEFAULT_RECIPE].settings)
+    """The settings every cell trains with (`--train.optim.steps`, `--train.policy.d-model` ...; defaults from
+    `recipe`; its variant and seed are the cell's)."""
+    reference: ArmName | None = None
+    """The arm every other arm is compared with, episode by episode; None: dust against action_only and every
+    other arm against dust."""
     video_dataset: pathlib.Path | None = None
     """Episodes of the same robot and cameras (of the same tasks with a read-out, as in the default recipe) that
     DUST also trains on with their actions dropped, one more row at the largest demo count (e.g. more layouts than
@@ -86,6 +157,11 @@ class SuiteConfig:
     """Evaluation episodes per task and cell."""
     eval_seed: int = HELDOUT_SEED
     """First held-out seed (training data: seeds from 0)."""
+    val_episodes: int = 0
+    """Validation episodes per task and cell (as trained), reported apart from the held-out ones: choose settings
+    on these; 0: none."""
+    val_seed: int = VALIDATION_SEED
+    """First validation seed (its episodes must not reach the held-out seeds)."""
     image_size: int = 128
     """Camera resolution of the collected data."""
     max_steps: int | None = None
@@ -97,20 +173,38 @@ class SuiteConfig:
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "eval_episodes", "image_size", "max_steps", "workers")
-        check_at_least(self, 0, "eval_seed")
+        check_at_least(self, 0, "eval_seed", "val_episodes", "val_seed")
         if not self.demos or min(self.demos) < 1 or not self.seeds:
             raise ConfigError("demos and seeds must each list at least one value (demos >= 1)")
         if not self.variants and self.video_dataset is None:
             raise ConfigError("variants is empty and there is no --video-dataset: the study would train nothing")
+        if unknown := [v for v in self.variants if v not in ARMS]:
+            raise ConfigError(f"unknown variants {unknown}: --variants takes {', '.join(ARMS)}")
+        if self.reference is not None and self.reference not in self.variants:
+            raise ConfigError(f"--reference {self.reference} is not one of --variants {' '.join(self.variants)}")
         if any(v % 4 or not 4 <= v <= MAX_STEPS for v in self.vision_steps):  # N_o steps, sync and async
             raise ConfigError(f"vision_steps must be multiples of N_A = 4 in [4, {MAX_STEPS}], got {self.vision_steps}")
+        held_out, validation = self.heldout.seeds, self.validation.seeds if self.validation else None
+        if validation and validation[0] <= held_out[1] and held_out[0] <= validation[1]:
+            raise ConfigError(f"validation seeds {validation[0]}..{validation[1]} reach the held-out seeds "
+                              f"{held_out[0]}..{held_out[1]}; give another --val-seed")
+
+    @property
+    def heldout(self) -> Split:
+        """The seeds every cell is reported on."""
+        return Split("eval", self.eval_seed, self.eval_episodes)
+
+    @property
+    def validation(self) -> Split | None:
+        """The seeds every cell is validated on (None: no validation)."""
+        return Split("validation", self.val_seed, self.val_episodes) if self.val_episodes else None
 
 
 @dataclass(frozen=True)
 class Cell:
     """One trained policy of the study."""
 
-    variant: str
+    variant: str  # the arm's name (ARMS)
     seed: int
     demos: int
     video: bool = False  # trained with the action-free episodes too
@@ -121,12 +215,12 @@ class Cell:
 
     @property
     def label(self) -> str:
-        """The variant as the tables name it."""
+        """The arm as the tables name it."""
         return WITH_VIDEO if self.video else self.variant
 
 
 def samplers(config: SuiteConfig, variant: str) -> dict[str, SamplerConfig | None]:
-    """What each policy of ``variant`` is evaluated with, by name: as trained, and for DUST the test-time
+    """What each policy of arm ``variant`` is evaluated with, by name: as trained, and for DUST the test-time
     scaling (async, N_A = 4, N_o = q * 4), the synchronous control (N_A = N_o) and its actions sampled with the
     vision stream left as noise (does acting use the predicted future, or did the world model only shape training?)."""
     runs: dict[str, SamplerConfig | None] = {AS_TRAINED: None}
@@ -139,10 +233,10 @@ def samplers(config: SuiteConfig, variant: str) -> dict[str, SamplerConfig | Non
 
 
 def plan(config: SuiteConfig) -> list[tuple[Cell, str]]:
-    """Every (cell, sampler) evaluation of the study."""
+    """Every (cell, sampler) evaluation of the study on held-out seeds."""
     main = max(config.demos)
     cells = [Cell(v, s, main) for v in config.variants for s in config.seeds]
-    scaling = [v for v in ("dust", "action_only") if v in config.variants]
+    scaling = [v for v in (MAIN_ARM, BASELINE_ARM) if v in config.variants]
     cells += [Cell(v, s, n) for n in sorted(config.demos) if n != main for v in scaling for s in config.seeds]
     if config.video_dataset is not None:
         cells += [Cell("dust", s, main, video=True) for s in config.seeds]
@@ -155,28 +249,81 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     tasks = env_tasks(config.env, config.task)
     jobs = plan(config)
     cells = list(dict.fromkeys(cell for cell, _ in jobs))
+    validation = [(cell, AS_TRAINED) for cell in cells] if config.validation else []
     steps = config.train.optim.steps
+    evaluations = (len(jobs) * config.eval_episodes + len(validation) * config.val_episodes) * len(tasks)
     print(f"budget: collect {max(config.demos)} demonstrations x {len(tasks)} tasks; train {len(cells)} policies "
           f"x {steps} steps ({len(cells) * steps} steps); evaluate {len(jobs)} x "
-          f"{config.eval_episodes} episodes x {len(tasks)} tasks "
-          f"({len(jobs) * config.eval_episodes * len(tasks)} episodes)")
+          f"{config.eval_episodes} episodes x {len(tasks)} tasks"
+          + (f" and validate {len(validation)} x {config.val_episodes} episodes x {len(tasks)} tasks"
+             if validation else "") + f" ({evaluations} episodes)")
     env_kwargs = {"image_size": config.image_size}
     for demos in sorted(config.demos):  # the first n seeds of every task: each smaller set is a prefix of the next
         collect_demos(config.out / "data" / str(demos), config.env, tasks, demos, env_kwargs=env_kwargs,
                       workers=config.workers, progress=config.progress, wait_for_writer=True)
-    reports = {}
-    for cell, name in jobs:
-        policy = train_cell(config, cell)
-        reports[cell, name] = evaluate_cell(config, cell, name, policy, command)
-    results = summarise(config, jobs, reports)
+    policies = arm_policies(config, [cell.variant for cell in cells])
+    splits = [(config.heldout, jobs), *([(config.validation, validation)] if validation else [])]
+    reports: dict[str, dict] = {split.folder: {} for split, _ in splits}
+    for split, split_jobs in splits:
+        for cell, name in split_jobs:
+            policy = train_cell(config, cell, policies[cell.variant])
+            reports[split.folder][cell, name] = evaluate_cell(config, cell, name, policy, split, command)
+    results = summarise(config, policies, [(split, split_jobs, reports[split.folder]) for split, split_jobs in splits])
     write_json_atomic(config.out / "results.json", results, indent=2)
     write_text_atomic(config.out / "results.md", markdown(results, command))
     plot(results, config.out / "results.png")
     return results
 
 
-def train_cell(config: SuiteConfig, cell: Cell) -> pathlib.Path:
-    """The cell's policy file, trained (or resumed) unless it is already there.
+def arm_policies(config: SuiteConfig, arms: Sequence[str]) -> dict[str, PolicyConfig]:
+    """The policy settings of each arm: the recipe's with the arm's changes (a widened trunk sized on the
+    largest demonstration set, whose sizes every set shares)."""
+    names = list(dict.fromkeys(arms))
+    sizes = (policy_sizes(config.out / "data" / str(max(config.demos)), config.train.policy)
+             if any(ARMS[name].widen_to for name in names) else {})
+    return {name: arm_policy(name, config.train.policy, sizes) for name in names}
+
+
+def arm_policy(name: str, policy: PolicyConfig, sizes: Mapping[str, int]) -> PolicyConfig:
+    """Arm ``name``'s policy settings: ``policy`` with the arm's variant and changes; a widened arm's ``d_model``
+    the smallest multiple of ``n_heads`` up from the recipe's whose trunk holds at least as many parameters as the
+    arm it widens to (``sizes``: the data's, :func:`policy_sizes`)."""
+    arm = ARMS[name]
+    ours = dataclasses.replace(policy, variant=arm.variant, **dict(arm.policy))
+    if arm.widen_to is None:
+        return ours
+    target = trunk_parameters(dataclasses.replace(policy, variant=arm.widen_to), sizes)
+    while trunk_parameters(ours, sizes) < target:
+        ours = dataclasses.replace(ours, d_model=ours.d_model + ours.n_heads)
+    return ours
+
+
+def policy_sizes(dataset: pathlib.Path, policy: PolicyConfig) -> dict[str, int]:
+    """The sizes besides the policy settings that decide a trunk's parameter count, as training builds the
+    policy for ``dataset`` (:func:`dust_rl.train.imitation.train`): the data's action and state, the image
+    encoder's token, the object state a read-out estimates."""
+    data = DemoDataset(dataset)
+    kwargs = dataset_policy_kwargs(data)
+    return {"action_dim": kwargs["action_dim"], "state_dim": kwargs["state_dim"],
+            "vision_dim": resolve_image_encoder(policy.image_encoder).dim,
+            "aux_state_dim": env_state_width(data) if policy.lambda_aux else 0}
+
+
+def trunk_parameters(policy: PolicyConfig, sizes: Mapping[str, int]) -> int:
+    """Parameters of ``policy``'s trunk with the data's ``sizes`` (condition tokens at ``d_model``, as training
+    builds them), counted without building it (:attr:`~dust_rl.agents.config.DustConfig.n_parameters`).
+
+    Raises:
+        ConfigError: the trunk is over the size cap.
+    """
+    try:
+        return DustConfig(**policy.model_settings(), **sizes, cond_dim=policy.d_model).n_parameters
+    except ValueError as err:
+        raise ConfigError(f"{policy.variant} at d_model {policy.d_model}: {err}") from err
+
+
+def train_cell(config: SuiteConfig, cell: Cell, policy: PolicyConfig) -> pathlib.Path:
+    """The cell's policy file, trained (or resumed) with ``policy`` (its arm's) unless it is already there.
 
     Raises:
         ConfigError: the cell on disk was trained with other settings (``--train.*``) than the study asks for.
@@ -184,12 +331,11 @@ def train_cell(config: SuiteConfig, cell: Cell) -> pathlib.Path:
     out = config.out / "train" / cell.name
     recipe = config.train
     settings = dataclasses.replace(
-        recipe, seed=cell.seed, runtime=dataclasses.replace(recipe.runtime, progress=config.progress),
-        policy=dataclasses.replace(recipe.policy, variant=cell.variant),
+        recipe, seed=cell.seed, runtime=dataclasses.replace(recipe.runtime, progress=config.progress), policy=policy,
         data=dataclasses.replace(recipe.data, video_dataset=config.video_dataset if cell.video
                                  else recipe.data.video_dataset))
     train_config = TrainConfig.from_settings(settings, dataset=config.out / "data" / str(cell.demos), out=out,
-                                             resume=(out / "config.json").is_file())
+                                             resume=(out / "config.json").is_file(), recipe=config.recipe)
     if (out / "policy.pt").is_file():
         # a finished cell is reused only for the same study
         check_run_folder(train_config, RESUMABLE_FIELDS, upgrade=grouped_json)
@@ -198,19 +344,20 @@ def train_cell(config: SuiteConfig, cell: Cell) -> pathlib.Path:
     return out / "policy.pt"
 
 
-def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Path, command: str | None) -> dict:
-    """The cell's evaluation report with sampler ``name``, run unless already on disk.
+def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Path, split: Split,
+                  command: str | None) -> dict:
+    """The cell's evaluation report with sampler ``name`` on ``split``'s seeds, run unless already on disk.
 
     Raises:
         ConfigError: the report on disk is of other episodes (seeds, count or step limit) than the study asks for.
     """
-    out = config.out / "eval" / cell.name / name.replace(" ", "_").replace("=", "")
+    out = config.out / split.folder / cell.name / name.replace(" ", "_").replace("=", "")
     if not (out / "report.json").is_file():
-        evaluate(EvalConfig(policy=policy, out=out, episodes=config.eval_episodes, seed=config.eval_seed,
+        evaluate(EvalConfig(policy=policy, out=out, episodes=split.episodes, seed=split.first,
                             workers=config.workers, videos=0, max_steps=config.max_steps,
                             sampling=samplers(config, cell.variant)[name], progress=config.progress), command)
     report = json.loads((out / "report.json").read_text())
-    seeds, max_steps = [config.eval_seed, config.eval_seed + config.eval_episodes - 1], config.max_steps
+    seeds, max_steps = split.seeds, config.max_steps
     if report["seeds"] != seeds or report["env_kwargs"].get("max_episode_steps") != max_steps:
         raise ConfigError(f"{out} holds an evaluation of seeds {report['seeds']} (step limit "
                           f"{report['env_kwargs'].get('max_episode_steps')}), the study asks for seeds {seeds} (step "
@@ -218,59 +365,208 @@ def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Pa
     return report
 
 
-def summarise(config: SuiteConfig, jobs: list[tuple[Cell, str]], reports: dict) -> dict:
-    """One row per (variant, demos, sampler): successes pooled over the training seeds, with a 95% interval."""
+def summarise(config: SuiteConfig, policies: Mapping[str, PolicyConfig],
+              splits: Sequence[tuple[Split, list[tuple[Cell, str]], dict]]) -> dict:
+    """The study's results: its settings, the arms, and per split of seeds the rows and the paired comparisons
+    (validation apart, under ``validation``)."""
+    (heldout, jobs, reports), *validation = splits
+    arms = {name: {"variant": policy.variant, "description": ARMS[name].description,
+                   "policy": {f.name: getattr(policy, f.name) for f in dataclasses.fields(policy)
+                              if f.name != "variant" and getattr(policy, f.name) != getattr(config.train.policy,
+                                                                                                f.name)}}
+            for name, policy in policies.items()}
+
+    def split_results(split: Split, jobs: list[tuple[Cell, str]], reports: dict) -> dict:
+        rows = rows_of(jobs, reports, split.seeds)
+        return {"rows": rows, "comparisons": compare(rows, config.reference)}
+
+    return {"env": config.env, "task": config.task, "recipe": config.recipe, "main_demos": max(config.demos),
+            "eval_seeds": heldout.seeds, "train": config_json(config.train),
+            "video_dataset": None if config.video_dataset is None else str(config.video_dataset), "arms": arms,
+            **split_results(heldout, jobs, reports),
+            "validation": {"seeds": validation[0][0].seeds, **split_results(*validation[0])} if validation else None}
+
+
+def rows_of(jobs: list[tuple[Cell, str]], reports: dict, eval_seeds: list[int]) -> list[dict]:
+    """One row per (arm, demos, sampler): successes pooled over the training seeds with their 95% Wilson
+    interval, each training seed's success with the t-interval over them, and every episode's outcome (by task
+    and training seed, a string of 1 and 0 in the order of ``eval_seeds``) for paired comparisons."""
     rows: dict[tuple, dict] = {}
     for cell, name in jobs:
         report = reports[cell, name]
         key = (cell.label, cell.demos, name)
         row = rows.setdefault(key, {"variant": cell.label, "demos": cell.demos, "sampler": name, "successes": 0,
-                                    "episodes": 0, "seeds": [], "per_seed": [],
-                                    "trainable_parameters": report["trainable_parameters"]})
+                                    "episodes": 0, "seeds": [], "per_seed": [], "per_seed_successes": [],
+                                    "trainable_parameters": report["trainable_parameters"], "outcomes": {}})
         overall = report["overall"]
         row["successes"] += overall["successes"]
         row["episodes"] += overall["episodes"]
         row["seeds"].append(cell.seed)
         row["per_seed"].append(overall["success_rate"])
+        row["per_seed_successes"].append(overall["successes"])
+        for task in report["tasks"]:
+            success = {seed: bool(ok) for seed, ok, *_ in task["per_episode"]}
+            row["outcomes"].setdefault(task["task"], {})[str(cell.seed)] = "".join(
+                "1" if success[seed] else "0" for seed in range(eval_seeds[0], eval_seeds[1] + 1))
     for row in rows.values():
         row["success_rate"] = row["successes"] / row["episodes"]
         row["ci95_low"], row["ci95_high"] = wilson_interval(row["successes"], row["episodes"])
-    return {"env": config.env, "task": config.task, "main_demos": max(config.demos),
-            "eval_seeds": [config.eval_seed, config.eval_seed + config.eval_episodes - 1],
-            "train": config_json(config.train),
-            "video_dataset": None if config.video_dataset is None else str(config.video_dataset),
-            "rows": list(rows.values())}
+        row["seed_ci95"] = t_interval(row["per_seed"])
+    return list(rows.values())
+
+
+def t_interval(rates: Sequence[float], level: float = 0.95) -> list[float] | None:
+    """Student's t interval of the mean of ``rates`` (one per training seed: the seed is the unit a claim about
+    training generalises over), clipped to [0, 1]; None for fewer than two."""
+    if len(rates) < 2:
+        return None
+    mean = statistics.fmean(rates)
+    half = t_critical(len(rates) - 1, level) * statistics.stdev(rates) / math.sqrt(len(rates))
+    return [max(0.0, mean - half), min(1.0, mean + half)]
+
+
+def t_critical(df: int, level: float = 0.95) -> float:
+    """The two-sided critical value of Student's t with ``df`` degrees of freedom (12.71 at 1, 4.30 at 2, towards
+    1.96 as ``df`` grows, for 95%): bisection on the exact central probability of whole ``df``."""
+    low, high = 0.0, 1e6
+    while high - low > 1e-9 * high:
+        mid = (low + high) / 2
+        low, high = (mid, high) if _t_central(mid, df) < level else (low, mid)
+    return high
+
+
+def _t_central(t: float, df: int) -> float:
+    """P(|T| < t) for Student's t with whole ``df`` degrees of freedom (Abramowitz & Stegun 26.7.3, 26.7.4)."""
+    theta = math.atan(t / math.sqrt(df))
+    c2, odd = math.cos(theta) ** 2, df % 2
+    term, total = math.cos(theta) if odd else 1.0, 0.0
+    for k in range((df - 1) // 2 if odd else df // 2):
+        total += term
+        term *= c2 * (2 * k + 1 + odd) / (2 * k + 2 + odd)
+    return 2 / math.pi * (theta + math.sin(theta) * total) if odd else math.sin(theta) * total
+
+
+def pairs(arms: Sequence[str], reference: str | None = None) -> list[tuple[str, str]]:
+    """(arm, reference) pairs to compare among ``arms``: each against ``reference``; None: dust against
+    action_only and every other arm against dust."""
+    if reference is not None:
+        return [(arm, reference) for arm in arms if arm != reference and reference in arms]
+    first = [(MAIN_ARM, BASELINE_ARM)] if MAIN_ARM in arms and BASELINE_ARM in arms else []
+    return first + [(arm, MAIN_ARM) for arm in arms if MAIN_ARM in arms and arm not in (MAIN_ARM, BASELINE_ARM)]
+
+
+def outcomes(row: dict, seeds: Sequence[int] | None = None) -> dict[tuple[str, int, int], bool] | None:
+    """A row's episodes by (task, training seed, evaluation seed's place), of ``seeds`` only if given (None: the
+    row predates the record of outcomes)."""
+    if "outcomes" not in row:
+        return None
+    return {(task, int(seed), i): flag == "1" for task, by_seed in row["outcomes"].items()
+            for seed, flags in by_seed.items() if seeds is None or int(seed) in seeds for i, flag in enumerate(flags)}
+
+
+def paired(arm: Mapping[tuple, bool], reference: Mapping[tuple, bool]) -> dict:
+    """:func:`~dust_rl.evaluate.closed_loop.paired_comparison` of ``arm`` against ``reference`` over the episodes
+    both have: ``gained``, the episodes the arm wins and the reference loses, ``lost`` the reverse, the exact
+    McNemar ``p_value``, and how many ``episodes`` were paired."""
+    keys = sorted(arm.keys() & reference.keys())
+
+    def as_episodes(outcome: Mapping[tuple, bool]) -> list[Episode]:
+        return [Episode(i, outcome[key], 0, "") for i, key in enumerate(keys)]
+
+    return {"episodes": len(keys), **paired_comparison(as_episodes(reference), as_episodes(arm))}
+
+
+def compare(rows: list[dict], reference: str | None) -> list[dict]:
+    """The paired comparisons of the as-trained rows at each demonstration count (:func:`pairs`)."""
+    found = []
+    for demos in sorted({r["demos"] for r in rows}, reverse=True):
+        by_arm = {r["variant"]: r for r in rows if r["demos"] == demos and r["sampler"] == AS_TRAINED}
+        found += [{"variant": arm, "reference": ref, "demos": demos,
+                   **paired(outcomes(by_arm[arm]), outcomes(by_arm[ref]))}
+                  for arm, ref in pairs(list(by_arm), reference)]
+    return found
+
+
+def percent(rate: float) -> str:
+    return f"{100 * rate:.0f}%"
+
+
+def interval(bounds: Sequence[float] | None) -> str:
+    """A 95% interval in percent ("-" where there is none)."""
+    return "-" if bounds is None else f"{100 * bounds[0]:.0f}-{100 * bounds[1]:.0f}%"
+
+
+def comparison_table(comparisons: list[dict], title: str = "Paired comparisons") -> list[str]:
+    """Markdown lines of the paired comparisons (none: no lines)."""
+    if not comparisons:
+        return []
+    lines = [f"## {title}", "",
+             "Each episode of an arm against its reference's on the same task, evaluation seed and training seed: "
+             "won, the arm succeeds where the reference fails; lost, the reverse; the exact McNemar p of that split.",
+             "", "| arm | reference | demos | paired episodes | won | lost | McNemar p |",
+             "|---|---|---|---|---|---|---|"]
+    lines += [f"| {c['variant']} | {c['reference']} | {c['demos']} | {c['episodes']} | {c['gained']} | {c['lost']} "
+              f"| {c['p_value']:.3g} |" for c in comparisons]
+    return [*lines, ""]
 
 
 def markdown(results: dict, command: str | None) -> str:
-    """The results in the paper's form: the comparison, test-time scaling, data scaling."""
+    """The results in the paper's form: the comparison, test-time scaling, data scaling, the paired comparisons,
+    then the validation seeds' apart."""
     main = results["main_demos"]
 
     def table(title: str, rows: list[dict]) -> list[str]:
         if not rows:  # a study without that part (e.g. --vision-steps with no value, one demo count)
             return []
-        lines = [f"## {title}", "", "| variant | demos | sampler | parameters | success | 95% CI | per seed |",
-                 "|---|---|---|---|---|---|---|"]
+        lines = [f"## {title}", "", "| variant | demos | sampler | parameters | success | 95% CI | seed 95% CI (t) "
+                 "| per training seed |", "|---|---|---|---|---|---|---|---|"]
         for r in rows:
-            per_seed = " / ".join(f"{100 * s:.0f}%" for s in r["per_seed"])
+            episodes = r["episodes"] // len(r["seeds"])
+            per_seed = " / ".join(f"{s}: {percent(rate)} ({k}/{episodes})" for s, rate, k in
+                                  zip(r["seeds"], r["per_seed"], r["per_seed_successes"]))
             lines.append(f"| {r['variant']} | {r['demos']} | {r['sampler']} | {r['trainable_parameters'] / 1e6:.2f}M "
-                         f"| {100 * r['success_rate']:.0f}% ({r['successes']}/{r['episodes']}) | "
-                         f"{100 * r['ci95_low']:.0f}-{100 * r['ci95_high']:.0f}% | {per_seed} |")
+                         f"| {percent(r['success_rate'])} ({r['successes']}/{r['episodes']}) | "
+                         f"{interval([r['ci95_low'], r['ci95_high']])} | {interval(r['seed_ci95'])} | {per_seed} |")
         return [*lines, ""]
 
     rows = results["rows"]
     lines = [f"# Variant comparison: {results['task']} ({results['env']})", "",
-             f"Held-out seeds {results['eval_seeds'][0]}..{results['eval_seeds'][1]} per task; episodes pooled over "
-             "training seeds; every cell trained with the same recipe.", ""]
+             f"Held-out seeds {results['eval_seeds'][0]}..{results['eval_seeds'][1]} per task; every cell trained "
+             f"from recipe {results['recipe']} with the same settings; episodes pooled over training seeds (95% CI: "
+             "Wilson, over the pooled episodes), beside the t-interval over the training seeds' success.", ""]
+    lines += arm_lines(results["arms"], {r["variant"]: r["trainable_parameters"] for r in rows})
     lines += table("Variants", [r for r in rows if r["demos"] == main and r["sampler"] == AS_TRAINED])
     lines += table("DUST's samplers: test-time scaling, the synchronous control, the vision stream as noise",
                    [r for r in rows if r["demos"] == main and r["sampler"] != AS_TRAINED])
-    scaling = [r for r in rows if r["sampler"] == AS_TRAINED and r["variant"] in ("dust", "action_only")]
+    scaling = [r for r in rows if r["sampler"] == AS_TRAINED and r["variant"] in (MAIN_ARM, BASELINE_ARM)]
     if len({r["demos"] for r in scaling}) > 1:  # one demo count: the Variants table already holds these rows
         lines += table("Data scaling", sorted(scaling, key=lambda r: (r["variant"], r["demos"])))
+    lines += comparison_table(results["comparisons"])
+    validation = results["validation"]
+    if validation:
+        seeds = validation["seeds"]
+        lines += ["# Validation", "", f"Validation seeds {seeds[0]}..{seeds[1]} per task, apart from the held-out "
+                  "ones: choose settings on these, report the held-out tables above.", ""]
+        lines += table("Variants on validation seeds", validation["rows"])
+        lines += comparison_table(validation["comparisons"], "Paired comparisons on validation seeds")
     if command:
         lines += ["Reproduce:", "", f"    {command}", ""]
     return "\n".join(lines)
+
+
+def arm_lines(arms: Mapping[str, dict], parameters: Mapping[str, int]) -> list[str]:
+    """One line per arm of ``arms`` (a results file's) that changes the recipe's policy settings: what it changes
+    and, for a widened one, its trainable ``parameters`` against those of the arm it widens to."""
+    lines = []
+    for name, arm in arms.items():
+        if not arm["policy"]:
+            continue
+        changes = ", ".join(f"{k} {v}" for k, v in arm["policy"].items())
+        widen_to = ARMS[name].widen_to if name in ARMS else None
+        size = (f"; {parameters[name] / 1e6:.2f}M trainable parameters against {widen_to}'s "
+                f"{parameters[widen_to] / 1e6:.2f}M" if widen_to in parameters and name in parameters else "")
+        lines.append(f"- {name} ({arm['variant']}, {changes}): {arm['description']}{size}")
+    return [*lines, ""] if lines else []
 
 
 def percent_with_errors(rows: list[dict]) -> tuple[list[float], list[list[float]]]:
