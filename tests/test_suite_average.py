@@ -3,27 +3,31 @@
 from __future__ import annotations
 
 import json
+import pathlib
 import shutil
 
 import pytest
-from conftest import as_before_the_groups
+from conftest import as_before_the_groups, make_tiny_encoder
 from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, save_image_encoder
 from dust_rl.bench.average import AverageConfig, average, average_command
-from dust_rl.bench.suite import AS_TRAINED, SuiteConfig, run_suite
+from dust_rl.bench.suite import AS_TRAINED, SuiteConfig, run_suite, t_interval
 from dust_rl.errors import ConfigError
 from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TrainSettings
+from dust_rl.train.recipes import plain
 from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
+KEPT = pathlib.Path(__file__).parent.parent / "docs" / "results" / "franka_100"  # studies from before the outcomes
 
 
-@pytest.fixture
-def two_studies(tiny_encoder, tmp_path):
+@pytest.fixture(scope="module")
+def two_studies(one_thread, tmp_path_factory):
     """press_button with training seeds 0 and 1, close_drawer with seed 0 only: two real tiny studies."""
-    encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
+    tmp_path = tmp_path_factory.mktemp("studies")
+    encoder = save_image_encoder(make_tiny_encoder(), tmp_path / "encoder.pt")
     train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
                           optim=OptimSettings(steps=2, batch_size=8),
                           logging=LoggingSettings(log_every=1, checkpoint_every=2),
@@ -50,8 +54,16 @@ def test_average_pools_the_shared_seeds_and_refuses_unlike_studies(two_studies, 
             expected += seed0
         assert (column["successes"], column["episodes"]) == (expected, 4)
         assert 0 <= column["ci95"][0] <= column["success_rate"] <= column["ci95"][1] <= 1
+        assert column["per_seed"] == {"0": {"successes": expected, "episodes": 4, "success_rate": expected / 4}}
+        assert column["seed_ci95"] is None  # one training seed shared
+    assert result["recipes"] == ["vision-readout"] and result["without_outcomes"] == []
+    [comparison] = result["comparisons"]
+    assert {k: comparison[k] for k in ("variant", "reference", "demos", "episodes")} == {
+        "variant": "dust", "reference": "action_only", "demos": 1, "episodes": 4}  # seed 0 of two tasks, 2 each
     table = (out / "average.md").read_text()
     assert "| **suite average** |" in table and "left out training seeds 1" in table
+    assert "| per training seed | 0: " in table and "| seed 95% CI (t) | - | - |" in table
+    assert f"| dust | action_only | 1 | 4 | {comparison['gained']} | {comparison['lost']} |" in table
     assert table in capsys.readouterr().out
     assert json.loads((out / "average.json").read_text()) == result
     assert (out / "average.png").read_bytes()[:4] == b"\x89PNG"
@@ -86,6 +98,76 @@ def test_average_pools_the_shared_seeds_and_refuses_unlike_studies(two_studies, 
     results = {**drawer_results, "train": {**drawer_results["train"], "threads": 2, "log_every": 7}}
     (other / "results.json").write_text(json.dumps(results))
     assert average(AverageConfig(studies=(press.out, other)))["variants"] == result["variants"]
+
+    # The settings are compared, not the recipe's name: another recipe is refused, the same settings named
+    # otherwise average.
+    (other / "results.json").write_text(json.dumps({**drawer_results, "recipe": "plain",
+                                                    "train": config_json(plain())}))
+    with pytest.raises(ConfigError, match="other settings"):
+        average(AverageConfig(studies=(press.out, other)))
+    (other / "results.json").write_text(json.dumps({**drawer_results, "recipe": "plain"}))
+    assert average(AverageConfig(studies=(press.out, other)))["recipes"] == ["plain", "vision-readout"]
+
+
+def with_outcomes(study: dict, variant: str, flags: dict[int, str]) -> dict:
+    """``study`` (one task) with ``variant``'s episodes set to ``flags`` per training seed ("1" a success), its
+    per-seed successes to match."""
+    rows = []
+    for row in study["rows"]:
+        if row["variant"] == variant and row["sampler"] == AS_TRAINED:
+            per_seed = [flags[s].count("1") for s in row["seeds"]]
+            row = {**row, "outcomes": {study["task"]: {str(s): flags[s] for s in row["seeds"]}},
+                   "per_seed_successes": per_seed, "per_seed": [k / len(flags[s]) for k, s in zip(per_seed,
+                                                                                                row["seeds"])]}
+        rows.append(row)
+    return {**study, "rows": rows}
+
+
+def write_study(path: pathlib.Path, study: dict) -> pathlib.Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(study))
+    return path
+
+
+def test_average_gives_each_training_seed_and_pairs_episodes_over_tasks_and_seeds(two_studies, tmp_path):
+    (_, press), _ = two_studies  # press_button with training seeds 0 and 1, and the same study as open_drawer
+    studies = []
+    for task in ("press_button", "open_drawer"):
+        study = with_outcomes({**press, "task": task}, "dust", {0: "11", 1: "10"})
+        studies.append(write_study(tmp_path / f"{task}.json", with_outcomes(study, "action_only", {0: "01", 1: "00"})))
+    result = average(AverageConfig(studies=tuple(studies)))
+    dust = result["variants"]["dust"]
+    assert dust["seeds"] == [0, 1] and (dust["successes"], dust["episodes"]) == (6, 8)
+    assert dust["per_seed"] == {"0": {"successes": 4, "episodes": 4, "success_rate": 1.0},
+                                "1": {"successes": 2, "episodes": 4, "success_rate": 0.5}}
+    assert dust["seed_ci95"] == t_interval([1.0, 0.5])
+    # dust wins each task's first episode of seed 0 and of seed 1: 4 won, none lost, p = 2 / 2**4
+    assert result["comparisons"] == [{"variant": "dust", "reference": "action_only", "demos": 1, "episodes": 8,
+                                      "gained": 4, "lost": 0, "p_value": 0.125}]
+    assert average(AverageConfig(studies=tuple(studies), reference="dust"))["comparisons"] == [
+        {"variant": "action_only", "reference": "dust", "demos": 1, "episodes": 8, "gained": 0, "lost": 4,
+         "p_value": 0.125}]
+    with pytest.raises(ConfigError, match="--reference joint was not evaluated in every study"):
+        average(AverageConfig(studies=tuple(studies), reference="joint"))
+
+    # A study from before the outcomes and the recipe were recorded still averages, without paired comparisons.
+    old = {k: v for k, v in json.loads(studies[1].read_text()).items() if k not in ("recipe", "arms", "validation",
+                                                                                     "comparisons")}
+    old["rows"] = [{k: v for k, v in row.items() if k not in ("outcomes", "per_seed_successes", "seed_ci95")}
+                   for row in old["rows"]]
+    old_path = write_study(tmp_path / "old" / "open_drawer.json", old)
+    before = average_command(AverageConfig(studies=(studies[0], old_path), out=tmp_path / "average"))
+    assert before["variants"] == result["variants"] and before["recipes"] == ["vision-readout"]
+    assert before["comparisons"] == [] and before["without_outcomes"] == [str(old_path)]
+    assert "No paired comparisons: " + str(old_path) in (tmp_path / "average" / "average.md").read_text()
+
+
+def test_the_kept_studies_from_before_the_outcomes_still_average():
+    result = average(AverageConfig(studies=tuple(sorted(KEPT.glob("*.json")))))
+    assert len(result["tasks"]) == 8 and result["recipes"] == [] and result["comparisons"] == []
+    dust, action_only = result["variants"]["dust"], result["variants"]["action_only"]
+    assert (dust["successes"], dust["episodes"], action_only["successes"]) == (175, 400, 196)  # as documented
+    assert dust["per_seed"] == {"0": {"successes": 175, "episodes": 400, "success_rate": 175 / 400}}
 
 
 def test_a_study_from_before_a_setting_was_retired_compares_at_its_retired_value_only():

@@ -9,9 +9,13 @@ per variant, and the suite average with its 95% interval. A study can also be gi
 (copied out of its folder, e.g. into ``docs/results/``), so an average outlives the machine its cells ran on.
 
 Only like with like: every study must share the env, the demonstration count, the evaluation seeds and the
-training recipe (up to settings that do not change what is trained: threads, device, logging), and each task
-appears once. A variant's average pools the training seeds that every study trained it with, so each task
-weighs the same (seeds only some studies have are named and left out).
+training settings (up to those that do not change what is trained: threads, device, logging), and each task
+appears once; the settings are compared, not the recipe's name, so a study from before its name was recorded
+compares as what it ran. A variant's average pools the training seeds that every study trained it with, so each
+task weighs the same (seeds only some studies have are named and left out). Beside the pooled interval stand each
+training seed's suite average with the t-interval over them, and every arm's paired comparison with its reference
+over the same (task, evaluation seed, training seed) episodes (:func:`dust_rl.bench.suite.pairs`; studies written
+before the episodes' outcomes were recorded give none).
 """
 
 from __future__ import annotations
@@ -23,7 +27,18 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.figure import Figure
 
-from dust_rl.bench.suite import AS_TRAINED
+from dust_rl.bench.suite import (
+    AS_TRAINED,
+    ArmName,
+    arm_lines,
+    comparison_table,
+    interval,
+    outcomes,
+    paired,
+    pairs,
+    percent,
+    t_interval,
+)
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import wilson_interval
 from dust_rl.evaluate.report import save_png
@@ -45,6 +60,9 @@ class AverageConfig:
     """Folders of `dust-rl bench suite` runs, one task each, or their `results.json` files."""
     out: pathlib.Path = pathlib.Path("runs/bench/suite_average")
     """Folder of `average.md`, `average.json` and `average.png`."""
+    reference: ArmName | None = None
+    """The arm every other arm is compared with, episode by episode; None: dust against action_only and every
+    other arm against dust."""
 
     def __post_init__(self) -> None:
         if len(self.studies) < 2:
@@ -130,6 +148,9 @@ def average(config: AverageConfig) -> dict:
                 if all(v in by_variant for by_variant in rows.values())]
     if not variants:
         raise ConfigError("no variant was evaluated in every study: nothing to average")
+    if config.reference is not None and config.reference not in variants:
+        raise ConfigError(f"--reference {config.reference} was not evaluated in every study (those: "
+                          f"{', '.join(variants)})")
     columns = {}
     for variant in variants:
         seeds = sorted(set.intersection(*(set(by_variant[variant]) for by_variant in rows.values())))
@@ -137,7 +158,8 @@ def average(config: AverageConfig) -> dict:
             raise ConfigError(f"{variant}: no training seed is shared by every study")
         left_out = {task: sorted(set(by_variant[variant]) - set(seeds)) for task, by_variant in rows.items()}
         per_task = {task: sum(by_variant[variant][s] for s in seeds) for task, by_variant in rows.items()}
-        episodes = n * len(seeds)
+        per_seed = {seed: sum(by_variant[variant][seed] for by_variant in rows.values()) for seed in seeds}
+        episodes, seed_episodes = n * len(seeds), n * len(rows)
         successes = sum(per_task.values())
         total = episodes * len(per_task)
         columns[variant] = {
@@ -146,20 +168,48 @@ def average(config: AverageConfig) -> dict:
             "per_task": {task: {"successes": k, "success_rate": k / episodes} for task, k in per_task.items()},
             "successes": successes, "episodes": total, "success_rate": successes / total,
             "ci95": list(wilson_interval(successes, total)),
+            "per_seed": {str(seed): {"successes": k, "episodes": seed_episodes, "success_rate": k / seed_episodes}
+                         for seed, k in per_seed.items()},
+            "seed_ci95": t_interval([k / seed_episodes for k in per_seed.values()]),
             "trainable_parameters": next(r["trainable_parameters"] for r in first["rows"] if r["variant"] == variant),
         }
+    without = [str(path) for path, study in studies if any("outcomes" not in r for r in study["rows"])]
+    arms = next((study["arms"] for _, study in studies if "arms" in study), {})
     return {"env": first["env"], "demos": first["main_demos"], "eval_seeds": first["eval_seeds"],
-            "tasks": sorted(rows), "studies": [str(p) for p in config.studies], "variants": columns}
+            "recipes": sorted({study["recipe"] for _, study in studies if "recipe" in study}),
+            "tasks": sorted(rows), "studies": [str(p) for p in config.studies],
+            "arms": {name: arm for name, arm in arms.items() if name in columns}, "variants": columns,
+            "comparisons": [] if without else compare(studies, columns, config.reference),
+            "without_outcomes": without}
+
+
+def compare(studies: list[tuple[pathlib.Path, dict]], columns: dict[str, dict], reference: str | None) -> list[dict]:
+    """Each arm against its reference (:func:`~dust_rl.bench.suite.pairs`), episode by episode over every task,
+    evaluation seed and the training seeds both columns pool."""
+    found = []
+    for arm, ref in pairs(list(columns), reference):
+        seeds = set(columns[arm]["seeds"]) & set(columns[ref]["seeds"])
+        episodes: dict[str, dict] = {arm: {}, ref: {}}
+        for _, study in studies:
+            for row in study["rows"]:
+                if row["sampler"] == AS_TRAINED and row["demos"] == study["main_demos"] and row["variant"] in episodes:
+                    episodes[row["variant"]].update(outcomes(row, seeds))
+        found.append({"variant": arm, "reference": ref, "demos": studies[0][1]["main_demos"],
+                      **paired(episodes[arm], episodes[ref])})
+    return found
 
 
 def markdown(result: dict, command: str | None) -> str:
     """A row per task, a column per variant, the suite average last."""
     variants = result["variants"]
     names = list(variants)
+    recipes = " / ".join(result["recipes"]) or "not recorded"
     lines = [f"# Suite average: {len(result['tasks'])} tasks of {result['env']}, {result['demos']} demonstrations "
              "per task", "",
              f"Held-out seeds {result['eval_seeds'][0]}..{result['eval_seeds'][1]}; per variant, the training seeds "
-             "every study has (episodes pooled over them).", "",
+             f"every study has (episodes pooled over them; 95% CI: Wilson); recipe {recipes}, the same training "
+             "settings in every study.", "",
+             *arm_lines(result["arms"], {v: c["trainable_parameters"] for v, c in variants.items()}),
              "| task | " + " | ".join(f"{v} ({variants[v]['trainable_parameters'] / 1e6:.2f}M, seeds "
                                       f"{', '.join(map(str, variants[v]['seeds']))})" for v in names) + " |",
              "|---|" + "---|" * len(names)]
@@ -172,7 +222,16 @@ def markdown(result: dict, command: str | None) -> str:
     lines.append("| **suite average** | " + " | ".join(
         f"**{100 * variants[v]['success_rate']:.0f}%** ({variants[v]['successes']}/{variants[v]['episodes']}; "
         f"CI {100 * variants[v]['ci95'][0]:.0f}-{100 * variants[v]['ci95'][1]:.0f}%)" for v in names) + " |")
+    lines.append("| per training seed | " + " | ".join(" / ".join(
+        f"{s}: {percent(t['success_rate'])} ({t['successes']}/{t['episodes']})"
+        for s, t in variants[v]["per_seed"].items()) for v in names) + " |")
+    lines.append("| seed 95% CI (t) | " + " | ".join(interval(variants[v]["seed_ci95"]) for v in names) + " |")
     lines.append("")
+    lines += comparison_table(result["comparisons"])
+    if result["without_outcomes"]:
+        lines.append(f"No paired comparisons: {', '.join(result['without_outcomes'])} predate the record of each "
+                     "episode's outcome; run `dust-rl bench suite` again into those folders (every cell is reused) "
+                     "to rewrite their results.json.")
     for v in names:
         for task, seeds in variants[v]["left_out_seeds"].items():
             lines.append(f"- {v}, {task}: left out training seeds {', '.join(map(str, seeds))} (not in every study)")
