@@ -172,7 +172,7 @@ def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_pa
     config = SteerConfig(policy=policy_path, steps=12, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
                          initial_std=0.5, progress=False,
                          algorithm=SacSettings(learning_starts=4, target_entropy=0.0, initial_alpha=0.01,
-                                               gradient_steps=3))
+                                               updates_per_step=3))
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
@@ -181,7 +181,7 @@ def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_pa
     assert agent.log_ent_coef.exp().item() == pytest.approx(0.01) and agent.target_entropy == 0.0
     start = agent.actor.log_std.bias.detach().clone()
     agent.learn(total_timesteps=12)
-    assert agent._n_updates == 3 * (12 - 4)  # gradient_steps per RL step once learning starts
+    assert agent._n_updates == 3 * (12 - 4)  # updates_per_step per RL step once learning starts
     assert not torch.equal(agent.actor.log_std.bias, start)  # the std is learnt
     assert agent.log_ent_coef.exp().item() != pytest.approx(0.01)
     env.close()
@@ -239,8 +239,8 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         SacSettings(q_bounds=(1.0, 0.0))
     with pytest.raises(ConfigError, match="target_entropy must be a finite number"):
         SacSettings(target_entropy=float("nan"))
-    with pytest.raises(ConfigError, match="gradient_steps"):
-        SacSettings(gradient_steps=0)
+    with pytest.raises(ConfigError, match="updates_per_step"):
+        SacSettings(updates_per_step=0)
     with pytest.raises(ConfigError, match="target_kl must be a finite number > 0"):
         PpoSettings(target_kl=0.0)
     with pytest.raises(ConfigError, match="lr must be a finite number > 0"):
@@ -407,8 +407,8 @@ def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
     assert all(method in help_of() for method in ("steer", "residual", "wm-select", "self-imitation"))
     steer, sac, ppo = help_of("steer"), help_of("steer", "sac"), help_of("steer", "ppo")
     assert "--noise-bound" in steer and "--residual-scale" not in steer and "--candidates" not in steer
-    assert "--gradient-steps" in sac and "--n-steps" not in sac
-    assert "--n-steps" in ppo and "--gradient-steps" not in ppo
+    assert "--updates-per-step" in sac and "--n-steps" not in sac
+    assert "--n-steps" in ppo and "--updates-per-step" not in ppo
     rounds = help_of("self-imitation")
     assert "--train.optim.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
     assert "--steps" not in help_of("wm-select")

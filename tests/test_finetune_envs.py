@@ -47,8 +47,18 @@ def test_sb3_accepts_the_steering_env(steering):
     assert env.observation_space["features"].shape == (2 * policy.config.vision_dim + policy.backbone.text_dim,)
 
 
-def test_the_policy_own_noise_gives_its_own_chunk(steering):
-    env, policy = steering
+def action_only_policy(tiny_encoder, minilm, **settings):
+    """A tiny action-only policy for the steering fixture's env: no vision stream, so no vision noise."""
+    torch.manual_seed(0)
+    return make_policy("action_only", image_encoder=tiny_encoder, text_encoder=minilm, cameras=["front", "wrist"],
+                       action_dim=7, state_dim=17, horizon=4, execute_steps=2, d_model=32, n_heads=2, n_mmdit=2,
+                       n_dit=0, **settings)
+
+
+def test_the_policy_own_noise_gives_its_own_chunk(tiny_encoder, minilm):
+    # Exactly for a policy without a vision stream; DUST's fixed vision noise: the next test.
+    policy = action_only_policy(tiny_encoder, minilm)
+    env = NoiseSteeringEnv(make_env("DustFranka-v0", {"task": "press_button", "image_size": IMAGE}), policy)
     obs, _ = env.reset(seed=3)
     features = env.features
     generator = episode_generator(3)
@@ -64,6 +74,29 @@ def test_the_policy_own_noise_gives_its_own_chunk(steering):
     env.reset(seed=3)
     steered, *_ = env.step((-drawn / 2.0).flatten().numpy())
     assert not np.array_equal(steered["robot_state"], obs["robot_state"])  # other noise, other chunk
+    env.close()
+
+
+def test_a_steered_chunk_is_a_function_of_the_latent_alone(steering):
+    env, policy = steering
+    action = np.linspace(-1, 1, 28, dtype=np.float32)
+    env.reset(seed=3)
+    features = env.features
+    chunk = env.steering.plan(policy, features, action[None])["action_chunk"]
+    torch.manual_seed(123)  # other global and episode noise streams change nothing
+    env.generator = episode_generator(99)
+    again = env.steering.plan(policy, features, action[None], env.generator)["action_chunk"]
+    assert torch.equal(chunk, again)
+    # The same latent at two steps of two episodes gives one chunk; a drawn vision noise (the base policy's) would
+    # give each plan its own.
+    noise = env.steering.noise(action[None])
+    drawn = [policy.plan_features(features, episode_generator(seed), noise)["action_chunk"] for seed in (3, 4)]
+    assert not torch.equal(drawn[0], drawn[1]) and not torch.equal(drawn[0], chunk)
+    env.reset(seed=3)
+    first, *_ = env.step(action)
+    env.reset(seed=3)
+    env.generator = episode_generator(99)  # the episode's noise stream elsewhere: the env executes the same chunk
+    assert np.array_equal(env.step(action)[0]["robot_state"], first["robot_state"])
 
 
 def test_a_chunk_of_dense_reward_is_shaping_for_the_discount_per_chunk(steering):
