@@ -93,8 +93,8 @@ class SacSettings:
     learning_starts: int = 1000
     """Steps before the first update (uniformly random actions, unless `--initial-std` is set)."""
     updates_per_step: int = 1
-    """Gradient steps per RL step (of all `--envs` together), the update-to-data ratio (DSRL: 5 per step of 4
-    envs)."""
+    """Gradient steps per RL step (of all `--envs` together), the update-to-data ratio (earlier
+    `--gradient-steps`)."""
     target_entropy: float | None = None
     """Learn the entropy coefficient so the policy keeps this entropy (SB3's `ent_coef="auto"`; DSRL: 0),
     starting from `initial_alpha`; with `--initial-std` the std then starts there and is learnt. None: SB3's
