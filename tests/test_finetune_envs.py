@@ -89,8 +89,9 @@ def test_a_steered_chunk_is_a_function_of_the_latent_alone(steering):
     chunk = env.steering.plan(policy, features, action[None])["action_chunk"]
     torch.manual_seed(123)  # other global and episode noise streams change nothing
     env.generator = episode_generator(99)
+    state = env.generator.get_state()
     again = env.steering.plan(policy, features, action[None], env.generator)["action_chunk"]
-    assert torch.equal(chunk, again)
+    assert torch.equal(chunk, again) and torch.equal(env.generator.get_state(), state)  # nothing drawn
     # The same latent at two steps of two episodes gives one chunk; a drawn vision noise (the base policy's) would
     # give each plan its own.
     noise = env.steering.noise(action[None])
