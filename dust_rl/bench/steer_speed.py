@@ -3,10 +3,11 @@
 Each row builds the fine-tuning envs as ``dust-rl finetune steer --envs N`` does (the policy's task, its
 time limit or ``--max-steps``), always as :class:`~dust_rl.rl.vector.SB3SteeringVecEnv` (N = 1 included, so every
 row times the same path), and an SB3 SAC agent as the run would (``--net-arch``, ``--layer-norm``,
-``--batch-size``). It then times ``rl_steps`` RL steps of collection (``agent.learn`` with the warm-up covering them,
-so no update runs: the envs, the policy's plan and encoders, the agent's action and the replay buffer) and
-``updates`` SAC updates on the transitions collected (``agent.train``). Env steps count the executed actions of
-every env (``execute_steps`` per RL step until an episode ends).
+``--batch-size``). After one untimed RL step (the resets, the agent's setup), it times ``rl_steps`` RL steps of
+collection (``agent.learn`` with the warm-up covering them, so no update runs: the envs, the policy's plan and
+encoders, the agent's action and the replay buffer) and ``updates`` SAC updates on the transitions collected
+(``agent.train``). Env steps count the executed actions of every env (``execute_steps`` per RL step until an
+episode ends).
 
     dust-rl bench steer-speed --policy runs/train/policy.pt [--envs 1 4] [--rl-steps 64] [--updates 200]
 """
@@ -75,24 +76,27 @@ def steer_speed(config: SteerSpeedConfig) -> list[dict]:
         for envs in config.envs:
             steps = -(-config.rl_steps // envs) * envs
             steer = SteerConfig(policy=config.policy, task=config.task, max_steps=config.max_steps, seed=config.seed,
-                                steps=steps, checkpoint_every=steps, batch_size=config.batch_size,
+                                steps=steps + envs, checkpoint_every=steps + envs, batch_size=config.batch_size,
                                 net_arch=config.net_arch, layer_norm=config.layer_norm, device=config.device,
                                 threads=config.threads, progress=False, latent=LatentSettings(config.latent_dim),
                                 collection=SteeringCollection(envs=envs),
-                                algorithm=SacSettings(learning_starts=steps))
+                                algorithm=SacSettings(learning_starts=steps + envs))
             made = finetune_env_factory(steer, policy)[0]()
             env = made if isinstance(made, SB3SteeringVecEnv) else SB3SteeringVecEnv([made])
             agent = build_agent(steer, env)
             agent.set_logger(configure(None, []))
+            agent.learn(total_timesteps=envs)  # the resets and the agent's setup, untimed
+            before = env.env_steps
             began = time.perf_counter()
-            agent.learn(total_timesteps=steps)
+            agent.learn(total_timesteps=steps, reset_num_timesteps=False)
             collected = time.perf_counter() - began
+            env_steps = env.env_steps - before
             began = time.perf_counter()
             agent.train(gradient_steps=config.updates, batch_size=config.batch_size)
             updated = time.perf_counter() - began
             env.close()
-            rows.append({"envs": envs, "rl_steps": steps, "env_steps": env.env_steps,
-                         "rl_steps_per_s": steps / collected, "env_steps_per_s": env.env_steps / collected,
+            rows.append({"envs": envs, "rl_steps": steps, "env_steps": env_steps,
+                         "rl_steps_per_s": steps / collected, "env_steps_per_s": env_steps / collected,
                          "updates": config.updates, "updates_per_s": config.updates / updated})
     return rows
 
