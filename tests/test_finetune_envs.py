@@ -21,7 +21,7 @@ from dust_rl.rl.frozen_policy_env import FrozenPolicyEnv, observation_td
 from dust_rl.rl.residual import ResidualEnv
 from dust_rl.rl.start_at_base import BaseWarmupSAC
 from dust_rl.rl.steering import NoiseSteeringEnv, latent_map, prior_latents
-from dust_rl.rl.torchrl_sac import FIXED_STD_ALPHA, torchrl_env, train_sac
+from dust_rl.rl.torchrl_sac import FIXED_STD_ALPHA, sac_critic, torchrl_env, train_sac
 from dust_rl.rl.vector import GymSteeringVectorEnv, SB3SteeringVecEnv
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -483,8 +483,13 @@ def test_the_critic_reads_the_object_state_the_actor_never_sees(steering):
     assert "object_state" not in env.view.actor_view.space.spaces
     with pytest.raises(ValueError, match="features extractors of its own"):
         SAC(AsymmetricSACPolicy, env, device="cpu", policy_kwargs={"share_features_extractor": True})
-    td = torchrl_env(env).reset(seed=4)  # torchrl: the actor's vector leaves it out, the critic reads it beside
+    wrapped = torchrl_env(env)  # torchrl: the actor's vector leaves it out, the critic reads it beside
+    td = wrapped.reset(seed=4).set("action", torch.zeros(28))
     assert td["observation"].shape == (sum(env.observation_space[k].shape[0] for k in seen),)
+    critic = sac_critic(wrapped, (16,))
+    q = [critic(td.clone().set("object_state", td["object_state"] + shift))["state_action_value"]
+         for shift in (0.0, 1.0)]
+    assert critic.in_keys == ["observation", "object_state", "action"] and not torch.equal(*q)
     env.close()
 
 

@@ -3,7 +3,9 @@
 Read top to bottom, CleanRL style: arguments, the frozen policy and its env,
 the fine-tuning env (noise steering or residual, :mod:`dust_rl.rl.steering`,
 :mod:`dust_rl.rl.residual`), the SB3 agent and its training, then a closed-loop
-comparison with the base policy on the same held-out seeds.
+comparison with the base policy on the same held-out seeds. Steering with ``--envs N`` steps N envs together, one
+plan call for all (:mod:`dust_rl.rl.vector`); ``--privileged-critic`` gives SAC's critic the true object state, never
+its actor (:mod:`dust_rl.rl.asymmetric`); ``--base-warmup`` fills SAC's warm-up with the base policy's own latents.
 
 The imitation policy's weights never change (except with ``self_imitation``,
 which writes new policy files beside it), so the base policy stays one

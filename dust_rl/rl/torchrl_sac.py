@@ -92,6 +92,14 @@ def sac_actor(env: TransformedEnv, net_arch: tuple[int, ...], initial_std: float
                               return_log_prob=False)
 
 
+def sac_critic(env: TransformedEnv, net_arch: tuple[int, ...], layer_norm: bool = False) -> ValueOperator:
+    """A Q network of ``env``'s ``observation``, its ``object_state`` when the env observes it (an asymmetric critic),
+    and the action; its lazy layers are sized on the first call."""
+    privileged = [OBJECT_STATE] if OBJECT_STATE in env.observation_spec.keys() else []
+    return ValueOperator(MLP(out_features=1, num_cells=list(net_arch), activation_class=_activation(layer_norm)),
+                         in_keys=["observation", *privileged, "action"])
+
+
 class BaseWarmup(TensorDictModuleBase):
     """The actor, or while :attr:`warming` the base policy's own latents
     (:func:`~dust_rl.rl.steering.prior_latents`) as the action."""
@@ -148,9 +156,7 @@ def train_sac(make_env: Callable[[], gym.Env | VectorEnv], steps: int, *, learni
         raise ValueError(f"steps must be a multiple of the {envs} envs, got {steps}")
     env.set_seed(seed)
     actor = sac_actor(env, net_arch, initial_std, layer_norm)
-    critic_keys = ["observation", *([OBJECT_STATE] if OBJECT_STATE in env.observation_spec.keys() else []), "action"]
-    qvalue = ValueOperator(MLP(out_features=1, num_cells=list(net_arch), activation_class=_activation(layer_norm)),
-                           in_keys=critic_keys)
+    qvalue = sac_critic(env, net_arch, layer_norm)
     with torch.no_grad():  # materialise the lazy layers on one real step
         qvalue(actor(env.reset()))
     loss = SACLoss(actor, qvalue, num_qvalue_nets=2, action_spec=env.action_spec_unbatched, fixed_alpha=fixed_std,
