@@ -160,9 +160,9 @@ class AgentView:
         return self.time_limit is not None
 
     def __call__(self, features: TensorDictBase, state: np.ndarray, steps: int,
-                 base_action: np.ndarray | None = None, future: torch.Tensor | None = None,
-                 object_state: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The observation of one env.
+                 base_action: np.ndarray | None = None, future: torch.Tensor | None = None) -> dict[str, np.ndarray]:
+        """The observation of one env by a view without ``object_state`` (the closed-loop actors'; the envs observe
+        theirs with :meth:`batch`).
 
         Args:
             features: the policy's feature batch [1] of the observation (``observation_features``).
@@ -171,24 +171,20 @@ class AgentView:
             base_action: the base action about to be executed [Da] (a view with ``base_action_space``).
             future: the future tokens [N_o, Dv] (or [1, N_o, Dv]) sampled with the chunk being executed, in the
                 encoder's units (a view with ``world_model``).
-            object_state: the env's object state [S] (a view with ``object_state_space``).
         """
-        def single(value: np.ndarray | None) -> np.ndarray | None:
-            return None if value is None else np.asarray(value)[None]
-
+        base_actions = None if base_action is None else np.asarray(base_action)[None]
         futures = None if future is None else future.reshape(1, *future.shape[-2:])
-        return self.batch(features, np.asarray(state)[None], [steps], single(base_action), futures,
-                          single(object_state))[0]
+        return self.batch(features, np.asarray(state)[None], [steps], base_actions, futures)[0]
 
     def batch(self, features: TensorDictBase, states: np.ndarray, steps: list[int],
               base_actions: np.ndarray | None = None, futures: torch.Tensor | None = None,
               object_states: np.ndarray | None = None) -> list[dict[str, np.ndarray]]:
         """The observations of N envs, each as :meth:`__call__` gives it, from their feature batch [N] (the
         read-out and the pooling run once for all); the other arguments are theirs stacked ([N, ...], N steps)."""
-        image = self.policy.normalizer.normalize_vision(features.get("image_tokens")).mean(2).flatten(1)
+        pooled = self.policy.normalizer.normalize_vision(features.get("image_tokens")).mean(2).flatten(1)
         if self.instruction:
-            image = torch.cat([image, pooled_text(features.get("text_tokens"), features.get("text_mask"))], dim=-1)
-        seen = {"robot_state": np.asarray(states, dtype=np.float32), "features": _numpy(image)}
+            pooled = torch.cat([pooled, pooled_text(features.get("text_tokens"), features.get("text_mask"))], dim=-1)
+        seen = {"robot_state": np.asarray(states, dtype=np.float32), "features": _numpy(pooled)}
         if self.policy.config.aux_state_dim:
             seen["object_estimate"] = _numpy(self.policy.estimate_env_state(features))
         if self.time_limit is not None:
