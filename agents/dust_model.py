@@ -336,8 +336,8 @@ class DustModel(nn.Module):
         """Sample an action chunk (and, with a vision stream, the predicted future tokens).
 
         Args:
-            obs: ``state``, ``cond_tokens`` and optionally ``cond_mask`` and ``action_noise`` [B, H, Da]
-                (the initial action noise, :func:`.samplers.run_schedule`).
+            obs: ``state``, ``cond_tokens`` and optionally ``cond_mask``, ``action_noise`` [B, H, Da] and
+                ``vision_noise`` [B, N_o, Dv] (the initial noises, :func:`.samplers.run_schedule`).
             schedule: the sampler's steps (:func:`.samplers.schedule_for`), e.g. ``async_schedule(4, 8)`` for
                 test-time scaling to N_o = 32 vision steps.
             generator: random source of the initial noise; same seed, same chunk.
@@ -352,7 +352,7 @@ class DustModel(nn.Module):
         """
         ctx = self.encode_context(obs["state"], obs["cond_tokens"], obs.get("cond_mask", None))
         action, vision = run_schedule(self, ctx, schedule, generator, callback, obs.get("action_noise", None),
-                                      noise_scale, vision_source)
+                                      noise_scale, vision_source, obs.get("vision_noise", None))
         out = {"action_chunk": action}
         if vision is not None:
             out["future_tokens"] = vision

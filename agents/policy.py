@@ -444,12 +444,15 @@ class DustPolicy(VLAWrapperBase):
 
     @torch.no_grad()
     def plan_features(self, features: TensorDictBase, generator: torch.Generator | None = None,
-                      action_noise: Tensor | None = None) -> TensorDict:
+                      action_noise: Tensor | None = None, vision_noise: Tensor | None = None) -> TensorDict:
         """:meth:`plan` from a flat feature batch [B] (:meth:`observation_features`), for callers that also
-        read the features (an RL critic) and so encode each observation once."""
+        read the features (an RL critic) and so encode each observation once. ``vision_noise`` [B, N_o, Dv]:
+        the initial vision noise instead of the drawn one; with ``action_noise`` too, nothing is drawn and the
+        chunk is a deterministic function of the two (:func:`~.samplers.run_schedule`)."""
         batch = self._model_batch(features)
-        if action_noise is not None:
-            batch.set("action_noise", action_noise.reshape(batch.batch_size[0], *action_noise.shape[-2:]))
+        for key, noise in (("action_noise", action_noise), ("vision_noise", vision_noise)):
+            if noise is not None:
+                batch.set(key, noise.reshape(batch.batch_size[0], *noise.shape[-2:]))
         candidates = self.config.candidates
         if candidates > 1:  # K joint samples of each observation, side by side: [B * K]
             rows = torch.arange(batch.batch_size[0], device=batch.device).repeat_interleave(candidates)

@@ -87,6 +87,13 @@ def schedule_for(config: DustConfig) -> list[DenoiseStep]:
     return action_only_schedule(config.n_action_steps)
 
 
+def _given(name: str, noise: Tensor, like: Tensor, layout: str) -> Tensor:
+    """A given initial noise as ``like``'s dtype and device; ValueError unless it has ``like``'s shape."""
+    if noise.shape != like.shape:
+        raise ValueError(f"{name} must have shape {tuple(like.shape)} {layout}, got {tuple(noise.shape)}")
+    return noise.to(like)
+
+
 @torch.no_grad()
 def run_schedule(
     model: DustModel,
@@ -97,6 +104,7 @@ def run_schedule(
     action_noise: Tensor | None = None,
     noise_scale: float = 1.0,
     vision_source: VisionSource | None = None,
+    vision_noise: Tensor | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """Integrate both modalities from noise along ``schedule``.
 
@@ -108,12 +116,16 @@ def run_schedule(
         callback: called after every step with (step, actions, vision) as they now stand,
             e.g. to count or inspect updates.
         action_noise: [B, H, Da], the initial action noise to start from instead of the drawn one (the
-            sampler is deterministic given it: an RL actor can steer a frozen policy through it). The
-            action noise is drawn and discarded all the same, so the vision noise does not change.
+            sampler is deterministic given it and the vision noise: an RL actor can steer a frozen policy
+            through it). The action noise is drawn and discarded all the same (unless ``vision_noise`` is
+            given too), so the vision noise does not change.
         noise_scale: factor on the drawn action noise (:attr:`.config.SamplerConfig.noise_scale`); not
             applied to a given ``action_noise``.
         vision_source: the vision tokens and tau_o each step feeds the model instead of the integrated ones
             (the vision noise is drawn all the same, so the action noise does not change with it).
+        vision_noise: [B, N_o, Dv], the initial vision noise to start from instead of the drawn one. With
+            ``action_noise`` too, nothing is drawn and the chunk is a deterministic function of the two (noise
+            steering's steps, :mod:`dust_rl.rl.steering`); alone, the action noise is drawn as before.
 
     Returns:
         (action chunk [B, H, Da], future-vision tokens [B, N_o, Dv] or None: the last step's, given or
@@ -121,17 +133,22 @@ def run_schedule(
     """
     cfg = model.config
     b, device = ctx.batch_size, ctx.state_token.device
-    action = cpu_drawn(torch.randn, b, cfg.horizon, cfg.action_dim, generator=generator, device=device)
+    if action_noise is None or vision_noise is None:  # drawn first, so the vision noise drawn after stays as it was
+        action = cpu_drawn(torch.randn, b, cfg.horizon, cfg.action_dim, generator=generator, device=device)
+    else:
+        action = torch.empty(b, cfg.horizon, cfg.action_dim, device=device)
     if action_noise is not None:
-        if action_noise.shape != action.shape:
-            raise ValueError(f"action_noise must have shape {tuple(action.shape)} [B, H, Da], "
-                             f"got {tuple(action_noise.shape)}")
-        action = action_noise.to(action)
+        action = _given("action_noise", action_noise, action, "[B, H, Da]")
     else:
         action = action * noise_scale
     vision = None
     if cfg.has_vision:
-        vision = cpu_drawn(torch.randn, b, cfg.n_vision_tokens, cfg.vision_dim, generator=generator, device=device)
+        if vision_noise is None:
+            vision = cpu_drawn(torch.randn, b, cfg.n_vision_tokens, cfg.vision_dim, generator=generator,
+                               device=device)
+        else:
+            vision = _given("vision_noise", vision_noise,
+                            torch.empty(b, cfg.n_vision_tokens, cfg.vision_dim, device=device), "[B, N_o, Dv]")
     for step in schedule:
         tau_a = torch.full((b,), step.tau_a, device=device)
         tau_o_value = step.tau_o

@@ -34,6 +34,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     """Every command: name (one or two words) -> (its dataclass of arguments, its runner(config, command line))."""
     from dust_rl.bench.average import AverageConfig, average_command
     from dust_rl.bench.gpu_check import GpuCheckConfig, gpu_check_command
+    from dust_rl.bench.steer_speed import SteerSpeedConfig, steer_speed_command
     from dust_rl.bench.suite import SuiteConfig, suite_command
     from dust_rl.data import commands as data
     from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose_world_model_command
@@ -57,6 +58,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "bench suite": (SuiteConfig, suite_command),
         "bench average": (AverageConfig, average_command),
         "bench gpu": (GpuCheckConfig, gpu_check_command),
+        "bench steer-speed": (SteerSpeedConfig, steer_speed_command),
         "diagnose world-model": (WorldModelDiagnosis, diagnose_world_model_command),
     }
 

@@ -260,6 +260,13 @@ class DustEnv(gym.Env):
         hovering short of success worth up to ~100 times its progress; paying its undiscounted change
         (gamma = 1 for an agent with gamma < 1) made lifting a cube and dropping it again pay (the lift is
         counted at full value, the loss discounted)."""
+        reward, terminated, truncated, info = self.step_unobserved(action)
+        return self.observe(), reward, terminated, truncated, info
+
+    def step_unobserved(self, action: np.ndarray) -> tuple[float, bool, bool, dict]:
+        """:meth:`step` without its observation (nothing rendered): its reward, terminated, truncated and info, for
+        callers that execute several actions before they look (noise steering executes a chunk, then observes
+        with :meth:`observe`)."""
         success, reason = self.advance(action)
         if self.reward_type == "dense":
             progress = self.progress()
@@ -267,7 +274,7 @@ class DustEnv(gym.Env):
             self._progress = progress
         else:
             reward = float(success)
-        return self.observe(), float(reward), success, bool(reason), self._info(success, reason)
+        return float(reward), success, bool(reason), self._info(success, reason)
 
     def snapshot(self) -> SimSnapshot:
         """The state a step changes (the simulator's data, the step count, the shaping's progress), for

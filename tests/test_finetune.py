@@ -23,6 +23,7 @@ from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
+    LatentSettings,
     PpoSettings,
     ResidualConfig,
     RoundData,
@@ -30,6 +31,8 @@ from dust_rl.rl.config import (
     SacSettings,
     SelfImitationConfig,
     SteerConfig,
+    SteeringCollection,
+    SteeringObservation,
     WmSelectConfig,
     as_this_version,
     rl_config_from_json,
@@ -38,6 +41,7 @@ from dust_rl.rl.critic_limits import LayerNormReLU
 from dust_rl.rl.critic_warmup import CriticWarmup
 from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune, finetune_env_factory
 from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
+from dust_rl.rl.vector import SB3SteeringVecEnv
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import restore
@@ -47,6 +51,13 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 EPISODE_STEPS = 10
 METHODS = {"steer": SteerConfig, "residual": ResidualConfig}
+
+DSRL = {"reward": "penalty", "finite_horizon": True, "noise_bound": 1.5, "latent": LatentSettings(7),
+        "observation": SteeringObservation(instruction=False, privileged_critic=True),
+        "collection": SteeringCollection(envs=2, base_warmup=True)}
+"""DSRL's design at test sizes: a latent of one noise row, an asymmetric critic, -1 per step, 2 envs per plan."""
+DSRL_FLAGS = ["--reward", "penalty", "--finite-horizon", "--noise-bound", "1.5", "--latent-dim", "7",
+              "--no-instruction", "--privileged-critic", "--envs", "2", "--base-warmup"]
 
 
 @pytest.fixture(scope="module")
@@ -97,6 +108,41 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
     fine_tuned = (scalars / "eval" / "success_rate_fine_tuned.csv").read_text().splitlines()
     assert [float(v) for v in fine_tuned[-1].split(",")] == [8, report["rows"][-1]["success_rate"]]
     assert (scalars / "train" / "learning_rate.csv").is_file()
+
+
+def test_dsrl_design_trains_saves_and_its_actor_acts_without_the_object_state(policy_path, tmp_path):
+    config = SteerConfig(policy=policy_path, out=tmp_path / "ft", steps=8, batch_size=4, net_arch=(16, 16),
+                         layer_norm=True, eval_episodes=2, max_steps=EPISODE_STEPS, eval_every=4, curve_episodes=1,
+                         progress=False, algorithm=SacSettings(learning_starts=4, updates_per_step=2), **DSRL)
+    report = finetune(config, command="dust-rl finetune ...")
+    assert [row["episodes"] for row in report["rows"]] == [2, 2, 2]  # base, noise centre, fine-tuned
+    curve = json.loads((tmp_path / "ft" / "learning_curve.json").read_text())
+    assert [p["rl_steps"] for p in curve] == [0, 4, 8] and curve[1]["env_steps"] >= 2 * curve[1]["rl_steps"]
+    assert (tmp_path / "ft" / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
+    saved = load_checkpoint(tmp_path / "ft" / "rl_agent.pt", RL_AGENT_KIND)
+    assert rl_config_from_json(saved["config"]) == config  # the groups read back
+    # The saved agent acts from the actor's view, without the object state its critic was trained with.
+    env = finetune_env_factory(config, load_policy(policy_path))[0]()
+    assert isinstance(env, SB3SteeringVecEnv) and env.num_envs == 2
+    agent = build_agent(config, env)
+    agent.policy.load_state_dict(saved["state_dict"])
+    assert agent.gradient_steps == 2
+    obs = {k: v[0] for k, v in env.reset().items() if k != "object_state"}
+    action = agent.predict(obs, deterministic=True)[0]
+    assert action.shape == (7,) and np.abs(action).max() <= 1
+    env.close()
+
+
+def test_ppo_rolls_out_n_steps_over_all_envs(policy_path):
+    config = SteerConfig(policy=policy_path, steps=8, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
+                         progress=False, algorithm=PpoSettings(n_steps=8, n_epochs=1),
+                         collection=SteeringCollection(envs=2))
+    env = finetune_env_factory(config, load_policy(policy_path))[0]()
+    agent = build_agent(config, env)
+    assert agent.n_steps == 4 and agent.n_envs == 2  # 8 transitions a rollout: 4 steps of 2 envs
+    agent.learn(total_timesteps=8)
+    assert agent.num_timesteps == 8 and agent._n_updates == 1
+    env.close()
 
 
 def test_wm_select_writes_a_policy_eval_loads_and_compares_on_the_same_seeds(policy_path, tmp_path):
@@ -172,7 +218,7 @@ def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_pa
     config = SteerConfig(policy=policy_path, steps=12, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
                          initial_std=0.5, progress=False,
                          algorithm=SacSettings(learning_starts=4, target_entropy=0.0, initial_alpha=0.01,
-                                               gradient_steps=3))
+                                               updates_per_step=3))
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
@@ -181,7 +227,7 @@ def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_pa
     assert agent.log_ent_coef.exp().item() == pytest.approx(0.01) and agent.target_entropy == 0.0
     start = agent.actor.log_std.bias.detach().clone()
     agent.learn(total_timesteps=12)
-    assert agent._n_updates == 3 * (12 - 4)  # gradient_steps per RL step once learning starts
+    assert agent._n_updates == 3 * (12 - 4)  # updates_per_step per RL step once learning starts
     assert not torch.equal(agent.actor.log_std.bias, start)  # the std is learnt
     assert agent.log_ent_coef.exp().item() != pytest.approx(0.01)
     env.close()
@@ -239,14 +285,32 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         SacSettings(q_bounds=(1.0, 0.0))
     with pytest.raises(ConfigError, match="target_entropy must be a finite number"):
         SacSettings(target_entropy=float("nan"))
-    with pytest.raises(ConfigError, match="gradient_steps"):
-        SacSettings(gradient_steps=0)
+    with pytest.raises(ConfigError, match="updates_per_step"):
+        SacSettings(updates_per_step=0)
     with pytest.raises(ConfigError, match="target_kl must be a finite number > 0"):
         PpoSettings(target_kl=0.0)
     with pytest.raises(ConfigError, match="lr must be a finite number > 0"):
         SteerConfig(policy=policy_path, lr=float("nan"))
     with pytest.raises(ConfigError, match="net_arch"):
         SteerConfig(policy=policy_path, net_arch=())
+    with pytest.raises(ConfigError, match="add --finite-horizon"):
+        SteerConfig(policy=policy_path, reward="penalty")
+    with pytest.raises(ConfigError, match="steps counts the transitions of all 2 envs: make it a multiple"):
+        SteerConfig(policy=policy_path, steps=9, collection=SteeringCollection(envs=2))
+    with pytest.raises(ConfigError, match="n_steps counts the transitions"):
+        SteerConfig(policy=policy_path, collection=SteeringCollection(envs=3), steps=9, checkpoint_every=9,
+                    algorithm=PpoSettings())
+    with pytest.raises(ConfigError, match="--base-warmup fills SAC's warm-up steps"):
+        SteerConfig(policy=policy_path, initial_std=0.1, collection=SteeringCollection(base_warmup=True))
+    with pytest.raises(ConfigError, match="--privileged-critic"):
+        SteerConfig(policy=policy_path, algorithm=PpoSettings(),
+                    observation=SteeringObservation(privileged_critic=True))
+    with pytest.raises(ConfigError, match="envs must be >= 1"):
+        SteeringCollection(envs=0)
+    with pytest.raises(ConfigError, match="latent_dim must be >= 1"):
+        LatentSettings(0)
+    with pytest.raises(ConfigError, match=r"--latent-dim: latent_dim must be in \[1, 28\]"):
+        finetune_env_factory(SteerConfig(policy=policy_path, latent=LatentSettings(29)), load_policy(policy_path))
     with pytest.raises(ConfigError, match="rollouts >= 5"):
         WmSelectConfig(policy=policy_path, rollouts=4)
     with pytest.raises(ConfigError, match="unknown device 'tpu'"):
@@ -284,17 +348,21 @@ def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_pa
         finetune(dataclasses.replace(sac, steps=16, resume=True))
 
 
-def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path):
+@pytest.mark.parametrize("design", ["default", "dsrl"])
+def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path, design):
     settings = {"steps": 120, "checkpoint_every": 8, "batch_size": 4, "net_arch": (16,), "eval_episodes": 1,
                 "max_steps": EPISODE_STEPS}
+    dsrl = design == "dsrl"
     reference = SteerConfig(policy=policy_path, out=tmp_path / "ref", progress=False,
-                            algorithm=SacSettings(learning_starts=4), **settings)
+                            algorithm=SacSettings(learning_starts=4, updates_per_step=2 if dsrl else 1),
+                            **settings, **(DSRL if dsrl else {}))
     finetune(reference)
     out = tmp_path / "killed"
     args = ["finetune", "steer", "--policy", str(policy_path), "--out", str(out), "--no-progress", "--threads", "1"]
     for key, value in settings.items():
         args += [f"--{key.replace('_', '-')}", *map(str, value if isinstance(value, tuple) else (value,))]
-    args += ["sac", "--learning-starts", "4"]
+    args += [*(DSRL_FLAGS if dsrl else []), "sac", "--learning-starts", "4",
+             *(["--updates-per-step", "2"] if dsrl else [])]
     kill_after_first_checkpoint(args, out)
     assert not (out / "rl_agent.pt").exists()
 
@@ -309,10 +377,11 @@ def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path):
         restore(Checkpoint(agent=state, rng=GlobalRNGState()), rotation)
         states[name] = state.agent
         env.close()
+    envs = reference.collection.envs
     for agent in states.values():
-        assert agent.num_timesteps == 120 and agent.replay_buffer.pos == 120 % agent.replay_buffer.buffer_size
+        assert agent.num_timesteps == 120 and agent.replay_buffer.pos == 120 // envs % agent.replay_buffer.buffer_size
         assert agent.replay_buffer.full  # 120 transitions in a buffer of 120: none lost, none twice
-    first = 8  # the transitions before the first checkpoint are the same in both runs
+    first = 8 // envs  # the transitions before the first checkpoint are the same in both runs
     ref, got = states["ref"].replay_buffer, states["killed"].replay_buffer
     assert np.array_equal(ref.actions[:first], got.actions[:first])
     assert np.array_equal(ref.rewards[:first], got.rewards[:first])
@@ -407,8 +476,10 @@ def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
     assert all(method in help_of() for method in ("steer", "residual", "wm-select", "self-imitation"))
     steer, sac, ppo = help_of("steer"), help_of("steer", "sac"), help_of("steer", "ppo")
     assert "--noise-bound" in steer and "--residual-scale" not in steer and "--candidates" not in steer
-    assert "--gradient-steps" in sac and "--n-steps" not in sac
-    assert "--n-steps" in ppo and "--gradient-steps" not in ppo
+    dsrl = ("--latent-dim", "--no-instruction", "--privileged-critic", "--envs", "--base-warmup")
+    assert all(flag in steer for flag in dsrl) and not any(flag in help_of("residual") for flag in dsrl)
+    assert "--updates-per-step" in sac and "--n-steps" not in sac
+    assert "--n-steps" in ppo and "--updates-per-step" not in ppo
     rounds = help_of("self-imitation")
     assert "--train.optim.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
     assert "--steps" not in help_of("wm-select")
@@ -423,6 +494,9 @@ def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own
     assert config.algorithm == PpoSettings(n_steps=512, target_kl=0.01) and config.net_arch == (16,)
     new = SteerConfig(policy=pathlib.Path("p.pt"), algorithm=SacSettings(q_bounds=(0.0, 1.0)))
     assert rl_config_from_json(json.loads(json.dumps(dataclasses.asdict(new), default=str))) == new
+    steer = {"method": "steer", "policy": "p.pt", "out": "runs/ft", "algorithm": {"name": "sac", "gradient_steps": 5}}
+    read = rl_config_from_json(steer)  # SAC's update-to-data ratio by its earlier name; the steering groups default
+    assert read.algorithm.updates_per_step == 5 and read.collection == SteeringCollection()
 
 
 def test_a_self_imitation_run_from_before_the_settings_groups_reads_as_todays():
@@ -432,3 +506,15 @@ def test_a_self_imitation_run_from_before_the_settings_groups_reads_as_todays():
     assert before["train"]["steps"] == 7 and "optim" not in before["train"]
     assert as_this_version(before) == today
     assert as_this_version({"method": "steer"}) == {"method": "steer"}
+
+
+def test_bench_steer_speed_times_collection_and_updates_for_each_env_count(policy_path, capsys):
+    from dust_rl.cli import main
+
+    main(["bench", "steer-speed", "--policy", str(policy_path), "--envs", "1", "2", "--rl-steps", "2", "--updates", "2",
+          "--batch-size", "4", "--net-arch", "16", "--max-steps", str(EPISODE_STEPS), "--device", "cpu"])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("| envs | RL steps | env steps/s") and len(lines) == 4
+    rows = [line.split("|")[1:-1] for line in lines[2:]]
+    assert [(int(r[0]), int(r[1])) for r in rows] == [(1, 2), (2, 2)]  # 2 RL steps: 2 of 1 env, 1 of 2 envs
+    assert all(float(value) > 0 for r in rows for value in r[2:])

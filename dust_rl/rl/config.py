@@ -92,8 +92,9 @@ class SacSettings:
 
     learning_starts: int = 1000
     """Steps before the first update (uniformly random actions, unless `--initial-std` is set)."""
-    gradient_steps: int = 1
-    """Gradient steps per RL step, the update-to-data ratio (DSRL: 20)."""
+    updates_per_step: int = 1
+    """Gradient steps per RL step (of all `--envs` together), the update-to-data ratio (earlier
+    `--gradient-steps`)."""
     target_entropy: float | None = None
     """Learn the entropy coefficient so the policy keeps this entropy (SB3's `ent_coef="auto"`; DSRL: 0),
     starting from `initial_alpha`; with `--initial-std` the std then starts there and is learnt. None: SB3's
@@ -110,7 +111,7 @@ class SacSettings:
 
     def __post_init__(self) -> None:
         check_at_least(self, 0, "learning_starts")
-        check_at_least(self, 1, "gradient_steps")
+        check_at_least(self, 1, "updates_per_step")
         check_finite(self, "initial_alpha", positive=True)
         if self.target_entropy is not None and not math.isfinite(self.target_entropy):
             raise ConfigError(f"target_entropy must be a finite number, got {self.target_entropy}")
@@ -155,9 +156,11 @@ class RLSettings(CurveSettings):
 
     steps: int = 20_000
     """RL agent steps (chunks when steering, env steps for residual)."""
-    reward: Literal["sparse", "dense"] = "sparse"
-    """The env's reward while training: 1 on success only, or that plus potential-based shaping by the task's
-    staged progress, shaped for `gamma` (`DustEnv.step`; evaluation counts successes either way)."""
+    reward: Literal["sparse", "dense", "penalty"] = "sparse"
+    """The reward while training: the env's (sparse: 1 on success only; dense: that plus potential-based shaping by
+    the task's staged progress, shaped for `gamma`: `DustEnv.step`), or penalty: -1 per RL step and 0 on the step
+    that succeeds (DSRL's; needs `--finite-horizon`, the time limit then ends an episode as a failure). Evaluation
+    counts successes either way."""
     gamma: float = 0.99
     """The RL agent's discount per RL step (an env step for residual, a chunk when steering; steering discounts
     the rewards within a chunk by `gamma ** (1 / execute_steps)` per env step, the discount the dense reward is
@@ -205,23 +208,86 @@ class RLSettings(CurveSettings):
             raise ConfigError(f"gamma must be a discount factor in (0, 1], got {self.gamma}")
         if self.initial_std is not None:
             check_finite(self, "initial_std", positive=True)
+        if self.reward == "penalty" and not self.finite_horizon:
+            raise ConfigError("--reward penalty pays -1 per step until success: add --finite-horizon, so the time "
+                              "limit ends an episode as a failure instead of being bootstrapped past")
         if not self.net_arch or min(self.net_arch) < 1:
             raise ConfigError(f"net_arch must list positive layer widths, got {self.net_arch}")
         check_loggers(self.loggers)
 
 
 @dataclass
+class LatentSettings:
+    """The RL action: the policy's initial action noise, or a latent of it (`dust_rl.rl.steering.latent_map`)."""
+
+    latent_dim: int | None = None
+    """Size D of the RL action. Da: one row of noise, repeated over the chunk's H rows (pi0's DSRL); another size:
+    a fixed random linear map to the H x Da noise (DSRL's robomimic latent is 4 x 7); None: the whole noise,
+    H x Da."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "latent_dim")
+
+
+@dataclass
+class SteeringObservation:
+    """What the RL agent observes besides the robot state, the pooled image tokens and a read-out's estimate
+    (`dust_rl.rl.frozen_policy_env`)."""
+
+    instruction: bool = True
+    """The actor and critic also see the pooled instruction: it can name the target (press_button's colour), but
+    where a task's instruction is constant it is a constant input (`--no-instruction`)."""
+    privileged_critic: bool = False
+    """The critic also sees the env's true object state (`observation.environment_state`), the actor never does, so
+    the fine-tuned policy acts from images alone (`dust_rl.rl.asymmetric`; SAC)."""
+
+
+@dataclass
+class SteeringCollection:
+    """How the transitions are collected (`dust_rl.rl.vector`)."""
+
+    envs: int = 1
+    """Envs stepped together, one plan call for all; each RL step then adds `envs` transitions, which `steps`,
+    `checkpoint_every`, `eval_every` and PPO's `n_steps` count (multiples of `envs`)."""
+    base_warmup: bool = False
+    """SAC's `learning_starts` warm-up acts with the base policy's own latents (drawn from N(0, I):
+    `dust_rl.rl.steering.prior_latents`) instead of uniformly random ones, so the replay buffer starts with the base
+    policy's rollouts (not with `--initial-std`, whose warm-up acts with the actor)."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "envs")
+
+
+@dataclass
 class SteerConfig(RLSettings):
-    """Noise steering (DSRL): the RL action is the policy's initial action noise, one RL step per chunk
-    (`dust_rl.rl.steering`)."""
+    """Noise steering (DSRL): the RL action is the policy's initial action noise (or a latent of it), one RL step per
+    chunk (`dust_rl.rl.steering`)."""
 
     noise_bound: float = 2.0
-    """The noise magnitude an RL action of +-1 maps to."""
+    """The noise (or latent) magnitude an RL action of +-1 maps to (DSRL: 1.5)."""
+    latent: Annotated[LatentSettings, tyro.conf.OmitArgPrefixes] = field(default_factory=LatentSettings)
+    observation: Annotated[SteeringObservation, tyro.conf.OmitArgPrefixes] = field(
+        default_factory=SteeringObservation)
+    collection: Annotated[SteeringCollection, tyro.conf.OmitArgPrefixes] = field(default_factory=SteeringCollection)
     method: Literal["steer"] = field(default="steer", init=False)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_finite(self, "noise_bound", positive=True)
+        envs = self.collection.envs
+        counts = {"steps": self.steps, "checkpoint_every": self.checkpoint_every, "eval_every": self.eval_every}
+        if isinstance(self.algorithm, PpoSettings):
+            counts["n_steps"] = self.algorithm.n_steps
+        for name, count in counts.items():
+            if count % envs:
+                raise ConfigError(f"{name} counts the transitions of all {envs} envs: make it a multiple of --envs, "
+                                  f"got {count}")
+        sac = isinstance(self.algorithm, SacSettings)
+        if self.collection.base_warmup and not (sac and self.initial_std is None):
+            raise ConfigError("--base-warmup fills SAC's warm-up steps: it needs sac and no --initial-std (whose "
+                              "warm-up acts with the actor)")
+        if self.observation.privileged_critic and not sac:
+            raise ConfigError("--privileged-critic gives SAC's critic the object state; PPO's is not asymmetric here")
 
 
 @dataclass
@@ -298,11 +364,17 @@ class RoundTraining(TrainSettings):
     seed: tyro.conf.Suppress[int] = 0
 
 
+RENAMED = {"learning_rate": "lr", "gradient_steps": "updates_per_step"}
+"""Earlier names of fine-tuning settings: the RL learning rate (the one name of ``--lr`` across commands), SAC's
+update-to-data ratio."""
+
+
 def as_this_version(stored: dict) -> dict:
-    """A stored fine-tuning config by this version's names: the RL learning rate ``lr`` (earlier
-    ``learning_rate``, the one name of ``--lr`` across commands), a self-imitation round's training settings grouped
-    (:func:`~dust_rl.train.settings.grouped_json`)."""
-    stored = {("lr" if key == "learning_rate" else key): value for key, value in stored.items()}
+    """A stored fine-tuning config by this version's names (:data:`RENAMED`, also among an SB3 algorithm's
+    settings), a self-imitation round's training settings grouped (:func:`~dust_rl.train.settings.grouped_json`)."""
+    stored = {RENAMED.get(key, key): value for key, value in stored.items()}
+    if isinstance(stored.get("algorithm"), dict):
+        stored["algorithm"] = {RENAMED.get(key, key): value for key, value in stored["algorithm"].items()}
     if not isinstance(stored.get("train"), dict):
         return stored
     return {**stored, "train": grouped_json(stored["train"])}
@@ -364,18 +436,29 @@ def rl_config_from_json(values: dict, **changes) -> RLConfig:
     run predates keep their defaults, earlier names read as today's (:func:`as_this_version`), and a run from before
     the algorithm had its own settings (``"algorithm": "sac"``, its settings beside the others) reads too."""
     values = as_this_version(values)
-    cls = METHOD_CONFIGS[values["method"]]
-    kwargs = {f.name: values[f.name] for f in dataclasses.fields(cls) if f.init and f.name in values}
-    kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in kwargs.items()}
-    kwargs["policy"], kwargs["out"] = pathlib.Path(kwargs["policy"]), pathlib.Path(kwargs["out"])
     settings = values.get("algorithm", "sac")
     if isinstance(settings, str):
         algorithm, settings = ALGORITHM_CONFIGS[settings], values
     else:
         algorithm = ALGORITHM_CONFIGS[settings["name"]]
-    settings = {f.name: settings[f.name] for f in dataclasses.fields(algorithm) if f.init and f.name in settings}
-    settings = {k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
-    return cls(**{**kwargs, "algorithm": algorithm(**settings), **changes})
+    return _from_json(METHOD_CONFIGS[values["method"]], {k: v for k, v in values.items() if k != "algorithm"},
+                      policy=pathlib.Path(values["policy"]), out=pathlib.Path(values["out"]),
+                      algorithm=_from_json(algorithm, settings), **changes)
+
+
+def _from_json(cls: type, values: dict, **changes) -> object:
+    """A ``cls`` from the JSON ``values`` of its fields (lists as tuples, a settings group from its own values;
+    fields absent keep their defaults), with ``changes``."""
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if not f.init or f.name not in values or f.name in changes:
+            continue
+        value = values[f.name]
+        group = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(group) and isinstance(value, dict):
+            value = _from_json(type(group), value)
+        kwargs[f.name] = tuple(value) if isinstance(value, list) else value
+    return cls(**kwargs, **changes)
 
 
 def is_dagger(extra_action_key: str) -> bool:

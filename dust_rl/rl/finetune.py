@@ -3,7 +3,9 @@
 Read top to bottom, CleanRL style: arguments, the frozen policy and its env,
 the fine-tuning env (noise steering or residual, :mod:`dust_rl.rl.steering`,
 :mod:`dust_rl.rl.residual`), the SB3 agent and its training, then a closed-loop
-comparison with the base policy on the same held-out seeds.
+comparison with the base policy on the same held-out seeds. Steering with ``--envs N`` steps N envs together, one
+plan call for all (:mod:`dust_rl.rl.vector`); ``--privileged-critic`` gives SAC's critic the true object state, never
+its actor (:mod:`dust_rl.rl.asymmetric`); ``--base-warmup`` fills SAC's warm-up with the base policy's own latents.
 
 The imitation policy's weights never change (except with ``self_imitation``,
 which writes new policy files beside it), so the base policy stays one
@@ -59,6 +61,7 @@ from dust_rl.evaluate.closed_loop import (
     summary_row,
 )
 from dust_rl.evaluate.report import plot_learning_curve
+from dust_rl.rl.asymmetric import AsymmetricSACPolicy
 from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
     PPO_RESUMABLE_FIELDS,
@@ -81,8 +84,9 @@ from dust_rl.rl.frozen_policy_env import Act, FrozenPolicyEnv
 from dust_rl.rl.residual import ResidualEnv
 from dust_rl.rl.sb3_logger import sb3_logger
 from dust_rl.rl.self_imitation import self_imitation
-from dust_rl.rl.start_at_base import WarmStartSAC, start_at_base
-from dust_rl.rl.steering import NoiseSteeringEnv
+from dust_rl.rl.start_at_base import BaseWarmupSAC, WarmStartSAC, start_at_base
+from dust_rl.rl.steering import NoiseSteeringEnv, latent_map
+from dust_rl.rl.vector import SB3SteeringVecEnv
 from dust_rl.rl.wm_select import wm_select
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import torch_threads
@@ -92,6 +96,8 @@ from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import check_run_folder, locked_run_folder, restore
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
+FineTuningEnv = FrozenPolicyEnv | SB3SteeringVecEnv
+"""What SB3 trains on: one fine-tuning env, or several steering envs stepped together."""
 
 
 def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
@@ -160,7 +166,7 @@ def eval_runner(config: RLConfig, policy: DustPolicy, task: str) -> Run:
     return run
 
 
-def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv],
+def train_rl(config: RLConfig, make: Callable[[], FineTuningEnv],
              run: Run) -> tuple[dict[str, list[Episode]], float]:
     """Train the SB3 agent on the fine-tuning env (resuming from the newest checkpoint), save it, and run the
     base and the fine-tuned policy on the evaluation seeds through ``run`` (:func:`eval_runner`); returns their
@@ -225,16 +231,18 @@ def train_rl(config: RLConfig, make: Callable[[], FrozenPolicyEnv],
     return rows, trained_s
 
 
-def build_agent(config: RLConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
+def build_agent(config: RLConfig, env: FineTuningEnv) -> BaseAlgorithm:
     """The SB3 agent ``config`` asks for, on ``env`` (the same settings rebuild it to resume)."""
     settings = config.algorithm
     algorithm = ALGORITHMS[settings.name]
     kwargs: dict = {"gamma": config.gamma, "learning_rate": config.lr}
     target_entropy = None
+    steer = isinstance(config, SteerConfig)
+    policy = AsymmetricSACPolicy if steer and config.observation.privileged_critic else "MultiInputPolicy"
     if isinstance(settings, SacSettings):  # a replay buffer no larger than the run
         target_entropy = settings.target_entropy
         kwargs |= {"learning_starts": settings.learning_starts, "batch_size": config.batch_size,
-                   "buffer_size": config.steps, "gradient_steps": settings.gradient_steps}
+                   "buffer_size": config.steps, "gradient_steps": settings.updates_per_step}
         if config.initial_std is not None and target_entropy is None:
             kwargs["ent_coef"] = 0.0  # the std is fixed: an entropy bonus would only swamp the reward (start_at_base)
         else:
@@ -243,15 +251,20 @@ def build_agent(config: RLConfig, env: FrozenPolicyEnv) -> BaseAlgorithm:
                 kwargs["target_entropy"] = target_entropy
         if config.initial_std is not None:
             algorithm = WarmStartSAC
-    else:  # a rollout no longer than the run, minibatches no larger than a rollout
+        elif steer and config.collection.base_warmup:
+            algorithm = BaseWarmupSAC
+    else:  # a rollout no longer than the run (n_steps of all envs together), minibatches no larger than a rollout
         n_steps = min(settings.n_steps, config.steps)
-        kwargs |= {"n_steps": n_steps, "batch_size": min(config.batch_size, n_steps), "n_epochs": settings.n_epochs,
+        kwargs |= {"n_steps": n_steps // (config.collection.envs if steer else 1),
+                   "batch_size": min(config.batch_size, n_steps), "n_epochs": settings.n_epochs,
                    "target_kl": settings.target_kl}
     policy_kwargs = {"net_arch": list(config.net_arch)}
     if config.layer_norm:
         policy_kwargs["activation_fn"] = LayerNormReLU
-    agent = algorithm("MultiInputPolicy", env, seed=config.seed, device=resolve_device(config.device),
+    agent = algorithm(policy, env, seed=config.seed, device=resolve_device(config.device),
                       policy_kwargs=policy_kwargs, **kwargs)
+    if isinstance(agent, BaseWarmupSAC):
+        agent.noise_bound = config.noise_bound
     if config.initial_std is not None:
         start_at_base(agent, config.initial_std, learn_std=target_entropy is not None)
     if isinstance(settings, SacSettings) and settings.q_bounds is not None:
@@ -286,21 +299,36 @@ def policy_env(config: FinetuneConfig, policy: DustPolicy) -> tuple[str, dict, s
     return env_id, env_kwargs, task
 
 
-def finetune_env_factory(config: RLConfig, policy: DustPolicy) -> tuple[Callable[[], FrozenPolicyEnv], str]:
-    """A factory of fresh fine-tuning envs for ``config``'s task (checked once, here), and the task."""
+def finetune_env_factory(config: RLConfig, policy: DustPolicy) -> tuple[Callable[[], FineTuningEnv], str]:
+    """A factory of fresh fine-tuning envs for ``config``'s task (checked once, here), and the task: a steering or
+    residual env, or with ``--envs N`` (N > 1) N steering envs stepped together (:mod:`dust_rl.rl.vector`)."""
     env_id, env_kwargs, task = policy_env(config, policy)
     steer = isinstance(config, SteerConfig)
     step_discount = config.gamma ** (1 / policy.execute_steps) if steer else config.gamma
+    penalty = config.reward == "penalty"
+    env_kwargs = {**env_kwargs, "task": task, "reward_type": "sparse" if penalty else config.reward,
+                  "shaping_discount": step_discount}
+    if steer:
+        try:
+            latent_map(config.latent.latent_dim, (policy.config.horizon, policy.config.action_dim))
+        except ValueError as err:
+            raise ConfigError(f"--latent-dim: {err}") from err
 
-    def make() -> FrozenPolicyEnv:
-        env = make_env(env_id, {**env_kwargs, "task": task, "reward_type": config.reward,
-                                "shaping_discount": step_discount})
+    def make_steering() -> NoiseSteeringEnv:
+        return NoiseSteeringEnv(make_env(env_id, env_kwargs), policy, noise_bound=config.noise_bound,
+                                step_discount=step_discount, finite_horizon=config.finite_horizon,
+                                latent_dim=config.latent.latent_dim, instruction=config.observation.instruction,
+                                object_state=config.observation.privileged_critic, reward_penalty=penalty)
+
+    def make() -> FineTuningEnv:
         if steer:
-            return NoiseSteeringEnv(env, policy, noise_bound=config.noise_bound, step_discount=step_discount,
-                                    finite_horizon=config.finite_horizon)
+            envs = config.collection.envs
+            return make_steering() if envs == 1 else SB3SteeringVecEnv([make_steering() for _ in range(envs)])
+        env = make_env(env_id, env_kwargs)
         half_width = (env.action_space.high - env.action_space.low) / 2
         return ResidualEnv(env, policy, residual_scale=config.residual_scale * half_width,
-                           world_model=config.world_model_obs, finite_horizon=config.finite_horizon)
+                           world_model=config.world_model_obs, finite_horizon=config.finite_horizon,
+                           reward_penalty=penalty)
 
     return make, task
 

@@ -17,8 +17,9 @@ observation for both, so the agent sees the same either way, and the base policy
 observation               shape              meaning
 ========================  =================  ===================================================
 ``robot_state``           [Ds]               the robot state (``observation.state``)
-``features``              [C * Dv + Dt]      per camera the mean of its normalised frozen tokens,
-                                             then the mean of the instruction's tokens
+``features``              [C * Dv (+ Dt)]    per camera the mean of its normalised frozen tokens,
+                                             then (unless ``instruction`` is off) the mean of the
+                                             instruction's tokens
 ``object_estimate``       [S]                only for a policy with a state read-out
                                              (``--policy.lambda-aux``): its estimate of the
                                              normalised object state, where the mean-pooled
@@ -27,6 +28,8 @@ observation               shape              meaning
                                              (:mod:`dust_rl.rl.residual`)
 ``time_left``             [1]                with ``finite_horizon`` only: the fraction of the
                                              episode's time limit still to run
+``object_state``          [S]                with ``object_state`` only, for the critic: the env's
+                                             true object state (``observation.environment_state``)
 ========================  =================  ===================================================
 
 ``finite_horizon`` makes the time limit part of the RL task. By default a time-limit end is a truncation, which
@@ -36,6 +39,17 @@ of the returns everywhere (BENCHMARKS "Headroom for noise steering on stack"). W
 limit ends the episode as terminated, a failure worth 0 (so does the env's other truncation, an infeasible IK
 problem or diverging physics), and the observation says how much time is left, so the value of a state can
 depend on it (Pardo et al. 2018, "Time limits in reinforcement learning").
+
+``object_state`` makes the critic asymmetric: it also sees where the objects truly are, which the actor must infer
+from the images (the critic serves training only, so privileged information costs nothing at deployment; DSRL's
+critics read the low-dimensional state). The actor's networks never read that entry (:attr:`AgentView.actor_view`,
+:mod:`dust_rl.rl.asymmetric`), so the closed-loop actor acts from what the policy sees. ``reward_penalty`` pays -1
+per RL step and 0 on the step that succeeds (DSRL's reward): the return counts the steps to success, so a faster
+success is worth more, where a sparse 0/1 reward discounted per chunk barely tells them apart.
+
+Each step executes its actions without rendering (``DustEnv.step_unobserved``) and renders once, after the last:
+a steering step executes a chunk, and only its end is observed. :func:`observe_batch` encodes the observations of
+several envs in one call of the frozen encoders (:mod:`dust_rl.rl.vector` steps many envs at once).
 """
 
 from __future__ import annotations
@@ -52,9 +66,12 @@ from tensordict.nn import TensorDictModuleBase
 
 from dust_rl.agents import DustPolicy, pooled_text
 from dust_rl.agents.execution import episode_generator
-from dust_rl.keys import INSTRUCTION_KEY, STATE_KEY, flat_name
+from dust_rl.keys import ENV_STATE_KEY, INSTRUCTION_KEY, STATE_KEY, flat_name
 
 STATE_NAME = flat_name(STATE_KEY)
+ENV_STATE_NAME = flat_name(ENV_STATE_KEY)
+OBJECT_STATE = "object_state"
+"""The observation entry of the env's true object state: the critic's alone (:mod:`dust_rl.rl.asymmetric`)."""
 
 Act = Callable[[dict[str, np.ndarray]], np.ndarray]
 """An RL agent as the closed-loop runner asks it: its action for one observation (SB3's deterministic ``predict``,
@@ -65,6 +82,11 @@ def observation_td(obs: dict) -> TensorDict:
     """A dust-rl gymnasium observation as the TensorDict a :class:`~dust_rl.agents.DustPolicy` plans from."""
     td = TensorDict({k: torch.as_tensor(v) for k, v in obs.items() if isinstance(v, np.ndarray)})
     return td.set_non_tensor(INSTRUCTION_KEY, obs[INSTRUCTION_KEY])
+
+
+def encode(policy: DustPolicy, observations: list[dict]) -> TensorDict:
+    """The policy's feature batch [N] of N dust-rl gymnasium observations, in one call of its frozen encoders."""
+    return policy.observation_features(torch.stack([observation_td(obs) for obs in observations]))
 
 
 def agent_action(action: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -93,6 +115,9 @@ class AgentView:
         base_action_space: the env's action space, when the base action about to be executed is observed
             (residual).
         world_model: also observe the predicted future of the chunk being executed (residual).
+        instruction: the features end with the pooled instruction.
+        object_state_space: the env's object state space, when the true object state is observed (for the
+            critic only: :attr:`actor_view`).
     """
 
     policy: DustPolicy
@@ -100,12 +125,20 @@ class AgentView:
     time_limit: int | None = None
     base_action_space: spaces.Box | None = None
     world_model: bool = False
+    instruction: bool = True
+    object_state_space: spaces.Box | None = None
+
+    @property
+    def actor_view(self) -> AgentView:
+        """The view without the critic's privileged entry: what the actor reads, and all a closed-loop actor gets."""
+        return dataclasses.replace(self, object_state_space=None)
 
     @property
     def space(self) -> spaces.Dict:
         """The observation space."""
         config = self.policy.config
-        n_features = len(self.policy.cameras) * config.vision_dim + self.policy.backbone.text_dim
+        n_features = (len(self.policy.cameras) * config.vision_dim
+                      + (self.policy.backbone.text_dim if self.instruction else 0))
         entries = {"robot_state": self.state_space,
                    "features": spaces.Box(-np.inf, np.inf, (n_features,), np.float32)}
         if config.aux_state_dim:
@@ -117,6 +150,8 @@ class AgentView:
         if self.world_model:
             size = config.n_vision_tokens * config.vision_dim
             entries["predicted_future"] = spaces.Box(-np.inf, np.inf, (size,), np.float32)
+        if self.object_state_space is not None:
+            entries[OBJECT_STATE] = spaces.Box(-np.inf, np.inf, self.object_state_space.shape, np.float32)
         return spaces.Dict(entries)
 
     @property
@@ -126,7 +161,8 @@ class AgentView:
 
     def __call__(self, features: TensorDictBase, state: np.ndarray, steps: int,
                  base_action: np.ndarray | None = None, future: torch.Tensor | None = None) -> dict[str, np.ndarray]:
-        """The observation of one env.
+        """The observation of one env by a view without ``object_state`` (the closed-loop actors'; the envs observe
+        theirs with :meth:`batch`).
 
         Args:
             features: the policy's feature batch [1] of the observation (``observation_features``).
@@ -136,20 +172,34 @@ class AgentView:
             future: the future tokens [N_o, Dv] (or [1, N_o, Dv]) sampled with the chunk being executed, in the
                 encoder's units (a view with ``world_model``).
         """
-        image = self.policy.normalizer.normalize_vision(features.get("image_tokens")).mean(2).flatten(1)
-        text = pooled_text(features.get("text_tokens"), features.get("text_mask"))
-        seen = {"robot_state": np.asarray(state, dtype=np.float32),
-                "features": torch.cat([image, text], dim=-1)[0].cpu().numpy().astype(np.float32)}
+        base_actions = None if base_action is None else np.asarray(base_action)[None]
+        futures = None if future is None else future.reshape(1, *future.shape[-2:])
+        return self.batch(features, np.asarray(state)[None], [steps], base_actions, futures)[0]
+
+    def batch(self, features: TensorDictBase, states: np.ndarray, steps: list[int],
+              base_actions: np.ndarray | None = None, futures: torch.Tensor | None = None,
+              object_states: np.ndarray | None = None) -> list[dict[str, np.ndarray]]:
+        """The observations of N envs, each as :meth:`__call__` gives it, from their feature batch [N] (the
+        read-out and the pooling run once for all); the other arguments are theirs stacked ([N, ...], N steps)."""
+        pooled = self.policy.normalizer.normalize_vision(features.get("image_tokens")).mean(2).flatten(1)
+        if self.instruction:
+            pooled = torch.cat([pooled, pooled_text(features.get("text_tokens"), features.get("text_mask"))], dim=-1)
+        seen = {"robot_state": np.asarray(states, dtype=np.float32), "features": _numpy(pooled)}
         if self.policy.config.aux_state_dim:
-            seen["object_estimate"] = self.policy.estimate_env_state(features)[0].cpu().numpy().astype(np.float32)
+            seen["object_estimate"] = _numpy(self.policy.estimate_env_state(features))
         if self.time_limit is not None:
-            seen["time_left"] = np.array([max(0.0, 1.0 - steps / self.time_limit)], np.float32)
+            seen["time_left"] = np.array([[max(0.0, 1.0 - n / self.time_limit)] for n in steps], np.float32)
         if self.base_action_space is not None:
-            seen["base_action"] = np.asarray(base_action, dtype=np.float32)
+            seen["base_action"] = np.asarray(base_actions, dtype=np.float32)
         if self.world_model:
-            standardised = self.policy.standardised_future(future).flatten()
-            seen["predicted_future"] = standardised.cpu().numpy().astype(np.float32)
-        return seen
+            seen["predicted_future"] = _numpy(self.policy.standardised_future(futures).flatten(1))
+        if self.object_state_space is not None:
+            seen[OBJECT_STATE] = np.asarray(object_states, dtype=np.float32)
+        return [{name: value[i] for name, value in seen.items()} for i in range(len(steps))]
+
+
+def _numpy(values: torch.Tensor) -> np.ndarray:
+    return values.cpu().numpy().astype(np.float32)
 
 
 class FrozenPolicyEnv(gym.Env):
@@ -161,19 +211,24 @@ class FrozenPolicyEnv(gym.Env):
         policy: the frozen policy (put in eval mode; its weights are never changed here).
         execute_steps: env steps per chunk; default: the policy's own.
         finite_horizon: a time-limit end is terminated, not truncated, and ``time_left`` is observed (module doc).
+        instruction: the features end with the pooled instruction (:class:`AgentView`).
+        object_state: observe the env's true object state, for an asymmetric critic (module doc).
+        reward_penalty: each RL step pays -1, 0 if it succeeds, instead of the env's reward (module doc).
     """
 
     metadata = {"render_modes": []}
 
     def __init__(self, env: gym.Env, policy: DustPolicy, execute_steps: int | None = None,
-                 finite_horizon: bool = False) -> None:
+                 finite_horizon: bool = False, *, instruction: bool = True, object_state: bool = False,
+                 reward_penalty: bool = False) -> None:
         self.env, self.policy = env, policy.eval()
         self.execute_steps = execute_steps or policy.execute_steps
         if not 1 <= self.execute_steps <= policy.config.horizon:
             raise ValueError(f"execute_steps must be in [1, {policy.config.horizon}], got {self.execute_steps}")
-        self.finite_horizon = finite_horizon
+        self.finite_horizon, self.reward_penalty = finite_horizon, reward_penalty
         self.view = AgentView(policy, env.observation_space[STATE_NAME],
-                              env.unwrapped.max_episode_steps if finite_horizon else None)
+                              env.unwrapped.max_episode_steps if finite_horizon else None, instruction=instruction,
+                              object_state_space=env.observation_space[ENV_STATE_NAME] if object_state else None)
         self.observation_space = self.view.space
         self.features: TensorDict | None = None  # of the newest observation, for the next plan
         self.generator = episode_generator(0)
@@ -184,22 +239,40 @@ class FrozenPolicyEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Reset the env; the policy's sampling noise restarts from ``seed`` too (as the seeded
         :class:`~dust_rl.agents.ChunkExecutor` of evaluation restarts it: the same draws)."""
+        obs, info = self.reset_unobserved(seed=seed, options=options)
+        return self.observe(obs), info
+
+    def reset_unobserved(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        """:meth:`reset`, returning the wrapped env's observation, which :func:`observe_batch` then encodes with
+        other envs' in one call."""
         super().reset(seed=seed)
         obs, info = self.env.reset(seed=seed, options=options)
         if seed is not None:
             self.generator = episode_generator(seed)
         self.executed = []
-        return self.observe(obs), info
+        return obs, info
 
-    def env_step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
-        """One step of the wrapped env, recorded in :attr:`executed`."""
+    def env_step(self, action: np.ndarray) -> tuple[float, bool, bool, dict]:
+        """One step of the wrapped env, recorded in :attr:`executed`, without its observation (nothing is rendered:
+        :meth:`observation` renders the state after the last): reward, terminated, truncated, info."""
         action = np.asarray(action, dtype=np.float32)
         self.executed.append(action)
         self.env_steps += 1
-        obs, reward, terminated, truncated, info = self.env.step(action)
+        reward, terminated, truncated, info = self.env.unwrapped.step_unobserved(action)
         if self.finite_horizon and truncated:
             terminated, truncated = True, False
-        return obs, reward, terminated, truncated, info
+        return reward, terminated, truncated, info
+
+    def observation(self) -> dict:
+        """The wrapped env's observation of its current state, as its ``step`` would have returned it."""
+        return self.env.unwrapped.observe()
+
+    def rl_reward(self, reward: float, info: dict) -> float:
+        """The reward of an RL step whose env reward is ``reward`` and whose last env step's info is ``info``: that
+        reward, or with ``reward_penalty`` 0 if the step succeeded and -1 otherwise."""
+        if not self.reward_penalty:
+            return float(reward)
+        return 0.0 if info["is_success"] else -1.0
 
     def check_action(self, action: np.ndarray) -> np.ndarray:
         """``action`` as float32 in [-1, 1] (clipped; :func:`agent_action`).
@@ -215,8 +288,7 @@ class FrozenPolicyEnv(gym.Env):
 
     def observe(self, obs: dict) -> dict:
         """The RL agent's view of ``obs`` (and its features, kept for the next plan)."""
-        self.features = self.policy.observation_features(observation_td(obs))
-        return self.view(self.features, obs[STATE_NAME], len(self.executed), *self.next_action())
+        return observe_batch([self], [obs])[0]
 
     def next_action(self) -> tuple[np.ndarray | None, torch.Tensor | None]:
         """The base action about to be executed and the future planned with it, for a view that shows them
@@ -229,17 +301,31 @@ class FrozenPolicyEnv(gym.Env):
         :func:`~dust_rl.evaluate.closed_loop.eval_collector`)."""
         raise NotImplementedError
 
-    def plan(self, action_noise: torch.Tensor | None = None) -> torch.Tensor:
+    def plan(self) -> torch.Tensor:
         """The policy's chunk [H, Da] (on the CPU) for the newest observation, from the episode's noise generator.
 
         The future DUST sampled with it, in the encoder's units [1, N_o, Dv], is kept in :attr:`predicted_future`
         (None when the policy predicts none).
         """
-        if action_noise is not None:
-            action_noise = action_noise.to(self.policy.weights_device)
-        out = self.policy.plan_features(self.features, self.generator, action_noise)
+        out = self.policy.plan_features(self.features, self.generator)
         self.predicted_future = out.get("future_tokens", None)
         return out.get("action_chunk")[0].cpu()
 
     def close(self) -> None:
         self.env.close()
+
+
+def observe_batch(envs: list[FrozenPolicyEnv], observations: list[dict]) -> list[dict]:
+    """Each env's :meth:`~FrozenPolicyEnv.observe` of its observation, the frozen encoders and the view run once for
+    all (the envs share one policy and one kind of view)."""
+    features = encode(envs[0].policy, observations)
+    for i, env in enumerate(envs):
+        env.features = features[i:i + 1]
+    upcoming = [env.next_action() for env in envs]
+    view = envs[0].view
+    base_actions = np.stack([base for base, _ in upcoming]) if view.base_action_space is not None else None
+    futures = torch.cat([future for _, future in upcoming]) if view.world_model else None
+    object_states = (np.stack([obs[ENV_STATE_NAME] for obs in observations])
+                     if view.object_state_space is not None else None)
+    return view.batch(features, np.stack([obs[STATE_NAME] for obs in observations]),
+                      [len(env.executed) for env in envs], base_actions, futures, object_states)

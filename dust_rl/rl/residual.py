@@ -54,15 +54,16 @@ class ResidualEnv(FrozenPolicyEnv):
             the action box's half-width.
         execute_steps: actions executed per chunk before the policy re-plans; default: the policy's own.
         world_model: also observe the predicted future of the chunk being executed (module doc).
-        finite_horizon: see :class:`~dust_rl.rl.frozen_policy_env.FrozenPolicyEnv`.
+        finite_horizon, reward_penalty: see :class:`~dust_rl.rl.frozen_policy_env.FrozenPolicyEnv`.
 
     Raises:
         ValueError: ``world_model`` with a policy that predicts no future (the action-only variant or sampler).
     """
 
     def __init__(self, env: gym.Env, policy: DustPolicy, residual_scale: float | np.ndarray | None = None,
-                 execute_steps: int | None = None, world_model: bool = False, finite_horizon: bool = False) -> None:
-        super().__init__(env, policy, execute_steps, finite_horizon)
+                 execute_steps: int | None = None, world_model: bool = False, finite_horizon: bool = False,
+                 reward_penalty: bool = False) -> None:
+        super().__init__(env, policy, execute_steps, finite_horizon, reward_penalty=reward_penalty)
         if world_model and policy.config.sampler_name == "action_only":
             raise ValueError(f"world_model needs a policy that predicts the future; this one (variant "
                              f"{policy.config.variant!r}, sampler {policy.config.sampler_name!r}) does not")
@@ -84,9 +85,9 @@ class ResidualEnv(FrozenPolicyEnv):
         """
         executed = corrected_action(self.base_action, self.check_action(action), self.residual_scale,
                                     self.env.action_space)
-        obs, reward, terminated, truncated, info = self.env_step(executed)
+        reward, terminated, truncated, info = self.env_step(executed)
         self.index += 1
-        return self.observe(obs), float(reward), terminated, truncated, info
+        return self.observe(self.observation()), self.rl_reward(reward, info), terminated, truncated, info
 
     def next_action(self) -> tuple[np.ndarray, torch.Tensor | None]:
         """Re-plan at the reset and when the chunk's executed part is used up (the evaluation's rule); the next base

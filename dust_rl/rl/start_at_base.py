@@ -33,6 +33,8 @@ from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.noise import ActionNoise
 
+from dust_rl.rl.steering import prior_latents
+
 
 class WarmStartSAC(SAC):
     """SAC whose warm-up steps (``learning_starts``, no updates yet) act with its actor instead of uniformly."""
@@ -40,6 +42,23 @@ class WarmStartSAC(SAC):
     def _sample_action(self, learning_starts: int, action_noise: ActionNoise | None = None,
                        n_envs: int = 1) -> tuple[np.ndarray, np.ndarray]:
         return super()._sample_action(0, action_noise, n_envs)
+
+
+class BaseWarmupSAC(SAC):
+    """Steering SAC whose warm-up steps act with the base policy's own latents
+    (:func:`~dust_rl.rl.steering.prior_latents` at ``noise_bound``) instead of uniformly: its replay buffer starts
+    with the base policy's rollouts, as far as a latent can reproduce them (exactly, without a latent, up to the
+    clipping and the fixed vision noise)."""
+
+    noise_bound: float = 1.0
+    """The steering env's: set after building the agent."""
+
+    def _sample_action(self, learning_starts: int, action_noise: ActionNoise | None = None,
+                       n_envs: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        if self.num_timesteps >= learning_starts:
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        action = prior_latents(n_envs, self.action_space.shape[0], self.noise_bound).numpy()
+        return action, self.policy.scale_action(action)
 
 
 def check_initial_std(std: float) -> None:
