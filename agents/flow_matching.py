@@ -112,7 +112,7 @@ def masked_mse(pred: Tensor, target: Tensor, valid: Tensor | None = None) -> Ten
     """
     if valid is None:
         return (pred - target).square().mean()
-    mask = valid.unsqueeze(-1)
+    mask = valid.unsqueeze(-1).expand(*pred.shape[:-1], 1)  # a [B, 1] mask covers all N rows of a sample
     # Mask the difference, not the square: d(square)/dx = 2x would turn a masked NaN into a NaN gradient.
     diff = torch.where(mask, pred - target, 0.0)
     return diff.square().sum() / (mask.sum() * pred.shape[-1]).clamp_min(1)
