@@ -10,7 +10,7 @@ per-channel means up to +-10 and standard deviations of 4-12 on our frames.
 The world-model target is standardised a second time, after pooling to the
 vision grid (``future_mean``, ``future_std``): averaging standardised tokens
 down to a coarser grid leaves per-channel variances well below one (Lite0's
-8x8 pooled to 4x4 on press_button: 0.17-0.79), which would make ``lambda_wm``
+8x8 pooled to 4x4 on press_button: 0.16-0.78), which would make ``lambda_wm``
 weigh a coarse target less than a fine one. With unit-variance targets the
 per-element loss means the same at every grid.
 The statistics are buffers, so they travel in the policy's

@@ -453,7 +453,8 @@ class DustPolicy(VLAWrapperBase):
         for key, noise in (("action_noise", action_noise), ("vision_noise", vision_noise)):
             if noise is not None:
                 batch.set(key, noise.reshape(batch.batch_size[0], *noise.shape[-2:]))
-        candidates = self.config.candidates
+        # K joint samples from the same fixed noises would be one sample K times: nothing to choose among
+        candidates = 1 if action_noise is not None and vision_noise is not None else self.config.candidates
         if candidates > 1:  # K joint samples of each observation, side by side: [B * K]
             rows = torch.arange(batch.batch_size[0], device=batch.device).repeat_interleave(candidates)
             batch, features = batch[rows], features[rows]

@@ -36,12 +36,11 @@ from dust_rl.bench.suite import (
     outcomes,
     paired,
     pairs,
-    percent,
     t_interval,
 )
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import wilson_interval
-from dust_rl.evaluate.report import save_png
+from dust_rl.evaluate.report import percent, save_png
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.train.imitation import RESUMABLE_FIELDS
 from dust_rl.train.settings import RETIRED_FIELDS, grouped_json
@@ -130,8 +129,9 @@ def check_comparable(studies: list[tuple[pathlib.Path, dict]]) -> None:
 
 
 def per_seed_successes(row: dict, episodes_per_seed: int) -> dict[int, int]:
-    """Successes of each training seed of a results row."""
-    return {seed: round(rate * episodes_per_seed) for seed, rate in zip(row["seeds"], row["per_seed"])}
+    """Successes of each training seed of a results row (recorded; from the rates in studies that predate that)."""
+    counts = row.get("per_seed_successes") or [round(rate * episodes_per_seed) for rate in row["per_seed"]]
+    return dict(zip(row["seeds"], counts))
 
 
 def average(config: AverageConfig) -> dict:

@@ -57,14 +57,12 @@ from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.envs.factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
-from dust_rl.evaluate.closed_loop import Episode, EvalConfig, evaluate, paired_comparison, wilson_interval
-from dust_rl.evaluate.report import save_png
+from dust_rl.evaluate.closed_loop import EvalConfig, evaluate, mcnemar, wilson_interval
+from dust_rl.evaluate.report import percent, save_png
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
-from dust_rl.storage.run_folder import check_run_folder
-from dust_rl.train.imitation import RESUMABLE_FIELDS, TrainConfig, TrainSettings, train
+from dust_rl.train.imitation import TrainConfig, TrainSettings, check_train_folder, train
 from dust_rl.train.recipes import RECIPES, RecipeName
-from dust_rl.train.settings import grouped_json
 
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
@@ -264,10 +262,12 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     policies = arm_policies(config, [cell.variant for cell in cells])
     splits = [(config.heldout, jobs), *([(config.validation, validation)] if validation else [])]
     reports: dict[str, dict] = {split.folder: {} for split, _ in splits}
+    trained: dict[Cell, pathlib.Path] = {}  # each cell trained (or checked) once, before its first evaluation
     for split, split_jobs in splits:
         for cell, name in split_jobs:
-            policy = train_cell(config, cell, policies[cell.variant])
-            reports[split.folder][cell, name] = evaluate_cell(config, cell, name, policy, split, command)
+            if cell not in trained:
+                trained[cell] = train_cell(config, cell, policies[cell.variant])
+            reports[split.folder][cell, name] = evaluate_cell(config, cell, name, trained[cell], split, command)
     results = summarise(config, policies, [(split, split_jobs, reports[split.folder]) for split, split_jobs in splits])
     write_json_atomic(config.out / "results.json", results, indent=2)
     write_text_atomic(config.out / "results.md", markdown(results, command))
@@ -338,7 +338,7 @@ def train_cell(config: SuiteConfig, cell: Cell, policy: PolicyConfig) -> pathlib
                                              resume=(out / "config.json").is_file(), recipe=config.recipe)
     if (out / "policy.pt").is_file():
         # a finished cell is reused only for the same study
-        check_run_folder(train_config, RESUMABLE_FIELDS, upgrade=grouped_json)
+        check_train_folder(train_config)
     else:
         train(train_config)
     return out / "policy.pt"
@@ -455,25 +455,18 @@ def pairs(arms: Sequence[str], reference: str | None = None) -> list[tuple[str, 
     return first + [(arm, MAIN_ARM) for arm in arms if MAIN_ARM in arms and arm not in (MAIN_ARM, BASELINE_ARM)]
 
 
-def outcomes(row: dict, seeds: Sequence[int] | None = None) -> dict[tuple[str, int, int], bool] | None:
-    """A row's episodes by (task, training seed, evaluation seed's place), of ``seeds`` only if given (None: the
-    row predates the record of outcomes)."""
-    if "outcomes" not in row:
-        return None
+def outcomes(row: dict, seeds: Sequence[int] | None = None) -> dict[tuple[str, int, int], bool]:
+    """A row's episodes by (task, training seed, evaluation seed's place), of ``seeds`` only if given."""
     return {(task, int(seed), i): flag == "1" for task, by_seed in row["outcomes"].items()
             for seed, flags in by_seed.items() if seeds is None or int(seed) in seeds for i, flag in enumerate(flags)}
 
 
 def paired(arm: Mapping[tuple, bool], reference: Mapping[tuple, bool]) -> dict:
-    """:func:`~dust_rl.evaluate.closed_loop.paired_comparison` of ``arm`` against ``reference`` over the episodes
-    both have: ``gained``, the episodes the arm wins and the reference loses, ``lost`` the reverse, the exact
-    McNemar ``p_value``, and how many ``episodes`` were paired."""
-    keys = sorted(arm.keys() & reference.keys())
-
-    def as_episodes(outcome: Mapping[tuple, bool]) -> list[Episode]:
-        return [Episode(i, outcome[key], 0, "") for i, key in enumerate(keys)]
-
-    return {"episodes": len(keys), **paired_comparison(as_episodes(reference), as_episodes(arm))}
+    """``arm`` against ``reference`` over the episodes both have: ``gained``, the episodes the arm wins and the
+    reference loses, ``lost`` the reverse, the exact McNemar ``p_value``, and how many ``episodes`` were paired."""
+    keys = arm.keys() & reference.keys()
+    return {"episodes": len(keys), **mcnemar(sum(arm[k] and not reference[k] for k in keys),
+                                              sum(reference[k] and not arm[k] for k in keys))}
 
 
 def compare(rows: list[dict], reference: str | None) -> list[dict]:
@@ -485,10 +478,6 @@ def compare(rows: list[dict], reference: str | None) -> list[dict]:
                    **paired(outcomes(by_arm[arm]), outcomes(by_arm[ref]))}
                   for arm, ref in pairs(list(by_arm), reference)]
     return found
-
-
-def percent(rate: float) -> str:
-    return f"{100 * rate:.0f}%"
 
 
 def interval(bounds: Sequence[float] | None) -> str:

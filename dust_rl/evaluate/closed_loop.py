@@ -192,8 +192,12 @@ def paired_comparison(base: Sequence[Episode], other: Sequence[Episode]) -> dict
     outcome = {e.seed: e.success for e in base}
     if sorted(outcome) != sorted(e.seed for e in other):
         raise ValueError("a paired comparison needs both runs on the same seeds")
-    gained = sum(e.success and not outcome[e.seed] for e in other)
-    lost = sum(outcome[e.seed] and not e.success for e in other)
+    return mcnemar(sum(e.success and not outcome[e.seed] for e in other),
+                   sum(outcome[e.seed] and not e.success for e in other))
+
+
+def mcnemar(gained: int, lost: int) -> dict:
+    """``gained``, ``lost`` and the exact two-sided McNemar p-value of that split of the discordant episodes."""
     n = gained + lost
     tail = sum(math.comb(n, k) for k in range(min(gained, lost) + 1)) / 2 ** n
     return {"gained": gained, "lost": lost, "p_value": min(1.0, 2 * tail)}

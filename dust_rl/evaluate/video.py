@@ -76,7 +76,7 @@ def video_frame(td: TensorDictBase, policy: DustPolicy, predicted: Tensor | None
     if predicted is not None:
         image = F.interpolate(predicted[None], size=views[0].shape[-2:], mode="bilinear", align_corners=False)[0]
         image = (image.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
-        label = f"{policy.future_camera} +{policy.config.horizon}"
+        label = f"{policy.future_camera} +{policy.config.future_steps}"
         real = real_future.get((*IMAGE_KEY, policy.future_camera)).permute(1, 2, 0).numpy()
         panels += [(f"{label} predicted", image), (f"{label} real", real)]
     return labelled_row(panels)
@@ -86,7 +86,7 @@ def episode_frames(trajectory: TensorDictBase, policy: DustPolicy) -> list[np.nd
     """The video frames of one evaluated episode (a collector trajectory ``[T]``): T + 1, the last observation
     included."""
     decoder = future_decoder(policy)
-    last, horizon = trajectory.shape[0], policy.config.horizon
+    last, ahead = trajectory.shape[0], policy.config.future_steps
     observations = [trajectory[t] for t in range(last)] + [trajectory[last - 1].get("next")]
     counters = trajectory.get("counter").reshape(-1).tolist()
     frames, decoded = [], {}
@@ -97,7 +97,7 @@ def episode_frames(trajectory: TensorDictBase, policy: DustPolicy) -> list[np.nd
             with torch.no_grad():
                 decoded[planned_at] = decoder(trajectory[step].get(PREDICTED_FUTURE_KEY)[None])[0]
         frames.append(video_frame(obs, policy, decoded.get(planned_at),
-                                  observations[min(planned_at + horizon, last)]))
+                                  observations[min(planned_at + ahead, last)]))
     return frames
 
 

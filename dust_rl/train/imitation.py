@@ -73,7 +73,7 @@ from dust_rl.train.readout.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HEL
 from dust_rl.train.readout.cache import readout_cache_path, warm_up_or_load
 from dust_rl.train.readout.warmup import warm_up_readout
 from dust_rl.train.recipes import LEGACY_RECIPE, RecipeName, recipe_help
-from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings, grouped_json, setting
+from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings, grouped_json
 
 # Fields that may differ between a run and its resumption (``recipe`` names where the settings started; they are
 # compared one by one).
@@ -143,12 +143,18 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
     return _train_rank(config, command)
 
 
+def check_train_folder(config: TrainConfig) -> None:
+    """Raise unless ``config.out`` suits ``config.resume`` by training's rule (settings that may change on resume,
+    retired ones, earlier names): for a run about to start, and for a finished one reused (``bench suite``)."""
+    check_run_folder(config, RESUMABLE_FIELDS, RETIRED_FIELDS, grouped_json)
+
+
 def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     """:func:`train` in this process, as one rank of the run when there are several."""
     if config.runtime.threads:
         torch.set_num_threads(config.runtime.threads)
     ranks = _join(config)
-    check_run_folder(config, RESUMABLE_FIELDS, RETIRED_FIELDS, grouped_json)
+    check_train_folder(config)
     ranks.barrier()  # every rank has seen the folder before rank 0 writes it
 
     # Data, env check, policy (all checked before the run folder is written), cached frozen features.
@@ -177,8 +183,9 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     policy.info = {"env_id": env_id, "env_kwargs": env_kwargs, "tasks": dataset.tasks,
                    "dataset": str(config.dataset), "variant": policy.config.variant, "steps": config.optim.steps,
                    ENV_STATE_NORM_INFO: state_units, IMAGE_SIZE_INFO: frame_size(dataset.meta["spec"]["image_shape"]),
-                   **{name: str(setting(config, name)) if setting(config, name) else None
-                      for name in ("video_dataset", "extra_dataset", "init_policy")}}
+                   **{name: str(path) if path else None for name, path in (
+                       ("video_dataset", config.data.video_dataset), ("extra_dataset", config.data.extra_dataset),
+                       ("init_policy", config.init_policy))}}
     features = _cached_features(config, dataset, policy, ranks)
     start_rows = {"start_rows": config.data.start_rows,
                   "start_fraction": config.data.start_fraction if config.data.start_rows else 0.0}
