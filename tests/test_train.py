@@ -25,6 +25,7 @@ from dust_rl.data.dataset import cache_root, writable
 from dust_rl.data.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.data.env_state_norm import PER_TASK
 from dust_rl.data.features import FeatureCache
+from dust_rl.data.seeding import VALIDATION_SEED
 from dust_rl.data.tools import dataset_summary
 from dust_rl.errors import ConfigError, NoSpaceError
 from dust_rl.keys import ACTION_IS_PAD_KEY
@@ -125,6 +126,7 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     # The periodic closed-loop evaluation ran on every training task and logged its success rates.
     evaluated = json.loads((out / "eval" / "step-0000012" / "report.json").read_text())
     assert [row["task"] for row in evaluated["tasks"]] == ["press_button", "open_drawer"]
+    assert evaluated["seeds"][0] == VALIDATION_SEED  # chosen on validation seeds, the held-out ones left unseen
     success = (out / "logs" / "train" / "scalars" / "eval" / "success_rate.csv").read_text().split(",")
     assert int(success[0]) == 12 and float(success[1]) == evaluated["overall"]["success_rate"]
     step, skill = (out / "logs" / "train" / "scalars" / "wm" / "skill.csv").read_text().split(",")

@@ -78,8 +78,8 @@ from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings, g
 # Fields that may differ between a run and its resumption (``recipe`` names where the settings started; they are
 # compared one by one).
 RESUMABLE_FIELDS = ("resume", "runtime.progress", "runtime.threads", "runtime.device", "runtime.compile",
-                    "logging.eval_every", "logging.eval_episodes", "logging.eval_workers", "logging.loggers",
-                    "cache_dir", "recipe")
+                    "logging.eval_every", "logging.eval_episodes", "logging.eval_workers", "logging.eval_seed",
+                    "logging.loggers", "cache_dir", "recipe")
 SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
 
 
@@ -461,6 +461,7 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int,
     path = save_policy(policy, folder / "policy.pt")
     with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
         report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.logging.eval_episodes,
+                                     seed=config.logging.eval_seed,
                                      workers=config.logging.eval_workers, videos=0, progress=False,
                                      device=config.runtime.device))
     scalars = {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {

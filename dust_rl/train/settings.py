@@ -19,6 +19,7 @@ from typing import Literal
 
 from dust_rl.agents.config import RETIRED_SETTINGS, PolicyConfig
 from dust_rl.agents.precision import Precision
+from dust_rl.data.seeding import VALIDATION_SEED
 from dust_rl.errors import ConfigError, check_at_least, check_finite, check_fraction
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import LoggerKind, check_loggers
@@ -173,13 +174,16 @@ class LoggingSettings:
     """Episodes per task of each periodic evaluation."""
     eval_workers: int = 2
     """Env processes of each periodic evaluation."""
+    eval_seed: int = VALIDATION_SEED
+    """First seed of each periodic evaluation: validation seeds, so a step count chosen on these curves leaves the
+    held-out seeds (from 10,000) unseen."""
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
     """Where the scalars go, each through torchrl's `get_logger` into `out/logs` (experiment `train`);
     `wandb` and `mlflow` need their package installed. `loss.png` is drawn from the CSV files."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "log_every", "checkpoint_every", "eval_episodes", "eval_workers")
-        check_at_least(self, 0, "eval_every")
+        check_at_least(self, 0, "eval_every", "eval_seed")
         check_loggers(self.loggers)
 
 
