@@ -45,11 +45,12 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
                           runtime=RuntimeSettings(threads=1, progress=False))
     config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1, 2),
                          variants=("dust", "action_only", "dust_no_wm", "action_only_wide"), seeds=(0,),
-                         recipe="plain", train=train, vision_steps=(4, 8), eval_episodes=1, val_episodes=1,
+                         recipe="plain", train=train, arm_steps=("action_only_wide=3",), vision_steps=(4, 8),
+                         eval_episodes=1, val_episodes=1,
                          image_size=32, max_steps=6, video_dataset=tmp_path / "suite" / "data" / "1",  # collected
                          progress=False)                                                               # by the suite
     results = run_suite(config, "dust-rl bench suite ...")
-    assert ("budget: collect 2 demonstrations x 1 tasks; train 7 policies x 2 steps (14 steps); evaluate 12 x 1 "
+    assert ("budget: collect 2 demonstrations x 1 tasks; train 7 policies (15 steps in all); evaluate 12 x 1 "
             "episodes x 1 tasks and validate 7 x 1 episodes x 1 tasks (19 episodes)") in capsys.readouterr().out
     rows = {(r["variant"], r["demos"], r["sampler"]): r for r in results["rows"]}
     assert set(rows) == {("dust", 2, AS_TRAINED), ("action_only", 2, AS_TRAINED), ("dust_no_wm", 2, AS_TRAINED),
@@ -70,10 +71,13 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert (no_wm.variant, no_wm.lambda_wm, no_wm.d_model) == ("dust", 0.0, TINY_POLICY["d_model"])
     assert wide.variant == "action_only" and wide.d_model > TINY_POLICY["d_model"]
     assert wide.d_model % wide.n_heads == 0
-    assert results["arms"]["dust_no_wm"] == {"variant": "dust", "policy": {"lambda_wm": 0.0},
+    assert results["arms"]["dust_no_wm"] == {"variant": "dust", "policy": {"lambda_wm": 0.0}, "steps": 2,
                                              "description": "DUST's network with the world model's loss off "
                                              "(lambda_wm = 0)"}
     assert results["arms"]["action_only_wide"]["policy"] == {"d_model": wide.d_model}
+    assert results["arms"]["action_only_wide"]["steps"] == 3  # its own step count, the others the recipe's
+    stored = json.loads((cell / "action_only_wide_seed0_demos2" / "config.json").read_text())["config"]
+    assert stored["optim"]["steps"] == 3
     assert results["arms"]["dust"]["policy"] == {} and results["recipe"] == "plain"
     assert json.loads((cell / "dust_seed0_demos2" / "config.json").read_text())["config"]["recipe"] == "plain"
     sync8 = json.loads((tmp_path / "suite" / "eval" / "dust_seed0_demos2" / "sync_N_AN_o8" / "report.json").read_text())
@@ -99,7 +103,7 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert "## Data scaling" in markdown and "| action_only | 1 | as trained |" in markdown
     assert f"| {WITH_VIDEO} | 2 | as trained |" in markdown and "recipe plain" in markdown
     assert "## Paired comparisons" in markdown and "| dust_no_wm | dust | 2 | 1 |" in markdown
-    assert f"- action_only_wide (action_only, d_model {wide.d_model}): action_only with its trunk" in markdown
+    assert f"- action_only_wide (action_only, d_model {wide.d_model}, 3 steps): action_only with its trunk" in markdown
     assert f"{parameters['action_only_wide'] / 1e6:.2f}M trainable parameters against dust's" in markdown
     assert markdown.index("# Validation") > markdown.index("## Paired comparisons") > 0
     assert "## Paired comparisons on validation seeds" in markdown
@@ -138,6 +142,12 @@ def test_suite_settings_are_checked():
         SuiteConfig(variants=("dust", "wide"))
     with pytest.raises(ConfigError, match="--reference joint is not one of --variants dust action_only"):
         SuiteConfig(variants=("dust", "action_only"), reference="joint")
+    with pytest.raises(ConfigError, match="--arm-steps takes ARM=N"):
+        SuiteConfig(variants=("dust",), arm_steps=("dust=0",))
+    with pytest.raises(ConfigError, match="--arm-steps names joint, which is not one of --variants dust"):
+        SuiteConfig(variants=("dust",), arm_steps=("joint=100",))
+    per_arm = SuiteConfig(variants=("dust", "action_only"), arm_steps=("dust=4000",))
+    assert (per_arm.steps_of("dust"), per_arm.steps_of("action_only")) == (4000, per_arm.train.optim.steps)
     with pytest.raises(ConfigError, match="reach the held-out seeds"):
         SuiteConfig(val_seed=HELDOUT_SEED - 5, val_episodes=10)
     assert SuiteConfig(val_seed=HELDOUT_SEED - 5, val_episodes=5).validation.seeds == [HELDOUT_SEED - 5,
@@ -229,7 +239,8 @@ def test_the_tables_leave_out_parts_the_study_did_not_run():
            "successes": 80, "episodes": 100, "ci95_low": 0.71, "ci95_high": 0.87, "per_seed": [0.76, 0.84],
            "seeds": [0, 1], "per_seed_successes": [38, 42], "seed_ci95": [0.29, 1.0]}
     text = markdown({"task": "press_button", "env": "DustFranka-v0", "eval_seeds": [10000, 10049], "main_demos": 200,
-                     "recipe": "plain", "arms": {"joint": {"variant": "joint", "policy": {}, "description": "."}},
+                     "recipe": "plain", "train": {"optim": {"steps": 2000}},
+                     "arms": {"joint": {"variant": "joint", "policy": {}, "description": "."}},
                      "rows": [row, {**row, "variant": "action_only"}], "comparisons": [], "validation": None}, None)
     assert ("| joint | 200 | as trained | 2.00M | 80% (80/100) | 71-87% | 29-100% | 0: 76% (38/50) / 1: 84% (42/50) "
             "|") in text

@@ -32,8 +32,9 @@ or the second stream's capacity, make the difference?), and ``action_only_wide``
 DUST's parameters. A seed-level interval (the training seed is the unit a claim generalises over) stands beside
 the pooled Wilson interval, and every arm is compared with its reference on the same episodes (same task,
 evaluation seed and training seed: the discordant pairs and their exact McNemar p). ``--val-episodes`` also
-evaluates every cell on validation seeds, reported apart from the held-out ones, to choose settings (a step
-count: one study per ``--train.optim.steps``) on validation and report them on held-out seeds.
+evaluates every cell on validation seeds, reported apart from the held-out ones, to choose settings on validation
+and report them on held-out seeds; ``--arm-steps ARM=N`` trains one arm for its own step count (each arm until its
+validation success stops rising, e.g. read off ``dust-rl train --logging.eval-every``'s curve).
 """
 
 from __future__ import annotations
@@ -142,6 +143,9 @@ class SuiteConfig:
     train: TrainSettings = field(default_factory=RECIPES[DEFAULT_RECIPE].settings)
     """The settings every cell trains with (`--train.optim.steps`, `--train.policy.d-model` ...; defaults from
     `recipe`; its variant and seed are the cell's)."""
+    arm_steps: tuple[str, ...] = ()
+    """Optimiser steps of single arms, `ARM=N` each (e.g. `dust=4000 action_only=3000`: each arm trained until its
+    validation success stopped rising); the arms not named train `--train.optim.steps`."""
     reference: ArmName | None = None
     """The arm every other arm is compared with, episode by episode; None: dust against action_only and every
     other arm against dust."""
@@ -182,10 +186,33 @@ class SuiteConfig:
             raise ConfigError(f"--reference {self.reference} is not one of --variants {' '.join(self.variants)}")
         if any(v % 4 or not 4 <= v <= MAX_STEPS for v in self.vision_steps):  # N_o steps, sync and async
             raise ConfigError(f"vision_steps must be multiples of N_A = 4 in [4, {MAX_STEPS}], got {self.vision_steps}")
+        for arm in self.steps_by_arm:
+            if arm not in self.variants:
+                raise ConfigError(f"--arm-steps names {arm}, which is not one of --variants {' '.join(self.variants)}")
         held_out, validation = self.heldout.seeds, self.validation.seeds if self.validation else None
         if validation and validation[0] <= held_out[1] and held_out[0] <= validation[1]:
             raise ConfigError(f"validation seeds {validation[0]}..{validation[1]} reach the held-out seeds "
                               f"{held_out[0]}..{held_out[1]}; give another --val-seed")
+
+    @property
+    def steps_by_arm(self) -> dict[str, int]:
+        """``arm_steps`` read: optimiser steps by arm name.
+
+        Raises:
+            ConfigError: an entry that is not ``ARM=N`` with N >= 1.
+        """
+        steps = {}
+        for entry in self.arm_steps:
+            arm, _, count = entry.partition("=")
+            if not count.isdigit() or int(count) < 1:
+                raise ConfigError(f"--arm-steps takes ARM=N with N >= 1 optimiser steps (e.g. dust=4000), "
+                                  f"got {entry!r}")
+            steps[arm] = int(count)
+        return steps
+
+    def steps_of(self, arm: str) -> int:
+        """The optimiser steps arm ``arm``'s cells train for."""
+        return self.steps_by_arm.get(arm, self.train.optim.steps)
 
     @property
     def heldout(self) -> Split:
@@ -248,10 +275,10 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     jobs = plan(config)
     cells = list(dict.fromkeys(cell for cell, _ in jobs))
     validation = [(cell, AS_TRAINED) for cell in cells] if config.validation else []
-    steps = config.train.optim.steps
+    steps = sum(config.steps_of(cell.variant) for cell in cells)
     evaluations = (len(jobs) * config.eval_episodes + len(validation) * config.val_episodes) * len(tasks)
     print(f"budget: collect {max(config.demos)} demonstrations x {len(tasks)} tasks; train {len(cells)} policies "
-          f"x {steps} steps ({len(cells) * steps} steps); evaluate {len(jobs)} x "
+          f"({steps} steps in all); evaluate {len(jobs)} x "
           f"{config.eval_episodes} episodes x {len(tasks)} tasks"
           + (f" and validate {len(validation)} x {config.val_episodes} episodes x {len(tasks)} tasks"
              if validation else "") + f" ({evaluations} episodes)")
@@ -332,6 +359,7 @@ def train_cell(config: SuiteConfig, cell: Cell, policy: PolicyConfig) -> pathlib
     recipe = config.train
     settings = dataclasses.replace(
         recipe, seed=cell.seed, runtime=dataclasses.replace(recipe.runtime, progress=config.progress), policy=policy,
+        optim=dataclasses.replace(recipe.optim, steps=config.steps_of(cell.variant)),
         data=dataclasses.replace(recipe.data, video_dataset=config.video_dataset if cell.video
                                  else recipe.data.video_dataset))
     train_config = TrainConfig.from_settings(settings, dataset=config.out / "data" / str(cell.demos), out=out,
@@ -370,7 +398,7 @@ def summarise(config: SuiteConfig, policies: Mapping[str, PolicyConfig],
     """The study's results: its settings, the arms, and per split of seeds the rows and the paired comparisons
     (validation apart, under ``validation``)."""
     (heldout, jobs, reports), *validation = splits
-    arms = {name: {"variant": policy.variant, "description": ARMS[name].description,
+    arms = {name: {"variant": policy.variant, "description": ARMS[name].description, "steps": config.steps_of(name),
                    "policy": {f.name: getattr(policy, f.name) for f in dataclasses.fields(policy)
                               if f.name != "variant" and getattr(policy, f.name) != getattr(config.train.policy,
                                                                                                 f.name)}}
@@ -521,9 +549,10 @@ def markdown(results: dict, command: str | None) -> str:
     rows = results["rows"]
     lines = [f"# Variant comparison: {results['task']} ({results['env']})", "",
              f"Held-out seeds {results['eval_seeds'][0]}..{results['eval_seeds'][1]} per task; every cell trained "
-             f"from recipe {results['recipe']} with the same settings; episodes pooled over training seeds (95% CI: "
+             f"from recipe {results['recipe']} with the same settings (but those listed below); episodes pooled over training seeds (95% CI: "
              "Wilson, over the pooled episodes), beside the t-interval over the training seeds' success.", ""]
-    lines += arm_lines(results["arms"], {r["variant"]: r["trainable_parameters"] for r in rows})
+    lines += arm_lines(results["arms"], {r["variant"]: r["trainable_parameters"] for r in rows},
+                       results["train"]["optim"]["steps"])
     lines += table("Variants", [r for r in rows if r["demos"] == main and r["sampler"] == AS_TRAINED])
     lines += table("DUST's samplers: test-time scaling, the synchronous control, the vision stream as noise",
                    [r for r in rows if r["demos"] == main and r["sampler"] != AS_TRAINED])
@@ -543,14 +572,16 @@ def markdown(results: dict, command: str | None) -> str:
     return "\n".join(lines)
 
 
-def arm_lines(arms: Mapping[str, dict], parameters: Mapping[str, int]) -> list[str]:
-    """One line per arm of ``arms`` (a results file's) that changes the recipe's policy settings: what it changes
-    and, for a widened one, its trainable ``parameters`` against those of the arm it widens to."""
+def arm_lines(arms: Mapping[str, dict], parameters: Mapping[str, int], steps: int | None = None) -> list[str]:
+    """One line per arm of ``arms`` (a results file's) that changes the recipe's policy settings or its ``steps``:
+    what it changes and, for a widened one, its trainable ``parameters`` against those of the arm it widens to."""
     lines = []
     for name, arm in arms.items():
-        if not arm["policy"]:
+        own_steps = arm.get("steps", steps)  # results from before --arm-steps record none
+        if not arm["policy"] and own_steps == steps:
             continue
-        changes = ", ".join(f"{k} {v}" for k, v in arm["policy"].items())
+        changes = ", ".join([f"{k} {v}" for k, v in arm["policy"].items()]
+                            + ([f"{own_steps} steps"] if own_steps != steps else []))
         widen_to = ARMS[name].widen_to if name in ARMS else None
         size = (f"; {parameters[name] / 1e6:.2f}M trainable parameters against {widen_to}'s "
                 f"{parameters[widen_to] / 1e6:.2f}M" if widen_to in parameters and name in parameters else "")
