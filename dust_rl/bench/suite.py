@@ -549,8 +549,9 @@ def markdown(results: dict, command: str | None) -> str:
     rows = results["rows"]
     lines = [f"# Variant comparison: {results['task']} ({results['env']})", "",
              f"Held-out seeds {results['eval_seeds'][0]}..{results['eval_seeds'][1]} per task; every cell trained "
-             f"from recipe {results['recipe']} with the same settings (but those listed below); episodes pooled over training seeds (95% CI: "
-             "Wilson, over the pooled episodes), beside the t-interval over the training seeds' success.", ""]
+             f"from recipe {results['recipe']} with the same settings (but those listed below); episodes pooled over "
+             "training seeds (95% CI: Wilson, over the pooled episodes), beside the t-interval over the training "
+             "seeds' success.", ""]
     lines += arm_lines(results["arms"], {r["variant"]: r["trainable_parameters"] for r in rows},
                        results["train"]["optim"]["steps"])
     lines += table("Variants", [r for r in rows if r["demos"] == main and r["sampler"] == AS_TRAINED])
