@@ -187,7 +187,8 @@ def fit(x: dict[str, np.ndarray], y: dict[str, np.ndarray], hidden: int | None, 
                 best, best_state, since = score, {k: v.clone() for k, v in scorer.state_dict().items()}, 0
             elif (since := since + 50) >= patience:
                 break
-    scorer.load_state_dict(best_state)
+    if best_state is not None:  # None: no selection plan had untied labels to rank; the last weights stand
+        scorer.load_state_dict(best_state)
     return scorer.eval(), best
 
 
@@ -223,6 +224,7 @@ def fit_scorers(folder: pathlib.Path, out: pathlib.Path) -> dict:
 
 
 def load_scorer(out: pathlib.Path, kind: str, fitted: dict) -> Scorer:
+    """The chosen scorer of feature set ``kind`` as :func:`fit_scorers` saved it (its statistics are buffers)."""
     row = fitted[kind]
     scorer = Scorer(np.zeros(row["width"]), np.ones(row["width"]), row["hidden"])
     scorer.load_state_dict(torch.load(out / f"scorer-{kind}.pt", weights_only=True))
