@@ -51,7 +51,8 @@ EE_POSITION, EE_OPENING = slice(-8, -5), -1  # the robot state ends with the gri
 NOISE_OFFSET = 1_000_003  # the candidates' noise stream of an episode: its seed plus this (far from every schedule)
 NOISE_BOUND = 4.0  # latents of +-1 map to +-4: the N(0, 1) candidate noise is clipped at 4 standard deviations
 SPLITS = (0.6, 0.2)  # of the collected episodes: fit, selection; the rest is the report split
-ARMS = ("base", "deployable", "privileged", "simulator")
+KINDS = ("deployable", "privileged")  # the feature sets scorers are fitted on
+ARMS = ("base", *KINDS, "simulator")
 
 
 class GateEnv:
@@ -92,12 +93,12 @@ class GateEnv:
             self.sim.restore(snapshot)
         return np.array(out)
 
-    def features(self, view: dict, chunks: torch.Tensor) -> dict[str, np.ndarray]:
-        """Per candidate [K, F], the deployable and the privileged features (module doc)."""
-        estimate = self.norm.denormalize(self.policy.estimate_env_state(self.env.features), self.task_index)[0]
-        truth = self.sim.task.environment_state(self.sim.data)
-        return {"deployable": self._features(view["robot_state"], estimate.numpy(), chunks),
-                "privileged": self._features(view["robot_state"], truth, chunks)}
+    def features(self, view: dict, chunks: torch.Tensor, kinds: tuple[str, ...] = KINDS) -> dict[str, np.ndarray]:
+        """Per candidate [K, F], the features of each of ``kinds`` (module doc)."""
+        objects = {"deployable": lambda: self.norm.denormalize(self.policy.estimate_env_state(self.env.features),
+                                                               self.task_index)[0].numpy(),
+                   "privileged": lambda: self.sim.task.environment_state(self.sim.data)}
+        return {kind: self._features(view["robot_state"], objects[kind](), chunks) for kind in kinds}
 
     def _features(self, robot: np.ndarray, objects: np.ndarray, chunks: torch.Tensor) -> np.ndarray:
         executed = chunks[:, :self.env.execute_steps].clamp(-1, 1).numpy().astype(np.float64)
@@ -130,7 +131,7 @@ def collect(gate: GateEnv, folder: pathlib.Path, seeds: range) -> None:
                 rows[name].append(values)
             rows["label"].append(gate.labels(chunks))
             view, done, _ = gate.execute(chunks[0])
-        tmp = path.with_suffix(".tmp.npz")
+        tmp = folder / f".{path.name}"  # outside the episode-*.npz glob until whole
         np.savez(tmp, **{name: np.stack(values) for name, values in rows.items()})
         os.replace(tmp, path)
 
@@ -204,7 +205,7 @@ def fit_scorers(folder: pathlib.Path, out: pathlib.Path) -> dict:
     result = {"plans": {name: len(v) for name, v in labels.items()}, "episodes": {k: len(v) for k, v in parts.items()}}
     report = labels["report"]
     result["report_progress_gain"] = {"simulator": float((report.max(1) - report[:, 0]).mean())}
-    for kind in ("deployable", "privileged"):
+    for kind in KINDS:
         x = {name: np.concatenate([d[kind] for d in files]) for name, files in data.items()}
         fitted = [(f"{model} wd {wd}", *fit(x, labels, hidden, wd))
                   for model, hidden in (("linear", None), ("mlp", 128)) for wd in (1e-4, 1e-2)]
@@ -246,7 +247,7 @@ def closed_loop(gate: GateEnv, arm: str, scorer: Scorer | None, seeds: range, pa
                 index = int(gate.labels(chunks).argmax())
             else:
                 with torch.no_grad():
-                    x = torch.as_tensor(gate.features(view, chunks)[arm], dtype=torch.float32)
+                    x = torch.as_tensor(gate.features(view, chunks, (arm,))[arm], dtype=torch.float32)
                     index = int(scorer(x).argmax())
             view, over, success = gate.execute(chunks[index])
         with path.open("a") as file:
@@ -284,7 +285,7 @@ def main() -> None:
             outcomes[arm] = closed_loop(gate, arm, scorer, seeds, args.out / f"closed-loop-{arm}.jsonl")
     lines = ["| scorer | features | selection Spearman | report Spearman | progress gain over candidate 0 |",
              "|---|---|---|---|---|"]
-    for kind in ("deployable", "privileged"):
+    for kind in KINDS:
         for name, row in fitted[kind]["scorers"].items():
             chosen = " (chosen)" if name == fitted[kind]["chosen"] else ""
             lines.append(f"| {name}{chosen} | {kind} | {row['selection_spearman']:.3f} | {row['report_spearman']:.3f}"

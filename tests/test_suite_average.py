@@ -87,6 +87,11 @@ def test_average_pools_the_shared_seeds_and_refuses_unlike_studies(two_studies, 
     (other / "results.json").write_text(json.dumps(results))
     with pytest.raises(ConfigError, match="eval_seeds"):
         average(AverageConfig(studies=(press.out, other)))
+    results["eval_seeds"] = drawer_results["eval_seeds"]
+    results["arms"]["dust"]["steps"] = drawer.train.optim.steps + 1  # --arm-steps dust=3 in one study only
+    (other / "results.json").write_text(json.dumps(results))
+    with pytest.raises(ConfigError, match=r"trained dust for other step counts \(3 against 2\)"):
+        average(AverageConfig(studies=(press.out, other)))
     with pytest.raises(ConfigError, match="holds no results.json"):
         average(AverageConfig(studies=(press.out, tmp_path / "nothing")))
     with pytest.raises(ConfigError, match="no such results file"):

@@ -106,6 +106,13 @@ def recipe(study: dict) -> dict:
             if k not in NOT_THE_RECIPE and (k not in RETIRED_FIELDS or RETIRED_FIELDS[k] != v)}
 
 
+def arm_steps(study: dict) -> dict[str, int]:
+    """The optimiser steps of each of the study's arms (``bench suite --arm-steps``; a study from before records
+    none: the recipe's)."""
+    steps = recipe(study).get("optim.steps")
+    return {name: arm.get("steps", steps) for name, arm in study.get("arms", {}).items()}
+
+
 def check_comparable(studies: list[tuple[pathlib.Path, dict]]) -> None:
     """Refuse studies that differ in anything but their task.
 
@@ -123,6 +130,11 @@ def check_comparable(studies: list[tuple[pathlib.Path, dict]]) -> None:
             differs = sorted(k for k in ours.keys() | theirs.keys() if ours.get(k) != theirs.get(k))
             raise ConfigError(f"{path} and {first_path} were trained with other settings ({', '.join(differs)}): "
                               "average only studies of one recipe")
+        theirs, ours = arm_steps(study), arm_steps(first)
+        if differs := sorted(name for name in ours.keys() & theirs.keys() if ours[name] != theirs[name]):
+            raise ConfigError(f"{path} and {first_path} trained {', '.join(differs)} for other step counts "
+                              f"({', '.join(f'{theirs[n]} against {ours[n]}' for n in differs)}): average only "
+                              "studies of one recipe")
     tasks = [study["task"] for _, study in studies]
     if len(set(tasks)) < len(tasks):
         raise ConfigError(f"a task appears in more than one study ({tasks}): give one folder per task")
@@ -178,7 +190,8 @@ def average(config: AverageConfig) -> dict:
     return {"env": first["env"], "demos": first["main_demos"], "eval_seeds": first["eval_seeds"],
             "recipes": sorted({study["recipe"] for _, study in studies if "recipe" in study}),
             "tasks": sorted(rows), "studies": [str(p) for p in config.studies],
-            "arms": {name: arm for name, arm in arms.items() if name in columns}, "variants": columns,
+            "arms": {name: arm for name, arm in arms.items() if name in columns},
+            "steps": recipe(first).get("optim.steps"), "variants": columns,
             "comparisons": [] if without else compare(studies, columns, config.reference),
             "without_outcomes": without}
 
@@ -209,7 +222,8 @@ def markdown(result: dict, command: str | None) -> str:
              f"Held-out seeds {result['eval_seeds'][0]}..{result['eval_seeds'][1]}; per variant, the training seeds "
              f"every study has (episodes pooled over them; 95% CI: Wilson); recipe {recipes}, the same training "
              "settings in every study.", "",
-             *arm_lines(result["arms"], {v: c["trainable_parameters"] for v, c in variants.items()}),
+             *arm_lines(result["arms"], {v: c["trainable_parameters"] for v, c in variants.items()},
+                        result.get("steps")),
              "| task | " + " | ".join(f"{v} ({variants[v]['trainable_parameters'] / 1e6:.2f}M, seeds "
                                       f"{', '.join(map(str, variants[v]['seeds']))})" for v in names) + " |",
              "|---|" + "---|" * len(names)]

@@ -573,7 +573,7 @@ def markdown(results: dict, command: str | None) -> str:
     return "\n".join(lines)
 
 
-def arm_lines(arms: Mapping[str, dict], parameters: Mapping[str, int], steps: int | None = None) -> list[str]:
+def arm_lines(arms: Mapping[str, dict], parameters: Mapping[str, int], steps: int | None) -> list[str]:
     """One line per arm of ``arms`` (a results file's) that changes the recipe's policy settings or its ``steps``:
     what it changes and, for a widened one, its trainable ``parameters`` against those of the arm it widens to."""
     lines = []
