@@ -73,6 +73,17 @@ def load_checkpoint(path: str | pathlib.Path, kind: str) -> dict:
     return _checked(payload, kind, path)
 
 
+def checkpoint_kind(path: str | pathlib.Path) -> str | None:
+    """The kind a checkpoint file is tagged with, read without loading its tensors (memory-mapped); None for a
+    folder or anything that is not a readable checkpoint file (its loader then says what is wrong)."""
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # a folder, a missing, truncated or foreign file: for the loader to report
+        return None
+    kind = payload.get("kind") if isinstance(payload, dict) else None
+    return kind if isinstance(kind, str) else None
+
+
 def save_folder(config: dict, tensors: dict[str, Tensor], path: str | pathlib.Path, kind: str) -> pathlib.Path:
     """Write ``config`` (JSON-able) tagged with ``kind`` and ``tensors`` to the folder ``path``, atomically.
 

@@ -147,15 +147,23 @@ def save_policy(policy: DustPolicy, path: str | pathlib.Path) -> pathlib.Path:
         CheckpointError: ``path`` is an existing folder that is neither empty nor a policy folder.
         TypeError: a folder is asked for and ``policy.info`` holds something JSON cannot.
     """
-    weights = {k: v for k, v in policy.state_dict().items() if not k.startswith("backbone.")}
-    entries = {"config": dataclasses.asdict(policy.config), "cameras": policy.cameras,
-               "future_camera": policy.future_camera, "execute_steps": policy.execute_steps,
-               "backbone": policy.backbone.reference(), "info": policy.info}
-    image_weights = policy.backbone.image_weights()
+    entries = policy_entries(policy)
     if pathlib.Path(path).suffix == FILE_SUFFIX:
-        return save_checkpoint({**entries, "image_weights": image_weights, "state_dict": weights}, path, POLICY_KIND)
+        return save_checkpoint(entries, path, POLICY_KIND)
+    image_weights, weights = entries.pop("image_weights"), entries.pop("state_dict")
     stored_image = {IMAGE_WEIGHTS_PREFIX + k: v for k, v in (image_weights or {}).items()}
     return save_folder(entries, {**weights, **stored_image}, path, POLICY_KIND)
+
+
+def policy_entries(policy: DustPolicy) -> dict:
+    """What a policy file holds (:func:`save_policy`), for files that carry a policy among other things (a
+    fine-tuned RL agent's): config, cameras, backbone reference, ``info``, trainable weights (``state_dict``) and the
+    image encoder's weights where its reference has no path (``image_weights``)."""
+    return {"config": dataclasses.asdict(policy.config), "cameras": policy.cameras,
+            "future_camera": policy.future_camera, "execute_steps": policy.execute_steps,
+            "backbone": policy.backbone.reference(), "info": policy.info,
+            "image_weights": policy.backbone.image_weights(),
+            "state_dict": {k: v for k, v in policy.state_dict().items() if not k.startswith("backbone.")}}
 
 
 def _read_policy(path: pathlib.Path) -> dict:
@@ -188,7 +196,18 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
             checkpoint that does not fit ``env``; for a folder also a file linking out of it.
     """
     path = pathlib.Path(path)
-    payload = _read_policy(path)
+    policy = policy_from_entries(_read_policy(path), path, execute_steps)
+    if env is not None:
+        check_fits_env(policy, env, path)
+    return policy
+
+
+def policy_from_entries(payload: dict, source: object, execute_steps: int | None = None) -> DustPolicy:
+    """The policy of :func:`policy_entries`' ``payload`` read from ``source`` (named in errors), checked.
+
+    Raises:
+        CheckpointError: see :func:`load_policy`.
+    """
     try:
         config = DustConfig(**without_retired(payload["config"], RETIRED_SETTINGS))
         cameras = payload["cameras"]
@@ -203,9 +222,7 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
         policy.load_state_dict(weights, strict=False)
         policy.info = dict(payload.get("info", {}))
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
-        raise CheckpointError(f"{path}: policy does not load ({one_line(err)})") from err
-    if env is not None:
-        check_fits_env(policy, env, path)
+        raise CheckpointError(f"{source}: policy does not load ({one_line(err)})") from err
     return policy
 
 

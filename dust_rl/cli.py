@@ -38,8 +38,9 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     from dust_rl.bench.suite import SuiteConfig, suite_command
     from dust_rl.data import commands as data
     from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose_world_model_command
-    from dust_rl.evaluate.closed_loop import EvalConfig, evaluate_command
+    from dust_rl.evaluate.closed_loop import EvalConfig
     from dust_rl.quickstart import QuickstartConfig, quickstart
+    from dust_rl.rl.fine_tuned_policy import evaluate_any_command
     from dust_rl.rl.finetune import FinetuneCommand, finetune_command
     from dust_rl.train import encoder_commands as encoders
     from dust_rl.train.imitation import TrainConfig, train_command
@@ -53,7 +54,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "pretrain-encoder": (encoders.PretrainEncoderCommand, encoders.run_pretrain_encoder),
         "encoder": (encoders.EncoderCommand, encoders.run_encoder),
         "train": (TrainConfig, train_command),
-        "eval": (EvalConfig, evaluate_command),
+        "eval": (EvalConfig, evaluate_any_command),
         "finetune": (FinetuneCommand, finetune_command),
         "bench suite": (SuiteConfig, suite_command),
         "bench average": (AverageConfig, average_command),

@@ -7,6 +7,9 @@ whether it is more
 than noise.
 
     .venv/bin/python experiments/paired_compare.py --base runs/eval/B/report.json --others runs/eval/X/report.json ...
+
+A comma-joined list of reports (``--base B1/report.json,B2/report.json``) pools their episodes, e.g. validation and
+held-out seeds of the same policy; each other policy's list must cover the same seeds.
 """
 
 from __future__ import annotations
@@ -18,15 +21,20 @@ import pathlib
 from dust_rl.evaluate.closed_loop import Episode, paired_comparison
 
 
-def episodes(report: pathlib.Path) -> dict[str, list[Episode]]:
-    """Each task's episodes of a ``dust-rl eval`` report."""
-    return {row["task"]: [Episode(*e) for e in row["per_episode"]] for row in json.loads(report.read_text())["tasks"]}
+def episodes(reports: str) -> dict[str, list[Episode]]:
+    """Each task's episodes of comma-joined ``dust-rl eval`` reports, pooled in their order."""
+    pooled: dict[str, list[Episode]] = {}
+    for report in reports.split(","):
+        for row in json.loads(pathlib.Path(report).read_text())["tasks"]:
+            pooled.setdefault(row["task"], []).extend(Episode(*e) for e in row["per_episode"])
+    return pooled
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--base", type=pathlib.Path, required=True, help="the base policy's report.json")
-    parser.add_argument("--others", type=pathlib.Path, nargs="+", required=True, help="report.json files to compare")
+    parser.add_argument("--base", required=True, help="the base policy's report.json (comma-joined: pooled)")
+    parser.add_argument("--others", nargs="+", required=True, help="report.json files to compare (each comma-joined: "
+                        "pooled)")
     args = parser.parse_args()
     base = episodes(args.base)
     for path in args.others:

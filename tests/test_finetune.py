@@ -16,7 +16,7 @@ from crafted import CRAFTS
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy
-from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint
+from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.errors import ConfigError
@@ -108,6 +108,37 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
     fine_tuned = (scalars / "eval" / "success_rate_fine_tuned.csv").read_text().splitlines()
     assert [float(v) for v in fine_tuned[-1].split(",")] == [8, report["rows"][-1]["success_rate"]]
     assert (scalars / "train" / "learning_rate.csv").is_file()
+    assert_eval_runs_the_agent(report, tmp_path, config.eval_seed)
+
+
+def assert_eval_runs_the_agent(report: dict, tmp_path: pathlib.Path, seed: int) -> None:
+    """``dust-rl eval`` of the run's ``rl_agent.pt`` alone (no base policy file, no flag on the run's settings)
+    replays the report's fine-tuned row, seed for seed, on the run's task and time limit."""
+    from dust_rl.cli import main
+
+    policy_dir = pathlib.Path(report["policy"]).parent
+    hidden = policy_dir.rename(policy_dir.with_name(policy_dir.name + "_moved"))  # the file must not need the base's
+    try:
+        main(["eval", "--policy", str(tmp_path / "ft" / "rl_agent.pt"), "--out", str(tmp_path / "eval_agent"),
+              "--episodes", "2", "--seed", str(seed), "--videos", "0", "--no-progress"])
+    finally:
+        hidden.rename(policy_dir)
+    evaluated = json.loads((tmp_path / "eval_agent" / "report.json").read_text())
+    fine_tuned = next(name for name in report["per_episode"] if name.startswith("fine-tuned"))
+    assert evaluated["tasks"][0]["per_episode"] == report["per_episode"][fine_tuned]
+    assert evaluated["tasks"][0]["per_episode"] != report["per_episode"]["base policy"]  # the agent, not the base
+    assert evaluated["rl_agent"]["method"] == report["method"] and evaluated["tasks"][0]["task"] == report["task"]
+    assert "acting through a fine-tuned RL agent" in (tmp_path / "eval_agent" / "report.md").read_text()
+
+
+def test_eval_of_an_rl_agent_file_says_what_it_cannot_run(tmp_path):
+    from dust_rl.cli import main
+
+    older = save_checkpoint({"config": {"method": "steer"}, "state_dict": {}}, tmp_path / "rl_agent.pt", RL_AGENT_KIND)
+    with pytest.raises(SystemExit, match="drop --execute-steps"):
+        main(["eval", "--policy", str(older), "--execute-steps", "1"])
+    with pytest.raises(SystemExit, match="written before an RL agent's file held its base policy"):
+        main(["eval", "--policy", str(older)])
 
 
 def test_dsrl_design_trains_saves_and_its_actor_acts_without_the_object_state(policy_path, tmp_path):
@@ -121,6 +152,7 @@ def test_dsrl_design_trains_saves_and_its_actor_acts_without_the_object_state(po
     assert (tmp_path / "ft" / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
     saved = load_checkpoint(tmp_path / "ft" / "rl_agent.pt", RL_AGENT_KIND)
     assert rl_config_from_json(saved["config"]) == config  # the groups read back
+    assert_eval_runs_the_agent(report, tmp_path, config.eval_seed)  # finite horizon: time_left from the run's limit
     # The saved agent acts from the actor's view, without the object state its critic was trained with.
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
     assert isinstance(env, SB3SteeringVecEnv) and env.num_envs == 2

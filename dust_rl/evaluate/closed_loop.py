@@ -61,7 +61,8 @@ class EvalConfig:
     """Closed-loop evaluation of a trained policy: success per task with 95% intervals, videos, a report."""
 
     policy: pathlib.Path
-    """Policy file written by training (save_policy)."""
+    """Policy file written by training (save_policy), or a fine-tuned RL agent's `rl_agent.pt` (`dust-rl finetune
+    steer|residual`: evaluated on its fine-tuning task by default, in 1 local worker)."""
     out: pathlib.Path = pathlib.Path("runs/eval")
     """Folder for report.json, report.md, success.png, loss.png and videos/."""
     env: str | None = None
@@ -366,12 +367,23 @@ def task_videos(task: str, episodes: Sequence[Episode], trajectories: dict[int, 
     return rows
 
 
-def evaluate(config: EvalConfig, command: str | None = None) -> dict:
+class PolicyWithActor(NamedTuple):
+    """A policy loaded with a torchrl actor built around it in this process (a fine-tuned RL agent's,
+    :mod:`dust_rl.rl.fine_tuned_policy`), and what the report records of the actor."""
+
+    policy: DustPolicy
+    actor: TensorDictModuleBase
+    about: dict
+
+
+def evaluate(config: EvalConfig, command: str | None = None, with_actor: PolicyWithActor | None = None) -> dict:
     """Evaluate a policy in closed loop and write the report, plots and videos to ``config.out``.
 
     Args:
         config: what to evaluate and how.
         command: the command line that produced this run, quoted in the markdown report.
+        with_actor: the policy and the actor that runs it, already loaded from ``config.policy`` (one local
+            worker); default: the policy file's policy, as trained.
 
     Returns:
         The report (also ``config.out / "report.json"``). ``env_steps_per_s`` counts the time spent
@@ -384,9 +396,14 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
     start = time.perf_counter()
     rows, startup, running = [], 0.0, 0.0
     with torch_threads(config.threads), ray_runtime(config.worker_pool()):
-        policy, setup = prepare(config)
+        if with_actor is None:
+            policy, setup = prepare(config)
+        else:
+            policy = with_actor.policy
+            setup = eval_setup(config, policy)
+        actor = None if with_actor is None else with_actor.actor
         for task in setup.tasks:
-            episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config)
+            episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config, actor)
             videos = task_videos(task, episodes, kept, policy, config, setup.fps)
             rows.append(task_row(task, episodes, videos))
             startup, running = startup + task_startup, running + task_running
@@ -397,6 +414,7 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
         "trainable_parameters": sum(p.numel() for p in policy.trainable_modules().parameters()),
         "env_id": setup.env_id,
         "env_kwargs": setup.env_kwargs, "sampler": describe_sampler(setup.sampler),
+        "rl_agent": None if with_actor is None else with_actor.about,
         "execute_steps": setup.execute_steps, "command": command,
         "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],
         "noise_seeding": "the policy's sampling noise restarts from the episode seed at every reset",
@@ -408,9 +426,9 @@ def evaluate(config: EvalConfig, command: str | None = None) -> dict:
     return report
 
 
-def evaluate_command(config: EvalConfig, command: str | None = None) -> dict:
-    """``dust-rl eval``: evaluate, print the success table, say where the report is."""
-    report = evaluate(config, command)
+def evaluate_command(config: EvalConfig, command: str | None = None, with_actor: PolicyWithActor | None = None) -> dict:
+    """``dust-rl eval``: evaluate (:func:`evaluate`), print the success table, say where the report is."""
+    report = evaluate(config, command, with_actor)
     for row in [*report["tasks"], report["overall"]]:
         print(f"{row['task']}: {row['successes']}/{row['episodes']} successful ({100 * row['success_rate']:.0f}%, "
               f"95% CI {100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}%), mean length "

@@ -45,6 +45,14 @@ def table_row(row: dict) -> str:
             f"{row['episodes']}) | {percent(row['ci95_low'])}-{percent(row['ci95_high'])} | {row['mean_length']:.1f} |")
 
 
+def rl_agent_line(about: dict | None) -> list[str]:
+    """The report's line on an RL agent acting through the policy (none without one)."""
+    if about is None:
+        return []
+    return [f"- acting through a fine-tuned RL agent: `{about['method']}` with {about['algorithm']}, "
+            f"{about['steps']} RL steps on `{about['task']}`; the imitation policy frozen"]
+
+
 def markdown_report(report: dict, out_dir: pathlib.Path) -> str:
     """The report as markdown: setting, per-task table with the overall row, plots and video links.
 
@@ -56,6 +64,7 @@ def markdown_report(report: dict, out_dir: pathlib.Path) -> str:
         "",
         f"- policy: `{report['policy']}` (variant `{report['variant']}`, "
         f"{report.get('trainable_parameters', 0) / 1e6:.2f}M trainable parameters)",
+        *rl_agent_line(report.get("rl_agent")),
         f"- env: `{report['env_id']}` {report['env_kwargs']}",
         f"- sampler: {sampler['name']}, N_A = {sampler['n_action_steps']}, N_o = {sampler['vision_steps']}"
         f"{candidates_note(sampler.get('candidates', 1))}, initial noise x{sampler.get('noise_scale', 1.0):g}; "

@@ -29,6 +29,7 @@ from dust_rl.train.settings import DataSettings, OptimSettings, RuntimeSettings,
 
 VALIDATION_EVERY = 5  # every 5th rollout episode validates the scorer
 RL_AGENT_KIND = "dust-rl rl agent"
+RL_AGENT_FILE = "rl_agent.pt"  # the fine-tuned policy as one file (dust_rl.rl.fine_tuned_policy)
 ROLLOUT_SEED = 20_000  # rollouts start away from the training, validation and held-out seeds
 # rounds: a finished self_imitation run resumed with more rounds goes on from its last round.
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "rounds", "control")
@@ -93,8 +94,8 @@ class SacSettings:
     learning_starts: int = 1000
     """Steps before the first update (uniformly random actions, unless `--initial-std` is set)."""
     updates_per_step: int = 1
-    """Gradient steps per RL step (of all `--envs` together), the update-to-data ratio (earlier
-    `--gradient-steps`)."""
+    """Gradient steps per RL step of all `--envs` together: U / N per transition with N envs (DSRL: 5 per transition,
+    20 with 4 envs; earlier `--gradient-steps`)."""
     target_entropy: float | None = None
     """Learn the entropy coefficient so the policy keeps this entropy (SB3's `ent_coef="auto"`; DSRL: 0),
     starting from `initial_alpha`; with `--initial-std` the std then starts there and is learnt. None: SB3's

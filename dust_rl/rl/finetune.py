@@ -9,9 +9,9 @@ its actor (:mod:`dust_rl.rl.asymmetric`); ``--base-warmup`` fills SAC's warm-up 
 
 The imitation policy's weights never change (except with ``self_imitation``,
 which writes new policy files beside it), so the base policy stays one
-flag away. The RL agent's weights are saved as a plain state dict
-(``rl_agent.pt``, read with ``weights_only=True``) rather than SB3's zip,
-whose loader unpickles objects.
+flag away. The RL agent's weights are saved as a plain state dict rather than SB3's zip, whose loader unpickles
+objects, in one file with the frozen policy (``rl_agent.pt``, read with ``weights_only=True``), which ``dust-rl
+eval`` runs as it runs a policy (:mod:`dust_rl.rl.fine_tuned_policy`).
 
 SB3 trains on the gymnasium envs, but every closed-loop episode of the report (the learning curve's points, the
 base, noise-centre and fine-tuned rows) runs through ``dust-rl eval``'s one runner
@@ -44,11 +44,13 @@ from collections.abc import Callable
 import numpy as np
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.policies import BasePolicy
 from tensordict.nn import TensorDictModuleBase
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import DustPolicy, load_policy
 from dust_rl.agents.checkpoint_io import save_checkpoint
+from dust_rl.agents.factory import policy_entries
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import (
@@ -66,6 +68,7 @@ from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
     PPO_RESUMABLE_FIELDS,
     RESUMABLE_FIELDS,
+    RL_AGENT_FILE,
     RL_AGENT_KIND,
     FinetuneCommand,
     FinetuneConfig,
@@ -130,9 +133,9 @@ def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: Dus
     else:
         policy.to(resolve_device(config.device))
         make, task = finetune_env_factory(config, policy)
-        episodes, trained_s = train_rl(config, make, eval_runner(config, policy, task))
+        episodes, trained_s = train_rl(config, policy, make, eval_runner(config, policy, task))
         extra = {"algorithm": config.algorithm.name, "steps": config.steps,
-                 "rl_agent": str(config.out / "rl_agent.pt")}
+                 "rl_agent": str(config.out / RL_AGENT_FILE)}
     report = {
         "policy": str(config.policy), "method": config.method, "task": task, "command": command,
         "config": config_json(config),
@@ -166,11 +169,12 @@ def eval_runner(config: RLConfig, policy: DustPolicy, task: str) -> Run:
     return run
 
 
-def train_rl(config: RLConfig, make: Callable[[], FineTuningEnv],
+def train_rl(config: RLConfig, policy: DustPolicy, make: Callable[[], FineTuningEnv],
              run: Run) -> tuple[dict[str, list[Episode]], float]:
-    """Train the SB3 agent on the fine-tuning env (resuming from the newest checkpoint), save it, and run the
-    base and the fine-tuned policy on the evaluation seeds through ``run`` (:func:`eval_runner`); returns their
-    episodes by row name and the training seconds."""
+    """Train the SB3 agent on the fine-tuning env of the frozen ``policy`` (resuming from the newest checkpoint),
+    save it with the policy as one file (:mod:`dust_rl.rl.fine_tuned_policy`), and run the base and the fine-tuned
+    policy on the evaluation seeds through ``run`` (:func:`eval_runner`); returns their episodes by row name and the
+    training seconds."""
     began = time.perf_counter()
     env = make()
     agent = build_agent(config, env)
@@ -209,8 +213,8 @@ def train_rl(config: RLConfig, make: Callable[[], FineTuningEnv],
                             {"step": agent.num_timesteps, "env_steps": env.env_steps,
                              "train_seconds": trained_seconds()})
     trained_s = trained_seconds()
-    save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict()},
-                    config.out / "rl_agent.pt", RL_AGENT_KIND)
+    save_checkpoint({"config": config_json(config), "state_dict": agent.policy.state_dict(),
+                     "policy": policy_entries(policy)}, config.out / RL_AGENT_FILE, RL_AGENT_KIND)
 
     # The base policy and the fine-tuned one on the same held-out seeds; when steering, also the base policy with
     # the centre of its noise (the RL action 0), which a deterministic steering agent starts from.
@@ -238,7 +242,6 @@ def build_agent(config: RLConfig, env: FineTuningEnv) -> BaseAlgorithm:
     kwargs: dict = {"gamma": config.gamma, "learning_rate": config.lr}
     target_entropy = None
     steer = isinstance(config, SteerConfig)
-    policy = AsymmetricSACPolicy if steer and config.observation.privileged_critic else "MultiInputPolicy"
     if isinstance(settings, SacSettings):  # a replay buffer no larger than the run
         target_entropy = settings.target_entropy
         kwargs |= {"learning_starts": settings.learning_starts, "batch_size": config.batch_size,
@@ -258,10 +261,8 @@ def build_agent(config: RLConfig, env: FineTuningEnv) -> BaseAlgorithm:
         kwargs |= {"n_steps": n_steps // (config.collection.envs if steer else 1),
                    "batch_size": min(config.batch_size, n_steps), "n_epochs": settings.n_epochs,
                    "target_kl": settings.target_kl}
-    policy_kwargs = {"net_arch": list(config.net_arch)}
-    if config.layer_norm:
-        policy_kwargs["activation_fn"] = LayerNormReLU
-    agent = algorithm(policy, env, seed=config.seed, device=resolve_device(config.device),
+    policy_class, policy_kwargs = policy_network(config)
+    agent = algorithm(policy_class, env, seed=config.seed, device=resolve_device(config.device),
                       policy_kwargs=policy_kwargs, **kwargs)
     if isinstance(agent, BaseWarmupSAC):
         agent.noise_bound = config.noise_bound
@@ -270,6 +271,18 @@ def build_agent(config: RLConfig, env: FineTuningEnv) -> BaseAlgorithm:
     if isinstance(settings, SacSettings) and settings.q_bounds is not None:
         bound_critic(agent, *settings.q_bounds)
     return agent
+
+
+def policy_network(config: RLConfig) -> tuple[type[BasePolicy], dict]:
+    """The SB3 policy class of ``config``'s agent and its keyword arguments (the agent's networks; the file of a
+    fine-tuned agent rebuilds them without the agent, :mod:`dust_rl.rl.fine_tuned_policy`)."""
+    privileged = isinstance(config, SteerConfig) and config.observation.privileged_critic
+    policy_class = (AsymmetricSACPolicy if privileged
+                    else ALGORITHMS[config.algorithm.name].policy_aliases["MultiInputPolicy"])
+    kwargs = {"net_arch": list(config.net_arch)}
+    if config.layer_norm:
+        kwargs["activation_fn"] = LayerNormReLU
+    return policy_class, kwargs
 
 
 def finetune_command(command_config: FinetuneCommand, command: str | None = None) -> dict:

@@ -1,0 +1,80 @@
+"""A fine-tuned RL agent as one file that ``dust-rl eval`` runs: ``rl_agent.pt``.
+
+``dust-rl finetune steer|residual`` writes ``rl_agent.pt``: the run's config, the SB3 policy's weights (actor and
+critics) and the frozen base policy itself (the entries of its own file,
+:func:`~dust_rl.agents.factory.policy_entries`). The file alone rebuilds the closed-loop actor: the base policy, one
+fine-tuning env of the run's settings (for its spaces and its actor's view of an observation, then closed), and the
+SB3 policy network on those spaces (not the agent: SAC's replay buffer is sized by the run). It is read with
+``weights_only=True`` and no path recorded in it is opened.
+
+``dust-rl eval --policy <run>/rl_agent.pt`` evaluates the agent as it evaluates an imitation policy, on the
+fine-tuning task and time limit unless ``--tasks`` and ``--max-steps`` say otherwise, at the execute steps the
+agent was trained at, in one local worker (the actor lives in the evaluating process): its episodes are the
+fine-tuning report's fine-tuned row's, seed for seed (tested).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+from dust_rl.agents.checkpoint_io import CheckpointError, checkpoint_kind, load_checkpoint, one_line
+from dust_rl.agents.factory import policy_from_entries
+from dust_rl.errors import ConfigError
+from dust_rl.evaluate.closed_loop import EvalConfig, PolicyWithActor, evaluate_command
+from dust_rl.rl.config import RL_AGENT_KIND, RLConfig, SteerConfig, rl_config_from_json
+from dust_rl.rl.finetune import finetune_env_factory, policy_network
+from dust_rl.runtime.device import resolve_device
+
+
+def load_fine_tuned(path: pathlib.Path, device: str = "auto") -> tuple[RLConfig, str, PolicyWithActor]:
+    """The fine-tuning config, task and closed-loop actor (with its base policy, on ``device``) of an
+    ``rl_agent.pt``.
+
+    Raises:
+        CheckpointError: a missing, corrupt or foreign file, one written before it held its base policy, or
+            settings or weights that do not rebuild the agent.
+    """
+    payload = load_checkpoint(path, RL_AGENT_KIND)
+    if "policy" not in payload:
+        raise CheckpointError(f"{path}: written before an RL agent's file held its base policy; run `dust-rl finetune "
+                              "... --resume` in its run folder to write it again")
+    try:
+        config = rl_config_from_json(payload["config"], device=device)
+    except (KeyError, TypeError, ValueError, ConfigError) as err:
+        raise CheckpointError(f"{path}: the fine-tuning settings do not read back ({one_line(err)})") from err
+    if isinstance(config, SteerConfig):  # one env builds the actor; the run's vector of them only sped training
+        config = dataclasses.replace(config, collection=dataclasses.replace(config.collection, envs=1))
+    policy = policy_from_entries(payload["policy"], path).to(resolve_device(device))
+    make, task = finetune_env_factory(config, policy)
+    env = make()
+    try:
+        policy_class, kwargs = policy_network(config)
+        network = policy_class(env.observation_space, env.action_space, lambda _: config.lr, **kwargs)
+        network.load_state_dict(payload["state_dict"])
+        network.to(resolve_device(device)).set_training_mode(False)
+        actor = env.closed_loop_actor(lambda obs: network.predict(obs, deterministic=True)[0])
+    except (KeyError, TypeError, ValueError, RuntimeError) as err:
+        raise CheckpointError(f"{path}: the RL agent does not load ({one_line(err)})") from err
+    finally:
+        env.close()
+    about = {"method": config.method, "algorithm": config.algorithm.name, "steps": config.steps, "task": task}
+    return config, task, PolicyWithActor(policy, actor, about)
+
+
+def evaluate_any_command(config: EvalConfig, command: str | None = None) -> dict:
+    """``dust-rl eval``: a fine-tuned RL agent's ``rl_agent.pt`` through its actor (module doc), any other policy
+    file as :func:`~dust_rl.evaluate.closed_loop.evaluate_command` runs it.
+
+    Raises:
+        ConfigError: ``--execute-steps`` with an RL agent (it acts at the rate it was trained at).
+    """
+    if checkpoint_kind(config.policy) != RL_AGENT_KIND:
+        return evaluate_command(config, command)
+    if config.execute_steps is not None:
+        raise ConfigError(f"{config.policy} is a fine-tuned RL agent: it re-plans every step count it was trained "
+                          "with; drop --execute-steps")
+    fine_tuning, task, with_actor = load_fine_tuned(config.policy, config.device)
+    config = dataclasses.replace(config, tasks=config.tasks or (task,), max_steps=config.max_steps
+                                 or fine_tuning.max_steps, workers=1, backend="local")
+    return evaluate_command(config, command, with_actor)
