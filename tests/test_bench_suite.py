@@ -228,6 +228,13 @@ def test_pairs_compare_dust_with_action_only_and_every_other_arm_with_dust_or_al
     assert pairs(["action_only", "joint"]) == [] and pairs(["dust", "joint"], "action_only") == []
 
 
+def test_cells_run_seed_by_seed_so_a_stopped_study_pairs_its_arms():
+    config = SuiteConfig(variants=("dust", "action_only"), seeds=(0, 1), demos=(200,))
+    cells = list(dict.fromkeys(cell for cell, _ in plan(config)))
+    assert cells == [Cell("dust", 0, 200), Cell("action_only", 0, 200), Cell("dust", 1, 200),
+                     Cell("action_only", 1, 200)]
+
+
 def test_no_variants_with_a_video_dataset_plans_only_the_action_free_row(tmp_path):
     config = SuiteConfig(variants=(), seeds=(0, 1), demos=(50, 200), video_dataset=tmp_path)
     assert plan(config) == [(Cell("dust", 0, 200, video=True), AS_TRAINED), (Cell("dust", 1, 200, video=True),

@@ -258,9 +258,10 @@ def samplers(config: SuiteConfig, variant: str) -> dict[str, SamplerConfig | Non
 
 
 def plan(config: SuiteConfig) -> list[tuple[Cell, str]]:
-    """Every (cell, sampler) evaluation of the study on held-out seeds."""
+    """Every (cell, sampler) evaluation of the study on held-out seeds, training seed by training seed (every arm of
+    seed 0 first), so a study stopped part-way already pairs its arms on the seeds it has run."""
     main = max(config.demos)
-    cells = [Cell(v, s, main) for v in config.variants for s in config.seeds]
+    cells = [Cell(v, s, main) for s in config.seeds for v in config.variants]
     scaling = [v for v in (MAIN_ARM, BASELINE_ARM) if v in config.variants]
     cells += [Cell(v, s, n) for n in sorted(config.demos) if n != main for v in scaling for s in config.seeds]
     if config.video_dataset is not None:
