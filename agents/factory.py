@@ -202,7 +202,7 @@ def load_policy(path: str | pathlib.Path, env: EnvBase | None = None,
     return policy
 
 
-def policy_from_entries(payload: dict, source: object, execute_steps: int | None = None) -> DustPolicy:
+def policy_from_entries(payload: dict, source: str | pathlib.Path, execute_steps: int | None = None) -> DustPolicy:
     """The policy of :func:`policy_entries`' ``payload`` read from ``source`` (named in errors), checked.
 
     Raises:

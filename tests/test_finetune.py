@@ -120,7 +120,7 @@ def assert_eval_runs_the_agent(report: dict, tmp_path: pathlib.Path, seed: int) 
     hidden = policy_dir.rename(policy_dir.with_name(policy_dir.name + "_moved"))  # the file must not need the base's
     try:
         main(["eval", "--policy", str(tmp_path / "ft" / "rl_agent.pt"), "--out", str(tmp_path / "eval_agent"),
-              "--episodes", "2", "--seed", str(seed), "--videos", "0", "--no-progress"])
+              "--episodes", "2", "--seed", str(seed), "--videos", "1", "--no-progress"])
     finally:
         hidden.rename(policy_dir)
     evaluated = json.loads((tmp_path / "eval_agent" / "report.json").read_text())
@@ -129,14 +129,18 @@ def assert_eval_runs_the_agent(report: dict, tmp_path: pathlib.Path, seed: int) 
     assert evaluated["tasks"][0]["per_episode"] != report["per_episode"]["base policy"]  # the agent, not the base
     assert evaluated["rl_agent"]["method"] == report["method"] and evaluated["tasks"][0]["task"] == report["task"]
     assert "acting through a fine-tuned RL agent" in (tmp_path / "eval_agent" / "report.md").read_text()
+    assert [video["seed"] for video in evaluated["tasks"][0]["videos"]] == [seed]  # the agent's episode, recorded
+    assert pathlib.Path(evaluated["tasks"][0]["videos"][0]["path"]).stat().st_size > 0
 
 
 def test_eval_of_an_rl_agent_file_says_what_it_cannot_run(tmp_path):
     from dust_rl.cli import main
 
     older = save_checkpoint({"config": {"method": "steer"}, "state_dict": {}}, tmp_path / "rl_agent.pt", RL_AGENT_KIND)
-    with pytest.raises(SystemExit, match="drop --execute-steps"):
-        main(["eval", "--policy", str(older), "--execute-steps", "1"])
+    for flags, refused in ((["--execute-steps", "1"], "--execute-steps"),
+                           (["resample", "--candidates", "2"], "resample")):
+        with pytest.raises(SystemExit, match=f"runs as it was trained, in this process; drop {refused}$"):
+            main(["eval", "--policy", str(older), *flags])
     with pytest.raises(SystemExit, match="written before an RL agent's file held its base policy"):
         main(["eval", "--policy", str(older)])
 
@@ -153,6 +157,10 @@ def test_dsrl_design_trains_saves_and_its_actor_acts_without_the_object_state(po
     saved = load_checkpoint(tmp_path / "ft" / "rl_agent.pt", RL_AGENT_KIND)
     assert rl_config_from_json(saved["config"]) == config  # the groups read back
     assert_eval_runs_the_agent(report, tmp_path, config.eval_seed)  # finite horizon: time_left from the run's limit
+    from dust_rl.cli import main
+
+    with pytest.raises(SystemExit, match=f"time left of its {EPISODE_STEPS}-step episodes .*; drop --max-steps"):
+        main(["eval", "--policy", str(tmp_path / "ft" / "rl_agent.pt"), "--max-steps", str(EPISODE_STEPS + 1)])
     # The saved agent acts from the actor's view, without the object state its critic was trained with.
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
     assert isinstance(env, SB3SteeringVecEnv) and env.num_envs == 2

@@ -263,7 +263,7 @@ def plan(config: SuiteConfig) -> list[tuple[Cell, str]]:
     main = max(config.demos)
     cells = [Cell(v, s, main) for s in config.seeds for v in config.variants]
     scaling = [v for v in (MAIN_ARM, BASELINE_ARM) if v in config.variants]
-    cells += [Cell(v, s, n) for n in sorted(config.demos) if n != main for v in scaling for s in config.seeds]
+    cells += [Cell(v, s, n) for n in sorted(config.demos) if n != main for s in config.seeds for v in scaling]
     if config.video_dataset is not None:
         cells += [Cell("dust", s, main, video=True) for s in config.seeds]
     return [(cell, name) for cell in cells for name in samplers(config, cell.variant)

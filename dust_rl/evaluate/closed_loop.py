@@ -367,9 +367,13 @@ def task_videos(task: str, episodes: Sequence[Episode], trajectories: dict[int, 
     return rows
 
 
+NOISE_SEEDING = "the policy's sampling noise restarts from the episode seed at every reset"
+
+
 class PolicyWithActor(NamedTuple):
     """A policy loaded with a torchrl actor built around it in this process (a fine-tuned RL agent's,
-    :mod:`dust_rl.rl.fine_tuned_policy`), and what the report records of the actor."""
+    :mod:`dust_rl.rl.fine_tuned_policy`), and what the report records of the actor (its ``noise_seeding``: how the
+    actor's plans draw their noise)."""
 
     policy: DustPolicy
     actor: TensorDictModuleBase
@@ -417,7 +421,7 @@ def evaluate(config: EvalConfig, command: str | None = None, with_actor: PolicyW
         "rl_agent": None if with_actor is None else with_actor.about,
         "execute_steps": setup.execute_steps, "command": command,
         "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],
-        "noise_seeding": "the policy's sampling noise restarts from the episode seed at every reset",
+        "noise_seeding": NOISE_SEEDING if with_actor is None else with_actor.about["noise_seeding"],
         "tasks": rows, "overall": summary_row("overall", [Episode(*e) for row in rows for e in row["per_episode"]]),
         "env_steps": steps, "startup_s": startup, "episodes_time_s": running, "env_steps_per_s": steps / running,
         "wall_time_s": time.perf_counter() - start, "loss_plot": str(loss_plot) if loss_plot else None,

@@ -49,8 +49,9 @@ def rl_agent_line(about: dict | None) -> list[str]:
     """The report's line on an RL agent acting through the policy (none without one)."""
     if about is None:
         return []
-    return [f"- acting through a fine-tuned RL agent: `{about['method']}` with {about['algorithm']}, "
-            f"{about['steps']} RL steps on `{about['task']}`; the imitation policy frozen"]
+    return [f"- acting through a fine-tuned RL agent: `{about['method']}` with {about['algorithm']} "
+            f"({about['parameters'] / 1e6:.2f}M parameters), {about['steps']} RL steps on `{about['task']}`; the "
+            "imitation policy frozen"]
 
 
 def markdown_report(report: dict, out_dir: pathlib.Path) -> str:

@@ -202,7 +202,7 @@ def train_rl(config: RLConfig, policy: DustPolicy, make: Callable[[], FineTuning
         last_eval = curve[-1]["rl_steps"] if curve else 0
         if config.eval_every and (agent.num_timesteps >= last_eval + config.eval_every
                                   or agent.num_timesteps >= config.steps):
-            episodes = run(curve_seeds, env.closed_loop_actor(_deterministic(agent)))
+            episodes = run(curve_seeds, env.closed_loop_actor(deterministic(agent)))
             curve.append({"rl_steps": agent.num_timesteps, "env_steps": env.env_steps,
                           **summary_row("fine-tuned", episodes)})
             agent.logger.record("eval/curve_success_rate", curve[-1]["success_rate"])
@@ -223,7 +223,7 @@ def train_rl(config: RLConfig, policy: DustPolicy, make: Callable[[], FineTuning
     if isinstance(config, SteerConfig):
         centre = np.zeros(env.action_space.shape, np.float32)
         actors["centre"] = env.closed_loop_actor(lambda obs: centre)
-    actors["fine_tuned"] = env.closed_loop_actor(_deterministic(agent))
+    actors["fine_tuned"] = env.closed_loop_actor(deterministic(agent))
     env.close()
     names = {"base": BASE_ROW, "centre": f"{BASE_ROW}, noise at its centre",
              "fine_tuned": f"fine-tuned ({config.method}, {config.algorithm.name})"}
@@ -346,8 +346,8 @@ def finetune_env_factory(config: RLConfig, policy: DustPolicy) -> tuple[Callable
     return make, task
 
 
-def _deterministic(agent: BaseAlgorithm) -> Act:
-    """The RL agent's deterministic action for an observation."""
+def deterministic(agent: BaseAlgorithm | BasePolicy) -> Act:
+    """The RL agent's (or its policy network's) deterministic action for an observation."""
     return lambda obs: agent.predict(obs, deterministic=True)[0]
 
 
