@@ -401,11 +401,10 @@ def evaluate(config: EvalConfig, command: str | None = None, with_actor: PolicyW
     rows, startup, running = [], 0.0, 0.0
     with torch_threads(config.threads), ray_runtime(config.worker_pool()):
         if with_actor is None:
-            policy, setup = prepare(config)
+            (policy, setup), actor = prepare(config), None
         else:
-            policy = with_actor.policy
+            policy, actor = with_actor.policy, with_actor.actor
             setup = eval_setup(config, policy)
-        actor = None if with_actor is None else with_actor.actor
         for task in setup.tasks:
             episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config, actor)
             videos = task_videos(task, episodes, kept, policy, config, setup.fps)

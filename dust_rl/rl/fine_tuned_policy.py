@@ -49,7 +49,8 @@ def load_fine_tuned(path: pathlib.Path, device: str = "auto") -> tuple[RLConfig,
         raise CheckpointError(f"{path}: the fine-tuning settings do not read back ({one_line(err)})") from err
     if isinstance(config, SteerConfig):  # one env builds the actor; the run's vector of them only sped training
         config = dataclasses.replace(config, collection=dataclasses.replace(config.collection, envs=1))
-    policy = policy_from_entries(payload["policy"], path).to(resolve_device(device))
+    where = resolve_device(device)
+    policy = policy_from_entries(payload["policy"], path).to(where)
     try:
         make, task = finetune_env_factory(config, policy)
         env = make()
@@ -59,7 +60,7 @@ def load_fine_tuned(path: pathlib.Path, device: str = "auto") -> tuple[RLConfig,
         policy_class, kwargs = policy_network(config)
         network = policy_class(env.observation_space, env.action_space, lambda _: config.lr, **kwargs)
         network.load_state_dict(payload["state_dict"])
-        network.to(resolve_device(device)).set_training_mode(False)
+        network.to(where).set_training_mode(False)
         actor = env.closed_loop_actor(deterministic(network))
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{path}: the RL agent does not load ({one_line(err)})") from err
