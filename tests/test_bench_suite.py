@@ -29,6 +29,7 @@ from dust_rl.bench.suite import (
 )
 from dust_rl.cli import with_preset
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
+from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
 from dust_rl.errors import ConfigError
 from dust_rl.train.imitation import TrainSettings
 from dust_rl.train.recipes import RECIPES, plain, vision_readout
@@ -46,12 +47,13 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1, 2),
                          variants=("dust", "action_only", "dust_no_wm", "action_only_wide"), seeds=(0,),
                          recipe="plain", train=train, arm_steps=("action_only_wide=3",), vision_steps=(4, 8),
-                         eval_episodes=1, val_episodes=1,
+                         eval_episodes=1, val_episodes=1, diagnose_episodes=2,
                          image_size=32, max_steps=6, video_dataset=tmp_path / "suite" / "data" / "1",  # collected
                          progress=False)                                                               # by the suite
     results = run_suite(config, "dust-rl bench suite ...")
     assert ("budget: collect 2 demonstrations x 1 tasks; train 7 policies (15 steps in all); evaluate 12 x 1 "
-            "episodes x 1 tasks and validate 7 x 1 episodes x 1 tasks (19 episodes)") in capsys.readouterr().out
+            "episodes x 1 tasks and validate 7 x 1 episodes x 1 tasks (19 episodes); diagnose 5 policies on 2 expert "
+            "episodes x 1 tasks") in capsys.readouterr().out
     rows = {(r["variant"], r["demos"], r["sampler"]): r for r in results["rows"]}
     assert set(rows) == {("dust", 2, AS_TRAINED), ("action_only", 2, AS_TRAINED), ("dust_no_wm", 2, AS_TRAINED),
                          ("action_only_wide", 2, AS_TRAINED),
@@ -112,10 +114,29 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert load_policy(video_policy).info["video_dataset"] == str(config.video_dataset)
     assert (tmp_path / "suite" / "results.png").read_bytes()[:4] == b"\x89PNG"
 
-    # A rerun finds every cell on disk: no training, no evaluation.
+    # The oracle-future test of every policy at the largest demo count, as `dust-rl diagnose world-model` gives it.
+    diagnosis = {row["variant"]: row for row in results["diagnosis"]["rows"]}
+    assert set(diagnosis) == {*config.variants, WITH_VIDEO}
+    assert results["diagnosis"]["first_seed"] == HELDOUT_SEED and results["diagnosis"]["episodes"] == 2
+    assert set(diagnosis["dust"]["action_error"]) == {"own", "true", "noise", "other"}
+    assert set(diagnosis["dust"]["paired"]) == {"true - noise", "own - true"}
+    assert set(diagnosis["action_only"]["action_error"]) == {"own"} and diagnosis["action_only"]["skill"] is None
+    alone = diagnose(WorldModelDiagnosis(policy=cell / "dust_seed0_demos2" / "policy.pt",
+                                         dataset=tmp_path / "suite" / "data" / "heldout_2", out=tmp_path / "alone",
+                                         threads=1, progress=False))
+    assert diagnosis["dust"]["action_error"] == {name: row["action_error"]["mean"]
+                                                 for name, row in alone["oracle_future"]["conditions"].items()}
+    assert diagnosis["dust"]["skill"] == alone["vision_stream"]["joint_sample"]["skill"]
+    oracle_row = (f"| dust | 0 | {diagnosis['dust']['action_error']['own']:.4f} | "
+                  f"{diagnosis['dust']['action_error']['true']:.4f} |")
+    assert "## The oracle-future test" in markdown and oracle_row in markdown
+    assert f"| action_only | 0 | {diagnosis['action_only']['action_error']['own']:.4f} | - | - | - | - | - | - |" \
+        in markdown
+
+    # A rerun finds every cell on disk: no training, no evaluation, no diagnosis.
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "suite").rglob("*") if p.name in ("policy.pt",
                                                                                             "report.json")}
-    assert len(stamps) == 7 + len(rows) + len(validation["rows"])
+    assert len(stamps) == 7 + len(rows) + len(validation["rows"]) + len(diagnosis)
     assert run_suite(config) == results
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
 
@@ -128,6 +149,8 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
         run_suite(dataclasses.replace(config, eval_episodes=2))
     with pytest.raises(ConfigError, match="holds an evaluation of seeds"):
         run_suite(dataclasses.replace(config, val_episodes=2))
+    with pytest.raises(ConfigError, match="holds a diagnosis on .*heldout_2, the study asks for .*heldout_1"):
+        run_suite(dataclasses.replace(config, diagnose_episodes=1))
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
 
 
@@ -253,3 +276,4 @@ def test_the_tables_leave_out_parts_the_study_did_not_run():
             "|") in text
     assert "## Variants" in text and "## Data scaling" not in text and "## DUST's samplers" not in text
     assert "## Paired comparisons" not in text and "# Validation" not in text and "- joint" not in text
+    assert "## The oracle-future test" not in text

@@ -33,7 +33,8 @@ def two_studies(one_thread, tmp_path_factory):
                           logging=LoggingSettings(log_every=1, checkpoint_every=2),
                           runtime=RuntimeSettings(threads=1, progress=False))
     configs = [SuiteConfig(out=tmp_path / task, task=task, demos=(1,), variants=("dust", "action_only"), seeds=seeds,
-                           train=train, vision_steps=(), eval_episodes=2, image_size=32, max_steps=6, progress=False)
+                           train=train, vision_steps=(), eval_episodes=2, diagnose_episodes=0, image_size=32,
+                           max_steps=6, progress=False)
                for task, seeds in (("press_button", (0, 1)), ("close_drawer", (0,)))]
     return [(config, run_suite(config)) for config in configs]
 

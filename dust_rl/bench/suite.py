@@ -35,6 +35,9 @@ evaluation seed and training seed: the discordant pairs and their exact McNemar 
 evaluates every cell on validation seeds, reported apart from the held-out ones, to choose settings on validation
 and report them on held-out seeds; ``--arm-steps ARM=N`` trains one arm for its own step count (each arm until its
 validation success stops rising, e.g. read off ``dust-rl train --logging.eval-every``'s curve).
+``--diagnose-episodes`` runs the oracle-future test of :mod:`dust_rl.diagnose.world_model` on every policy at the
+largest demo count, on expert episodes of the held-out seeds: can its actions read a future, and what would a
+better world model buy them (``diagnose/<cell>/``, one table of ``results.md``).
 """
 
 from __future__ import annotations
@@ -56,6 +59,7 @@ from dust_rl.agents.config import MAX_STEPS, DustConfig, Variant
 from dust_rl.data import DemoDataset, collect_demos
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
+from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
 from dust_rl.envs.factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate, mcnemar, wilson_interval
@@ -68,6 +72,7 @@ from dust_rl.train.recipes import RECIPES, RecipeName
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
 VISION_AS_NOISE = "vision as noise N_A=4"  # DUST's actions sampled with its world-model stream left as noise
+ORACLE_READINGS = ("true - noise", "own - true")  # the paired differences the oracle-future table reads
 DEFAULT_RECIPE = "vision-readout"  # the quickstart's: a comparison means little where every variant fails
 
 
@@ -164,6 +169,9 @@ class SuiteConfig:
     on these; 0: none."""
     val_seed: int = VALIDATION_SEED
     """First validation seed (its episodes must not reach the held-out seeds)."""
+    diagnose_episodes: int = 20
+    """Expert episodes per task, collected from the first held-out seed on, on which every policy at the largest
+    demo count gets the oracle-future test (`dust-rl diagnose world-model`); 0: none."""
     image_size: int = 128
     """Camera resolution of the collected data."""
     max_steps: int | None = None
@@ -175,7 +183,7 @@ class SuiteConfig:
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "eval_episodes", "image_size", "max_steps", "workers")
-        check_at_least(self, 0, "eval_seed", "val_episodes", "val_seed")
+        check_at_least(self, 0, "eval_seed", "val_episodes", "val_seed", "diagnose_episodes")
         if not self.demos or min(self.demos) < 1 or not self.seeds:
             raise ConfigError("demos and seeds must each list at least one value (demos >= 1)")
         if not self.variants and self.video_dataset is None:
@@ -277,26 +285,37 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     cells = list(dict.fromkeys(cell for cell, _ in jobs))
     validation = [(cell, AS_TRAINED) for cell in cells] if config.validation else []
     steps = sum(config.steps_of(cell.variant) for cell in cells)
+    diagnosed = [cell for cell in cells if cell.demos == max(config.demos)] if config.diagnose_episodes else []
     evaluations = (len(jobs) * config.eval_episodes + len(validation) * config.val_episodes) * len(tasks)
     print(f"budget: collect {max(config.demos)} demonstrations x {len(tasks)} tasks; train {len(cells)} policies "
           f"({steps} steps in all); evaluate {len(jobs)} x "
           f"{config.eval_episodes} episodes x {len(tasks)} tasks"
           + (f" and validate {len(validation)} x {config.val_episodes} episodes x {len(tasks)} tasks"
-             if validation else "") + f" ({evaluations} episodes)")
+             if validation else "") + f" ({evaluations} episodes)"
+          + (f"; diagnose {len(diagnosed)} policies on {config.diagnose_episodes} expert episodes x {len(tasks)} "
+             "tasks" if diagnosed else ""))
     env_kwargs = {"image_size": config.image_size}
     for demos in sorted(config.demos):  # the first n seeds of every task: each smaller set is a prefix of the next
         collect_demos(config.out / "data" / str(demos), config.env, tasks, demos, env_kwargs=env_kwargs,
                       workers=config.workers, progress=config.progress, wait_for_writer=True)
+    if diagnosed:
+        collect_demos(diagnosis_data(config), config.env, tasks, config.diagnose_episodes,
+                      env_kwargs=env_kwargs, workers=config.workers, start_seed=config.eval_seed,
+                      progress=config.progress, wait_for_writer=True)
     policies = arm_policies(config, [cell.variant for cell in cells])
     splits = [(config.heldout, jobs), *([(config.validation, validation)] if validation else [])]
     reports: dict[str, dict] = {split.folder: {} for split, _ in splits}
+    diagnoses: dict[Cell, dict] = {}
     trained: dict[Cell, pathlib.Path] = {}  # each cell trained (or checked) once, before its first evaluation
     for split, split_jobs in splits:
         for cell, name in split_jobs:
             if cell not in trained:
                 trained[cell] = train_cell(config, cell, policies[cell.variant])
+                if cell in diagnosed:
+                    diagnoses[cell] = diagnose_cell(config, cell, trained[cell], command)
             reports[split.folder][cell, name] = evaluate_cell(config, cell, name, trained[cell], split, command)
-    results = summarise(config, policies, [(split, split_jobs, reports[split.folder]) for split, split_jobs in splits])
+    results = summarise(config, policies, [(split, split_jobs, reports[split.folder]) for split, split_jobs in splits],
+                        diagnoses)
     write_json_atomic(config.out / "results.json", results, indent=2)
     write_text_atomic(config.out / "results.md", markdown(results, command))
     plot(results, config.out / "results.png")
@@ -394,10 +413,49 @@ def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Pa
     return report
 
 
+def diagnose_cell(config: SuiteConfig, cell: Cell, policy: pathlib.Path, command: str | None) -> dict:
+    """The world-model diagnosis of the cell's policy on the study's held-out expert episodes, run unless already
+    on disk.
+
+    Raises:
+        ConfigError: the report on disk is of other episodes than the study asks for.
+    """
+    out, dataset = config.out / "diagnose" / cell.name, diagnosis_data(config)
+    if not (out / "report.json").is_file():
+        diagnose(WorldModelDiagnosis(policy=policy, dataset=dataset, out=out, threads=config.train.runtime.threads,
+                                     progress=config.progress), command)
+    report = json.loads((out / "report.json").read_text())
+    if report["dataset"] != str(dataset):
+        raise ConfigError(f"{out} holds a diagnosis on {report['dataset']}, the study asks for {dataset}; use "
+                          "another --out")
+    return report
+
+
+def diagnosis_data(config: SuiteConfig) -> pathlib.Path:
+    """The folder of the expert episodes every policy is diagnosed on (its name says how many per task)."""
+    return config.out / "data" / f"heldout_{config.diagnose_episodes}"
+
+
+def diagnosis_rows(diagnoses: Mapping[Cell, dict]) -> list[dict]:
+    """Per diagnosed cell: the action error with each vision condition, the paired differences that read the
+    oracle-future test (true - noise: can the actions read a future; own - true: what a better world model could
+    buy), and the world model's skill against the present frame (None without a vision stream)."""
+    rows = []
+    for cell, report in diagnoses.items():
+        oracle, vision = report["oracle_future"], report.get("vision_stream")
+        rows.append({"variant": cell.label, "seed": cell.seed, "windows": report["windows"],
+                     "action_error": {name: row["action_error"]["mean"] for name, row in oracle["conditions"].items()},
+                     "paired": {name: {"mean": row["mean"], "p": row["p"]}
+                                for name, row in oracle["paired_action_error"].items()
+                                if name in ORACLE_READINGS},
+                     "skill": vision["joint_sample"]["skill"] if vision else None})
+    return rows
+
+
 def summarise(config: SuiteConfig, policies: Mapping[str, PolicyConfig],
-              splits: Sequence[tuple[Split, list[tuple[Cell, str]], dict]]) -> dict:
-    """The study's results: its settings, the arms, and per split of seeds the rows and the paired comparisons
-    (validation apart, under ``validation``)."""
+              splits: Sequence[tuple[Split, list[tuple[Cell, str]], dict]], diagnoses: Mapping[Cell, dict]) -> dict:
+    """The study's results: its settings, the arms, per split of seeds the rows and the paired comparisons
+    (validation apart, under ``validation``), and the world-model diagnosis of each policy."""
     (heldout, jobs, reports), *validation = splits
     arms = {name: {"variant": policy.variant, "description": ARMS[name].description, "steps": config.steps_of(name),
                    "policy": {f.name: getattr(policy, f.name) for f in dataclasses.fields(policy)
@@ -413,7 +471,9 @@ def summarise(config: SuiteConfig, policies: Mapping[str, PolicyConfig],
             "eval_seeds": heldout.seeds, "train": config_json(config.train),
             "video_dataset": None if config.video_dataset is None else str(config.video_dataset), "arms": arms,
             **split_results(heldout, jobs, reports),
-            "validation": {"seeds": validation[0][0].seeds, **split_results(*validation[0])} if validation else None}
+            "validation": {"seeds": validation[0][0].seeds, **split_results(*validation[0])} if validation else None,
+            "diagnosis": {"episodes": config.diagnose_episodes, "first_seed": config.eval_seed,
+                          "rows": diagnosis_rows(diagnoses)} if diagnoses else None}
 
 
 def rows_of(jobs: list[tuple[Cell, str]], reports: dict, eval_seeds: list[int]) -> list[dict]:
@@ -562,6 +622,7 @@ def markdown(results: dict, command: str | None) -> str:
     if len({r["demos"] for r in scaling}) > 1:  # one demo count: the Variants table already holds these rows
         lines += table("Data scaling", sorted(scaling, key=lambda r: (r["variant"], r["demos"])))
     lines += comparison_table(results["comparisons"])
+    lines += diagnosis_table(results.get("diagnosis"))  # results from before the diagnosis hold none
     validation = results["validation"]
     if validation:
         seeds = validation["seeds"]
@@ -572,6 +633,35 @@ def markdown(results: dict, command: str | None) -> str:
     if command:
         lines += ["Reproduce:", "", f"    {command}", ""]
     return "\n".join(lines)
+
+
+def diagnosis_table(diagnosis: dict | None) -> list[str]:
+    """Markdown lines of the oracle-future test of every diagnosed policy (none: no lines)."""
+    if not diagnosis:
+        return []
+
+    def error(row: dict, name: str) -> str:
+        return f"{row['action_error'][name]:.4f}" if name in row["action_error"] else "-"
+
+    def difference(row: dict, name: str) -> str:
+        found = row["paired"].get(name)
+        return "-" if found is None else f"{found['mean']:+.4f} ({found['p']:.2g})"
+
+    lines = ["## The oracle-future test", "",
+             f"Open-loop action error against the expert's chunks on {diagnosis['episodes']} expert episodes per task "
+             f"from seed {diagnosis['first_seed']} on, the vision stream holding its own sample, the true future "
+             "(re-noised to each step's tau_o), pure noise, or another episode's future (`dust-rl diagnose "
+             "world-model`; reports under `diagnose/`). true - noise below 0: the actions read a future; own - true: "
+             "what a better world model could buy them (p: paired over episodes); skill: the world model's joint "
+             "sample against the present frame (1 - err / err_present).", "",
+             "| arm | training seed | own sample | true future | noise | another episode's | true - noise (p) "
+             "| own - true (p) | world-model skill |", "|---|---|---|---|---|---|---|---|---|"]
+    for row in diagnosis["rows"]:
+        skill = "-" if row["skill"] is None else f"{row['skill']:+.2f}"
+        lines.append(f"| {row['variant']} | {row['seed']} | "
+                     + " | ".join(error(row, name) for name in ("own", "true", "noise", "other"))
+                     + f" | {difference(row, 'true - noise')} | {difference(row, 'own - true')} | {skill} |")
+    return [*lines, ""]
 
 
 def arm_lines(arms: Mapping[str, dict], parameters: Mapping[str, int], steps: int | None) -> list[str]:
