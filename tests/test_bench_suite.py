@@ -277,3 +277,20 @@ def test_the_tables_leave_out_parts_the_study_did_not_run():
     assert "## Variants" in text and "## Data scaling" not in text and "## DUST's samplers" not in text
     assert "## Paired comparisons" not in text and "# Validation" not in text and "- joint" not in text
     assert "## The oracle-future test" not in text
+
+
+def test_a_study_of_several_tasks_shows_each_task_pooled_over_training_seeds():
+    row = {"variant": "dust", "demos": 100, "sampler": AS_TRAINED, "trainable_parameters": 2e6, "success_rate": 0.5,
+           "successes": 4, "episodes": 8, "ci95_low": 0.2, "ci95_high": 0.8, "per_seed": [0.5, 0.5], "seeds": [0, 1],
+           "per_seed_successes": [2, 2], "seed_ci95": None,
+           "outcomes": {"push": {"0": "11", "1": "10"}, "close_drawer": {"0": "00", "1": "01"}}}
+    text = markdown({"task": "all", "env": "DustFranka-v0", "eval_seeds": [10000, 10001], "main_demos": 100,
+                     "recipe": "plain", "train": {"optim": {"steps": 2000}}, "arms": {}, "rows": [row],
+                     "comparisons": [], "validation": None}, None)
+    assert "| variant | close_drawer | push |" in text
+    assert "| dust | 25% (1/4) | 75% (3/4) |" in text
+    single = markdown({"task": "push", "env": "DustFranka-v0", "eval_seeds": [10000, 10001], "main_demos": 100,
+                       "recipe": "plain", "train": {"optim": {"steps": 2000}}, "arms": {},
+                       "rows": [{**row, "outcomes": {"push": row["outcomes"]["push"]}}], "comparisons": [],
+                       "validation": None}, None)
+    assert "## Per task" not in single

@@ -616,6 +616,7 @@ def markdown(results: dict, command: str | None) -> str:
     lines += arm_lines(results["arms"], {r["variant"]: r["trainable_parameters"] for r in rows},
                        results["train"]["optim"]["steps"])
     lines += table("Variants", [r for r in rows if r["demos"] == main and r["sampler"] == AS_TRAINED])
+    lines += per_task_table([r for r in rows if r["demos"] == main and r["sampler"] == AS_TRAINED])
     lines += table("DUST's samplers: test-time scaling, the synchronous control, the vision stream as noise",
                    [r for r in rows if r["demos"] == main and r["sampler"] != AS_TRAINED])
     scaling = [r for r in rows if r["sampler"] == AS_TRAINED and r["variant"] in (MAIN_ARM, BASELINE_ARM)]
@@ -633,6 +634,23 @@ def markdown(results: dict, command: str | None) -> str:
     if command:
         lines += ["Reproduce:", "", f"    {command}", ""]
     return "\n".join(lines)
+
+
+def per_task_table(rows: list[dict]) -> list[str]:
+    """Markdown lines of each row's success per task, pooled over training seeds (one task: no lines)."""
+    tasks = sorted({task for r in rows for task in r.get("outcomes", {})})
+    if len(tasks) < 2:
+        return []
+    lines = ["## Per task", "", "Success per task, as trained, episodes pooled over training seeds.", "",
+             "| variant | " + " | ".join(tasks) + " |", "|---|" + "---|" * len(tasks)]
+    for r in rows:
+        cells = []
+        for task in tasks:
+            flags = "".join(r["outcomes"].get(task, {}).values())
+            cells.append(f"{percent(flags.count('1') / len(flags))} ({flags.count('1')}/{len(flags)})" if flags
+                         else "-")
+        lines.append(f"| {r['variant']} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
 
 
 def diagnosis_table(diagnosis: dict | None) -> list[str]:
