@@ -125,14 +125,15 @@ def read_scalar_csv(path: pathlib.Path) -> tuple[list[int], list[float]]:
     return steps, [values[s] for s in steps]
 
 
-# Where torchrl's CSVLogger puts ``train/loss*`` scalars, seen from a training run folder
-# (``logs/<exp_name>/scalars/...``), one experiment folder, or a ``scalars`` folder. Fixed depths, no
-# recursive search: the default source is the policy file's folder, which may hold anything.
-LOSS_PATTERNS = ("logs/*/scalars/train/loss*.csv", "scalars/train/loss*.csv", "train/loss*.csv")
+# Where torchrl's CSVLogger puts ``train/*loss*`` scalars (imitation's loss, loss_action ...; SB3's actor_loss,
+# critic_loss ...), seen from a training run folder (``logs/<exp_name>/scalars/...``), one experiment folder, or a
+# ``scalars`` folder. Fixed depths, no recursive search: the default source is the policy file's folder, which may
+# hold anything.
+LOSS_PATTERNS = ("logs/*/scalars/train/*loss*.csv", "scalars/train/*loss*.csv", "train/*loss*.csv")
 
 
 def loss_csvs(source: pathlib.Path) -> list[pathlib.Path]:
-    """The ``train/loss*.csv`` scalar files of a training run, experiment or ``scalars`` folder."""
+    """The ``train/*loss*.csv`` scalar files of a training run, experiment or ``scalars`` folder."""
     return sorted({path for pattern in LOSS_PATTERNS for path in source.glob(pattern)})
 
 
