@@ -157,7 +157,8 @@ def run_schedule(
         tau_o = None if vision is None else torch.full((b,), tau_o_value, device=device)
         need_action = step.dt_a != 0
         need_vision = step.dt_o != 0 and vision is not None and vision_source is None
-        v_a, v_o = model(ctx, action, vision, tau_a, tau_o, need_action, need_vision)
+        if need_action or need_vision:  # a vision-only step of a given future moves nothing
+            v_a, v_o = model(ctx, action, vision, tau_a, tau_o, need_action, need_vision)
         if need_action:
             action = torch.add(action, v_a, alpha=step.dt_a)
         if need_vision:

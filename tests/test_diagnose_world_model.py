@@ -9,11 +9,12 @@ import pytest
 import torch
 from conftest import make_tiny_encoder
 
-from dust_rl.agents import DustConfig, DustModel, random_batch
+from dust_rl.agents import DustConfig, DustModel, SamplerConfig, random_batch
 from dust_rl.agents.samplers import action_only_schedule, async_schedule, run_schedule
 from dust_rl.cli import main
 from dust_rl.data import DatasetError
 from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
+from dust_rl.errors import ConfigError
 from dust_rl.train.imitation import TrainConfig, train
 from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
 
@@ -70,6 +71,21 @@ def test_the_vision_source_reaches_the_actions():
     assert not torch.allclose(oracle, own)  # the joint attention reads the vision tokens
 
 
+def test_a_given_future_evaluates_the_model_only_where_the_actions_move():
+    """Under the async schedule with q > 1, a step that only moves the vision stream has nothing to compute once
+    the vision tokens are given (a trunk with DiT blocks used to fail on the empty step)."""
+    model, ctx = _model_and_context(n_dit=1)
+    future = torch.randn(3, model.config.n_vision_tokens, model.config.vision_dim)
+    calls = []
+    hook = model.register_forward_hook(lambda module, args, out: calls.append(args[3][0].item()))
+    try:
+        run_schedule(model, ctx, async_schedule(2, 2), torch.Generator().manual_seed(0),
+                     vision_source=lambda step: (future, step.tau_o))
+    finally:
+        hook.remove()
+    assert calls == [step.tau_a for step in async_schedule(2, 2) if step.dt_a]
+
+
 @pytest.fixture(scope="module")
 def trained(demo_dir, tmp_path_factory):
     """A tiny DUST policy trained on a copy of the demo dataset, and another copy as held-out episodes."""
@@ -103,6 +119,27 @@ def test_report_of_a_dust_policy(trained, tmp_path, capsys):
     assert buckets[-1]["mean"] < buckets[0]["mean"]
     assert (out / "world_model.png").stat().st_size > 0
     assert "The oracle-future test" in capsys.readouterr().out
+
+
+def test_resample_scores_the_policy_with_another_sampler(trained, tmp_path):
+    """`resample` changes the sampler of the policy's own samples, as `dust-rl eval resample` does in closed loop;
+    conditions that hold the vision stream at a fixed input do not sample it."""
+    policies, _, heldout = trained
+    args = ["diagnose", "world-model", "--policy", str(policies["dust"]), "--dataset", str(heldout), "--windows", "32",
+            "--batch-size", "16", "--no-progress", "--threads", "1"]
+    main([*args, "--out", str(tmp_path / "saved")])
+    main([*args, "--out", str(tmp_path / "q4"), "resample", "--sampler", "async", "--vision-step-ratio", "4"])
+    saved, q4 = (json.loads((tmp_path / name / "report.json").read_text()) for name in ("saved", "q4"))
+    assert saved["sampler"]["vision_steps"] == 4 and q4["sampler"]["vision_steps"] == 16
+    # 16 Euler steps of the vision stream end elsewhere than 4 (the tiny policy's actions barely read it).
+    assert saved["vision_stream"]["joint_sample"]["mean"] != q4["vision_stream"]["joint_sample"]["mean"]
+    assert saved["vision_stream"]["buckets"] == q4["vision_stream"]["buckets"]  # one-step estimates: no sampler
+    assert "sampler async (N_A 4, N_o 16)" in (tmp_path / "q4" / "report.md").read_text()
+    with pytest.raises(ConfigError, match="one sampled chunk per window"):
+        WorldModelDiagnosis(policy=policies["dust"], dataset=heldout, sampling=SamplerConfig("async", 4, 1, 2))
+    with pytest.raises(ConfigError, match="does not apply"):
+        diagnose(WorldModelDiagnosis(policy=policies["action_only"], dataset=heldout, out=tmp_path / "no",
+                                     windows=8, progress=False, sampling=SamplerConfig("async", 4, 2)))
 
 
 def test_an_action_only_policy_has_only_its_own_condition(trained, tmp_path):

@@ -27,7 +27,6 @@ from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import (
     Episode,
     EvalConfig,
-    describe_sampler,
     eval_collector,
     evaluate,
     paired_comparison,
@@ -36,6 +35,7 @@ from dust_rl.evaluate.closed_loop import (
     wilson_interval,
 )
 from dust_rl.evaluate.report import plot_loss_curves, read_scalar_csv
+from dust_rl.evaluate.resampling import describe_sampler
 from dust_rl.evaluate.video import LABEL_HEIGHT, future_decoder
 from dust_rl.keys import ACTION_CHUNK_KEY
 

@@ -45,7 +45,8 @@ from dust_rl.agents.flow_matching import interpolate, sample_tau, velocity_targe
 from dust_rl.agents.samplers import DenoiseStep
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.features import FeatureCache
-from dust_rl.errors import check_at_least
+from dust_rl.errors import ConfigError, check_at_least
+from dust_rl.evaluate.resampling import Resampling, apply_sampling, describe_sampler, resolved_sampler
 from dust_rl.runtime.device import resolve_device
 from dust_rl.storage.atomic_files import atomic_write, write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
@@ -79,6 +80,10 @@ class WorldModelDiagnosis:
     """Seed of the windows drawn and of every noise."""
     device: str = "auto"
     """auto | cpu | cuda | cuda:N | mps."""
+    sampling: Resampling = None
+    """The sampler of the policy's own samples: as the policy file says (the default), or `resample` with other
+    settings, given after every other argument (`... resample --vision-step-ratio 4`: N_o = 16 vision steps; one
+    chunk per window, so `--candidates` stays 1)."""
     threads: int | None = None
     """torch threads (default: torch's choice)."""
     progress: bool = True
@@ -87,6 +92,9 @@ class WorldModelDiagnosis:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "windows", "batch_size", "tau_buckets", "threads")
         resolve_device(self.device)
+        if self.sampling is not None and self.sampling.candidates != 1:
+            raise ConfigError(f"the diagnosis scores one sampled chunk per window; got candidates "
+                              f"{self.sampling.candidates} (drop --candidates)")
 
 
 @dataclass
@@ -233,7 +241,7 @@ def own_samples(policy: DustPolicy, batch: TensorDict, seed: int, batch_size: in
     for index, rows in enumerate(torch.arange(batch.batch_size[0]).split(batch_size)):
         part = batch[rows.to(batch.device)]
         generator = torch.Generator().manual_seed(seed * 100_003 + index)
-        out = policy.model.predict_action(part, schedule, generator,
+        out = policy.model.predict_action(part, schedule, generator, noise_scale=policy.config.noise_scale,
                                           vision_source=None if source is None else source(part, rows))
         actions.append(out.get("action_chunk"))
         futures.append(out.get("future_tokens", None))
@@ -316,12 +324,14 @@ def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
     if config.threads:
         torch.set_num_threads(config.threads)
     policy = load_policy(config.policy).to(resolve_device(config.device)).eval()
+    apply_sampling(policy, config.sampling, config.policy)
     trained_on = policy.info.get("dataset")
     if trained_on and pathlib.Path(trained_on).resolve() == config.dataset.resolve():
         raise DatasetError(f"{config.dataset} is the dataset {config.policy} was trained on; diagnose on held-out "
                            "episodes (e.g. dust-rl collect --seed 5000 ...)")
     windows = draw_windows(config, policy)
     report = {"policy": str(config.policy), "dataset": str(config.dataset), "variant": policy.config.variant,
+              "sampler": describe_sampler(resolved_sampler(policy)),
               "future_target": policy.config.future_target if policy.config.has_vision else None,
               "windows": windows.batch.batch_size[0], "command": command, "config": config_json(config),
               "oracle_future": oracle_future(policy, windows, config.seed, config.batch_size)}
@@ -340,8 +350,10 @@ def _interval(row: dict, digits: int = 4) -> str:
 
 def markdown(report: dict) -> str:
     """The report's two tables."""
+    sampler = report["sampler"]
     lines = [f"# World-model diagnosis of {report['policy']}", "",
-             f"{report['windows']} windows of {report['dataset']}; variant {report['variant']}; means over episodes "
+             f"{report['windows']} windows of {report['dataset']}; variant {report['variant']}; sampler "
+             f"{sampler['name']} (N_A {sampler['n_action_steps']}, N_o {sampler['vision_steps']}); means over episodes "
              "with 95% intervals over episodes; command: "
              f"`{report['command']}`", ""]
     vision = report.get("vision_stream")

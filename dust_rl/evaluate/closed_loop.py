@@ -29,11 +29,10 @@ import math
 import pathlib
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
-from typing import Annotated, NamedTuple
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
-import tyro
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector
@@ -48,6 +47,7 @@ from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate.report import plot_loss_curves, write_report
+from dust_rl.evaluate.resampling import Resampling, apply_sampling, describe_sampler, resolved_sampler
 from dust_rl.evaluate.video import write_episode_video
 from dust_rl.keys import SEED_KEY, STATE_KEY, STEP_KEY, SUCCESS_KEY
 from dust_rl.runtime.device import resolve_device
@@ -80,8 +80,7 @@ class EvalConfig:
     """Ray cluster to join with `--backend ray` (e.g. `auto`); default: start a local one for the command."""
     seed: int = HELDOUT_SEED
     """Episode k of a task resets from seed + k (training data uses seeds from 0 on)."""
-    sampling: (Annotated[SamplerConfig, tyro.conf.subcommand("resample")]
-               | Annotated[None, tyro.conf.subcommand("as-saved")]) = None
+    sampling: Resampling = None
     """How chunks are sampled: as the policy file says (the default), or `resample` with other settings, given
     after every other argument (`dust-rl eval --policy P resample --n-action-steps 8 --vision-step-ratio 4
     --candidates 4`; fields not given take their defaults, not the file's)."""
@@ -114,15 +113,6 @@ class EvalConfig:
     def worker_pool(self) -> Workers:
         """Where and how many workers run episodes."""
         return Workers(self.workers, self.backend, self.threads, self.ray_address)
-
-
-def describe_sampler(sampler: SamplerConfig) -> dict:
-    """Name, N_A, N_o (vision Euler steps: q * N_A async, N_A sync, none action-only), the joint samples per
-    chunk and the initial noise's scale of a resolved sampler."""
-    vision = {"async": sampler.n_action_steps * sampler.vision_step_ratio, "sync": sampler.n_action_steps}
-    return {"name": sampler.sampler, "n_action_steps": sampler.n_action_steps,
-            "vision_steps": vision.get(sampler.sampler, 0), "candidates": sampler.candidates,
-            "noise_scale": sampler.noise_scale}
 
 
 @dataclass(frozen=True)
@@ -257,12 +247,8 @@ def eval_setup(config: EvalConfig, policy: DustPolicy) -> EvalSetup:
         fps = probe.base_env.metadata["render_fps"]
     finally:
         probe.close()
-    try:
-        if config.sampling is not None:
-            policy.set_sampler(config.sampling)
-    except ValueError as err:  # the policy's own config check (e.g. async sampling of a shared-timestep variant)
-        raise ConfigError(f"{config.policy}: sampling {config_json(config.sampling)} does not apply: {err}") from err
-    sampler = replace(policy.config.sampler_settings, sampler=policy.config.sampler_name)
+    apply_sampling(policy, config.sampling, config.policy)
+    sampler = resolved_sampler(policy)
     policy.set_runtime(config.precision, config.compile)
     return EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps, str(device),
                      config.precision, config.compile)
