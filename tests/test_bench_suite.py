@@ -118,8 +118,8 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     diagnosis = {row["variant"]: row for row in results["diagnosis"]["rows"]}
     assert set(diagnosis) == {*config.variants, WITH_VIDEO}
     assert results["diagnosis"]["first_seed"] == HELDOUT_SEED and results["diagnosis"]["episodes"] == 2
-    assert set(diagnosis["dust"]["action_error"]) == {"own", "true", "noise", "other"}
-    assert set(diagnosis["dust"]["paired"]) == {"true - noise", "own - true"}
+    assert set(diagnosis["dust"]["action_error"]) == {"own", "true", "present", "noise", "other"}
+    assert set(diagnosis["dust"]["paired"]) == {"true - noise", "true - present", "own - true"}
     assert set(diagnosis["action_only"]["action_error"]) == {"own"} and diagnosis["action_only"]["skill"] is None
     alone = diagnose(WorldModelDiagnosis(policy=cell / "dust_seed0_demos2" / "policy.pt",
                                          dataset=tmp_path / "suite" / "data" / "heldout_2", out=tmp_path / "alone",
@@ -130,8 +130,8 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     oracle_row = (f"| dust | 0 | {diagnosis['dust']['action_error']['own']:.4f} | "
                   f"{diagnosis['dust']['action_error']['true']:.4f} |")
     assert "## The oracle-future test" in markdown and oracle_row in markdown
-    assert f"| action_only | 0 | {diagnosis['action_only']['action_error']['own']:.4f} | - | - | - | - | - | - |" \
-        in markdown
+    assert (f"| action_only | 0 | {diagnosis['action_only']['action_error']['own']:.4f} | - | - | - | - | - | - | - "
+            "| - |") in markdown
 
     # A rerun finds every cell on disk: no training, no evaluation, no diagnosis.
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "suite").rglob("*") if p.name in ("policy.pt",

@@ -110,8 +110,8 @@ def test_report_of_a_dust_policy(trained, tmp_path, capsys):
     main(["diagnose", "world-model", "--policy", str(policies["dust"]), "--dataset", str(heldout), "--out",
           str(out), "--windows", "48", "--batch-size", "16", "--no-progress", "--threads", "1"])
     report = json.loads((out / "report.json").read_text())
-    assert set(report["oracle_future"]["conditions"]) == {"own", "true", "noise", "other"}
-    assert "true - noise" in report["oracle_future"]["paired_action_error"]
+    assert set(report["oracle_future"]["conditions"]) == {"own", "true", "present", "noise", "other"}
+    assert {"true - noise", "true - present"} <= set(report["oracle_future"]["paired_action_error"])
     buckets = report["vision_stream"]["buckets"]
     assert len(buckets) == 5 and all(row["windows"] == buckets[0]["windows"] > 0 for row in buckets)
     assert buckets[0]["episodes"] > 1

@@ -72,7 +72,7 @@ from dust_rl.train.recipes import RECIPES, RecipeName
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
 VISION_AS_NOISE = "vision as noise N_A=4"  # DUST's actions sampled with its world-model stream left as noise
-ORACLE_READINGS = ("true - noise", "own - true")  # the paired differences the oracle-future table reads
+ORACLE_READINGS = ("true - noise", "true - present", "own - true")  # the paired differences the table reads
 DEFAULT_RECIPE = "vision-readout"  # the quickstart's: a comparison means little where every variant fails
 
 
@@ -668,17 +668,19 @@ def diagnosis_table(diagnosis: dict | None) -> list[str]:
     lines = ["## The oracle-future test", "",
              f"Open-loop action error against the expert's chunks on {diagnosis['episodes']} expert episodes per task "
              f"from seed {diagnosis['first_seed']} on, the vision stream holding its own sample, the true future "
-             "(re-noised to each step's tau_o), pure noise, or another episode's future (`dust-rl diagnose "
-             "world-model`; reports under `diagnose/`). true - noise below 0: the actions read a future; own - true: "
+             "(re-noised to each step's tau_o), the present frame (re-noised alike), pure noise, or another episode's "
+             "future (`dust-rl diagnose world-model`; reports under `diagnose/`). true - noise below 0: the actions "
+             "read a future; true - present below 0: a future, not only a second view of the present; own - true: "
              "what a better world model could buy them (p: paired over episodes); skill: the world model's joint "
              "sample against the present frame (1 - err / err_present).", "",
-             "| arm | training seed | own sample | true future | noise | another episode's | true - noise (p) "
-             "| own - true (p) | world-model skill |", "|---|---|---|---|---|---|---|---|---|"]
+             "| arm | training seed | own sample | true future | present frame | noise | another episode's "
+             "| true - noise (p) | true - present (p) | own - true (p) | world-model skill |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in diagnosis["rows"]:
         skill = "-" if row["skill"] is None else f"{row['skill']:+.2f}"
         lines.append(f"| {row['variant']} | {row['seed']} | "
-                     + " | ".join(error(row, name) for name in ("own", "true", "noise", "other"))
-                     + f" | {difference(row, 'true - noise')} | {difference(row, 'own - true')} | {skill} |")
+                     + " | ".join(error(row, name) for name in ("own", "true", "present", "noise", "other")) + " | "
+                     + " | ".join(difference(row, name) for name in ORACLE_READINGS) + f" | {skill} |")
     return [*lines, ""]
 
 

@@ -13,10 +13,12 @@ was not trained on (collect one on other seeds: ``dust-rl collect --seed 5000 ..
 2. **The oracle-future test.** Action chunks are sampled with the policy's sampler and the same action noise
    while the vision stream holds (a) its own joint sample, (b) the *true* future re-noised to each step's
    tau_o, (c) pure noise at tau_o = 0, (d) the true future of another episode of the same task, re-noised the
-   same way. Scored: the chunk's error against the demonstration, and the action flow-matching loss with the
+   same way, (e) the present frame ("nothing moves", a zero change for a change target), re-noised the same
+   way. Scored: the chunk's error against the demonstration, and the action flow-matching loss with the
    vision stream held at the clean version of each (noise for (c)). If (b) does not beat (c), no better world
-   model can help these actions; if it does, (a) - (b) is what a better world model could buy, and (d) tells
-   a future that is read from one that only has to look like the task's.
+   model can help these actions; if it does, (a) - (b) is what a better world model could buy, (d) tells
+   a future that is read from one that only has to look like the task's, and (e) a future from a second view
+   of the present (what a world model that predicts nothing could already give).
 
 Every number is a mean over episodes of the per-episode mean over windows, with a 95% interval from the normal
 approximation over episodes (the windows of one episode are not independent); paired differences (same windows,
@@ -54,6 +56,7 @@ from dust_rl.storage.config_json import config_json
 CONDITIONS = {
     "own": "its own joint sample",
     "true": "the true future, re-noised to each step's tau_o",
+    "present": "the present frame (nothing moves), re-noised",
     "noise": "pure noise (tau_o = 0)",
     "other": "another episode's future (same task), re-noised",
 }
@@ -268,7 +271,7 @@ def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: i
         skipped["other"] = "fewer than two episodes of some diagnosed task"
     generator = torch.Generator().manual_seed(seed + 1)
     eps_o = torch.randn(batch.get("future_tokens").shape, generator=generator).to(action) if cfg.has_vision else None
-    futures = {"true": batch.get("future_tokens"), "noise": eps_o}
+    futures = {"true": batch.get("future_tokens"), "present": windows.present, "noise": eps_o}
     if "other" in conditions:
         futures["other"] = batch.get("future_tokens")[windows.other.to(device)]
 
@@ -309,7 +312,8 @@ def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: i
                                                None if valid is None else valid[rows]))
         results[name] = {"vision": CONDITIONS[name], "action_error": mean_interval(errors[name], windows.episode),
                          "action_loss": mean_interval(torch.cat(losses), windows.episode)}
-    pairs = (("true", "noise"), ("own", "true"), ("own", "noise"), ("other", "noise"), ("true", "other"))
+    pairs = (("true", "noise"), ("true", "present"), ("own", "true"), ("own", "noise"), ("present", "noise"),
+             ("other", "noise"), ("true", "other"))
     return {"conditions": results, "skipped": skipped,
             "paired_action_error": {f"{a} - {b}": paired(errors[a], errors[b], windows.episode) for a, b in pairs
                                     if a in errors and b in errors}}
