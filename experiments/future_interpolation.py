@@ -30,6 +30,7 @@ from dust_rl.diagnose.world_model import (
     mean_interval,
     own_samples,
     per_window_error,
+    renoised_source,
 )
 
 
@@ -56,11 +57,6 @@ def main() -> None:
     noise = torch.randn(true.shape, generator=torch.Generator().manual_seed(args.seed + 1))
     _, own = own_samples(policy, batch, args.seed, config.batch_size)
 
-    def given(future: torch.Tensor):
-        def for_slice(part, rows):
-            return lambda step: (torch.lerp(noise[rows], future[rows], step.tau_o), step.tau_o)
-        return for_slice
-
     own_error = per_window_error(own, true)
     jitter = torch.randn(true.shape, generator=torch.Generator().manual_seed(args.seed + 2))
     noised_true = true + jitter * own_error[inside].mean().sqrt()
@@ -72,8 +68,7 @@ def main() -> None:
     print("| vision stream holds | future's error (t+H inside) | action error |")
     print("|---|---|---|")
     for name, future in futures.items():
-        source = (lambda part, rows: (lambda step: (noise[rows], 0.0))) if future is None else given(future)
-        chunks, _ = own_samples(policy, batch, args.seed, config.batch_size, source)
+        chunks, _ = own_samples(policy, batch, args.seed, config.batch_size, renoised_source(future, noise))
         acted = mean_interval(per_window_error(chunks, action, valid), episode)
         if future is None:
             future_cell = "-"

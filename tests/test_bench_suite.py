@@ -127,8 +127,11 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert diagnosis["dust"]["action_error"] == {name: row["action_error"]["mean"]
                                                  for name, row in alone["oracle_future"]["conditions"].items()}
     assert diagnosis["dust"]["skill"] == alone["vision_stream"]["joint_sample"]["skill"]
-    oracle_row = (f"| dust | 0 | {diagnosis['dust']['action_error']['own']:.4f} | "
-                  f"{diagnosis['dust']['action_error']['true']:.4f} |")
+    dust = diagnosis["dust"]
+    oracle_row = ("| dust | 0 | " + " | ".join(f"{dust['action_error'][name]:.4f}" for name in
+                                              ("own", "true", "present", "noise", "other")) + " | "
+                  + " | ".join(f"{dust['paired'][name]['mean']:+.4f} ({dust['paired'][name]['p']:.3g})" for name in
+                               ("true - noise", "true - present", "own - true")) + f" | {dust['skill']:+.2f} |")
     assert "## The oracle-future test" in markdown and oracle_row in markdown
     assert (f"| action_only | 0 | {diagnosis['action_only']['action_error']['own']:.4f} | - | - | - | - | - | - | - "
             "| - |") in markdown
@@ -140,6 +143,13 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert run_suite(config) == results
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
 
+    # Another number of diagnosis episodes diagnoses anew beside the first (one episode: no other episode's future).
+    fewer = run_suite(dataclasses.replace(config, diagnose_episodes=1))["diagnosis"]
+    with_vision = [row for row in fewer["rows"] if row["skill"] is not None]
+    assert fewer["episodes"] == 1 and len(with_vision) == 3 and all("other" in row["skipped"] for row in with_vision)
+    assert "dust, seed 0: other not run (fewer than two episodes" in (tmp_path / "suite" / "results.md").read_text()
+    assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
+
     # Cells on disk from other settings are refused, not passed off as this study's.
     longer_train = dataclasses.replace(train, optim=dataclasses.replace(train.optim, steps=3))
     longer = dataclasses.replace(config, train=longer_train)
@@ -149,9 +159,16 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
         run_suite(dataclasses.replace(config, eval_episodes=2))
     with pytest.raises(ConfigError, match="holds an evaluation of seeds"):
         run_suite(dataclasses.replace(config, val_episodes=2))
-    with pytest.raises(ConfigError, match="holds a diagnosis on .*heldout_2, the study asks for .*heldout_1"):
-        run_suite(dataclasses.replace(config, diagnose_episodes=1))
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
+
+    # A diagnosis from before a condition was measured is redone, the others kept.
+    stale = tmp_path / "suite" / "diagnose" / "heldout_2" / "dust_seed0_demos2" / "report.json"
+    older = json.loads(stale.read_text())
+    del older["oracle_future"]["conditions"]["present"]
+    stale.write_text(json.dumps(older))
+    assert run_suite(config)["diagnosis"] == results["diagnosis"]
+    assert "present" in json.loads(stale.read_text())["oracle_future"]["conditions"]
+    assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items() if p != stale)
 
 
 def test_suite_settings_are_checked():
@@ -176,6 +193,8 @@ def test_suite_settings_are_checked():
     assert SuiteConfig(val_seed=HELDOUT_SEED - 5, val_episodes=5).validation.seeds == [HELDOUT_SEED - 5,
                                                                                         HELDOUT_SEED - 1]
     assert SuiteConfig().validation is None  # no validation unless asked for
+    with pytest.raises(ConfigError, match="reach the held-out seeds"):  # the diagnosis's episodes are held out too
+        SuiteConfig(eval_episodes=20, diagnose_episodes=40, val_seed=HELDOUT_SEED + 30, val_episodes=5)
 
 
 def test_recipe_gives_the_settings_every_cell_trains_with_and_flags_override_it():

@@ -123,7 +123,7 @@ def test_report_of_a_dust_policy(trained, tmp_path, capsys):
 
 def test_resample_scores_the_policy_with_another_sampler(trained, tmp_path):
     """`resample` changes the sampler of the policy's own samples, as `dust-rl eval resample` does in closed loop;
-    conditions that hold the vision stream at a fixed input do not sample it."""
+    the actions of the noise condition, which holds the vision stream still, take the same steps at q = 4 as at 1."""
     policies, _, heldout = trained
     args = ["diagnose", "world-model", "--policy", str(policies["dust"]), "--dataset", str(heldout), "--windows", "32",
             "--batch-size", "16", "--no-progress", "--threads", "1"]
@@ -134,6 +134,8 @@ def test_resample_scores_the_policy_with_another_sampler(trained, tmp_path):
     # 16 Euler steps of the vision stream end elsewhere than 4 (the tiny policy's actions barely read it).
     assert saved["vision_stream"]["joint_sample"]["mean"] != q4["vision_stream"]["joint_sample"]["mean"]
     assert saved["vision_stream"]["buckets"] == q4["vision_stream"]["buckets"]  # one-step estimates: no sampler
+    noise = [report["oracle_future"]["conditions"]["noise"]["action_error"] for report in (saved, q4)]
+    assert noise[0] == noise[1]
     assert "sampler async (N_A 4, N_o 16)" in (tmp_path / "q4" / "report.md").read_text()
     with pytest.raises(ConfigError, match="one sampled chunk per window"):
         WorldModelDiagnosis(policy=policies["dust"], dataset=heldout, sampling=SamplerConfig("async", 4, 1, 2))

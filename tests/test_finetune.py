@@ -21,6 +21,7 @@ from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.evaluate.report import loss_csvs
 from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
     LatentSettings,
@@ -130,7 +131,7 @@ def assert_eval_runs_the_agent(report: dict, tmp_path: pathlib.Path, seed: int) 
     assert evaluated["rl_agent"]["method"] == report["method"] and evaluated["tasks"][0]["task"] == report["task"]
     assert "acting through a fine-tuned RL agent" in (tmp_path / "eval_agent" / "report.md").read_text()
     assert [video["seed"] for video in evaluated["tasks"][0]["videos"]] == [seed]  # the agent's episode, recorded
-    assert list((tmp_path / "ft").glob("logs/*/scalars/train/*loss*.csv"))  # SB3's actor_loss ... or PPO's loss ...
+    assert loss_csvs(tmp_path / "ft")  # SB3's actor_loss ... or PPO's loss ...
     assert pathlib.Path(evaluated["loss_plot"]).read_bytes()[:4] == b"\x89PNG"  # ... are the report's loss plot
     assert pathlib.Path(evaluated["tasks"][0]["videos"][0]["path"]).stat().st_size > 0
 

@@ -16,12 +16,13 @@ its world model on action-free video; :mod:`dust_rl.train.action_free`).
 
 Every cell is a job cached on disk under ``out``: ``data/<n>/`` (collection,
 resumed), ``train/<variant>_seed<s>_demos<n>/`` (training, resumed; skipped
-once its ``policy.pt`` exists) and ``eval/<cell>/<sampler>/`` (skipped once
-its ``report.json`` exists), so rerunning the command after an interruption
+once its ``policy.pt`` exists), ``eval/<cell>/<sampler>/`` (skipped once
+its ``report.json`` exists) and ``data/heldout_<n>/`` with ``diagnose/heldout_<n>/<cell>/`` (the diagnosis's
+episodes and reports), so rerunning the command after an interruption
 redoes nothing that finished (a cell on disk from other ``--train.*`` settings or
 other evaluation seeds is refused, not reused); two suites run side by side on one data
 folder take turns (the second waits while the first collects). The budget (episodes to collect, training
-steps, evaluation episodes) is printed before anything runs. Output:
+steps, evaluation episodes, diagnosed policies) is printed before anything runs. Output:
 ``results.json``, ``results.md`` (the paper's form: success with 95%
 intervals, episodes pooled over training seeds) and ``results.png`` (bars).
 
@@ -37,7 +38,7 @@ and report them on held-out seeds; ``--arm-steps ARM=N`` trains one arm for its 
 validation success stops rising, e.g. read off ``dust-rl train --logging.eval-every``'s curve).
 ``--diagnose-episodes`` runs the oracle-future test of :mod:`dust_rl.diagnose.world_model` on every policy at the
 largest demo count, on expert episodes of the held-out seeds: can its actions read a future, and what would a
-better world model buy them (``diagnose/<cell>/``, one table of ``results.md``).
+better world model buy them (:mod:`dust_rl.bench.suite_diagnosis`; one table of ``results.md``).
 """
 
 from __future__ import annotations
@@ -56,10 +57,10 @@ from matplotlib.figure import Figure
 from dust_rl.agents import VARIANTS, PolicyConfig, SamplerConfig
 from dust_rl.agents.backbone import resolve_image_encoder
 from dust_rl.agents.config import MAX_STEPS, DustConfig, Variant
+from dust_rl.bench.suite_diagnosis import diagnose_policy, diagnosis_folder, diagnosis_rows, diagnosis_table
 from dust_rl.data import DemoDataset, collect_demos
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
-from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
 from dust_rl.envs.factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate, mcnemar, wilson_interval
@@ -72,7 +73,6 @@ from dust_rl.train.recipes import RECIPES, RecipeName
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
 VISION_AS_NOISE = "vision as noise N_A=4"  # DUST's actions sampled with its world-model stream left as noise
-ORACLE_READINGS = ("true - noise", "true - present", "own - true")  # the paired differences the table reads
 DEFAULT_RECIPE = "vision-readout"  # the quickstart's: a comparison means little where every variant fails
 
 
@@ -197,7 +197,9 @@ class SuiteConfig:
         for arm in self.steps_by_arm:
             if arm not in self.variants:
                 raise ConfigError(f"--arm-steps names {arm}, which is not one of --variants {' '.join(self.variants)}")
-        held_out, validation = self.heldout.seeds, self.validation.seeds if self.validation else None
+        # the held-out seeds of the evaluations and of the diagnosis's expert episodes
+        held_out = [self.eval_seed, self.eval_seed + max(self.eval_episodes, self.diagnose_episodes) - 1]
+        validation = self.validation.seeds if self.validation else None
         if validation and validation[0] <= held_out[1] and held_out[0] <= validation[1]:
             raise ConfigError(f"validation seeds {validation[0]}..{validation[1]} reach the held-out seeds "
                               f"{held_out[0]}..{held_out[1]}; give another --val-seed")
@@ -299,9 +301,9 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
         collect_demos(config.out / "data" / str(demos), config.env, tasks, demos, env_kwargs=env_kwargs,
                       workers=config.workers, progress=config.progress, wait_for_writer=True)
     if diagnosed:
-        collect_demos(diagnosis_data(config), config.env, tasks, config.diagnose_episodes,
-                      env_kwargs=env_kwargs, workers=config.workers, start_seed=config.eval_seed,
-                      progress=config.progress, wait_for_writer=True)
+        collect_demos(diagnosis_folder(config.out, "data", config.diagnose_episodes), config.env, tasks,
+                      config.diagnose_episodes, env_kwargs=env_kwargs, workers=config.workers,
+                      start_seed=config.eval_seed, progress=config.progress, wait_for_writer=True)
     policies = arm_policies(config, [cell.variant for cell in cells])
     splits = [(config.heldout, jobs), *([(config.validation, validation)] if validation else [])]
     reports: dict[str, dict] = {split.folder: {} for split, _ in splits}
@@ -414,42 +416,11 @@ def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Pa
 
 
 def diagnose_cell(config: SuiteConfig, cell: Cell, policy: pathlib.Path, command: str | None) -> dict:
-    """The world-model diagnosis of the cell's policy on the study's held-out expert episodes, run unless already
-    on disk.
-
-    Raises:
-        ConfigError: the report on disk is of other episodes than the study asks for.
-    """
-    out, dataset = config.out / "diagnose" / cell.name, diagnosis_data(config)
-    if not (out / "report.json").is_file():
-        diagnose(WorldModelDiagnosis(policy=policy, dataset=dataset, out=out, threads=config.train.runtime.threads,
-                                     progress=config.progress), command)
-    report = json.loads((out / "report.json").read_text())
-    if report["dataset"] != str(dataset):
-        raise ConfigError(f"{out} holds a diagnosis on {report['dataset']}, the study asks for {dataset}; use "
-                          "another --out")
-    return report
-
-
-def diagnosis_data(config: SuiteConfig) -> pathlib.Path:
-    """The folder of the expert episodes every policy is diagnosed on (its name says how many per task)."""
-    return config.out / "data" / f"heldout_{config.diagnose_episodes}"
-
-
-def diagnosis_rows(diagnoses: Mapping[Cell, dict]) -> list[dict]:
-    """Per diagnosed cell: the action error with each vision condition, the paired differences that read the
-    oracle-future test (true - noise: can the actions read a future; own - true: what a better world model could
-    buy), and the world model's skill against the present frame (None without a vision stream)."""
-    rows = []
-    for cell, report in diagnoses.items():
-        oracle, vision = report["oracle_future"], report.get("vision_stream")
-        rows.append({"variant": cell.label, "seed": cell.seed, "windows": report["windows"],
-                     "action_error": {name: row["action_error"]["mean"] for name, row in oracle["conditions"].items()},
-                     "paired": {name: {"mean": row["mean"], "p": row["p"]}
-                                for name, row in oracle["paired_action_error"].items()
-                                if name in ORACLE_READINGS},
-                     "skill": vision["joint_sample"]["skill"] if vision else None})
-    return rows
+    """The world-model diagnosis of the cell's policy on the study's held-out expert episodes, run unless a complete
+    one is on disk (:mod:`dust_rl.bench.suite_diagnosis`)."""
+    return diagnose_policy(diagnosis_folder(config.out, "diagnose", config.diagnose_episodes) / cell.name, policy,
+                           diagnosis_folder(config.out, "data", config.diagnose_episodes),
+                           config.train.runtime.threads, config.progress, command)
 
 
 def summarise(config: SuiteConfig, policies: Mapping[str, PolicyConfig],
@@ -472,8 +443,8 @@ def summarise(config: SuiteConfig, policies: Mapping[str, PolicyConfig],
             "video_dataset": None if config.video_dataset is None else str(config.video_dataset), "arms": arms,
             **split_results(heldout, jobs, reports),
             "validation": {"seeds": validation[0][0].seeds, **split_results(*validation[0])} if validation else None,
-            "diagnosis": {"episodes": config.diagnose_episodes, "first_seed": config.eval_seed,
-                          "rows": diagnosis_rows(diagnoses)} if diagnoses else None}
+            "diagnosis": {"episodes": config.diagnose_episodes, "first_seed": config.eval_seed, "rows": diagnosis_rows(
+                {(cell.label, cell.seed): report for cell, report in diagnoses.items()})} if diagnoses else None}
 
 
 def rows_of(jobs: list[tuple[Cell, str]], reports: dict, eval_seeds: list[int]) -> list[dict]:
@@ -589,8 +560,8 @@ def comparison_table(comparisons: list[dict], title: str = "Paired comparisons")
 
 
 def markdown(results: dict, command: str | None) -> str:
-    """The results in the paper's form: the comparison, test-time scaling, data scaling, the paired comparisons,
-    then the validation seeds' apart."""
+    """The results in the paper's form: the comparison (and per task, for several), test-time scaling, data scaling,
+    the paired comparisons, the oracle-future test, then the validation seeds' apart."""
     main = results["main_demos"]
 
     def table(title: str, rows: list[dict]) -> list[str]:
@@ -646,41 +617,10 @@ def per_task_table(rows: list[dict]) -> list[str]:
     for r in rows:
         cells = []
         for task in tasks:
-            flags = "".join(r["outcomes"].get(task, {}).values())
+            flags = "".join(r.get("outcomes", {}).get(task, {}).values())
             cells.append(f"{percent(flags.count('1') / len(flags))} ({flags.count('1')}/{len(flags)})" if flags
                          else "-")
         lines.append(f"| {r['variant']} | " + " | ".join(cells) + " |")
-    return [*lines, ""]
-
-
-def diagnosis_table(diagnosis: dict | None) -> list[str]:
-    """Markdown lines of the oracle-future test of every diagnosed policy (none: no lines)."""
-    if not diagnosis:
-        return []
-
-    def error(row: dict, name: str) -> str:
-        return f"{row['action_error'][name]:.4f}" if name in row["action_error"] else "-"
-
-    def difference(row: dict, name: str) -> str:
-        found = row["paired"].get(name)
-        return "-" if found is None else f"{found['mean']:+.4f} ({found['p']:.2g})"
-
-    lines = ["## The oracle-future test", "",
-             f"Open-loop action error against the expert's chunks on {diagnosis['episodes']} expert episodes per task "
-             f"from seed {diagnosis['first_seed']} on, the vision stream holding its own sample, the true future "
-             "(re-noised to each step's tau_o), the present frame (re-noised alike), pure noise, or another episode's "
-             "future (`dust-rl diagnose world-model`; reports under `diagnose/`). true - noise below 0: the actions "
-             "read a future; true - present below 0: a future, not only a second view of the present; own - true: "
-             "what a better world model could buy them (p: paired over episodes); skill: the world model's joint "
-             "sample against the present frame (1 - err / err_present).", "",
-             "| arm | training seed | own sample | true future | present frame | noise | another episode's "
-             "| true - noise (p) | true - present (p) | own - true (p) | world-model skill |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for row in diagnosis["rows"]:
-        skill = "-" if row["skill"] is None else f"{row['skill']:+.2f}"
-        lines.append(f"| {row['variant']} | {row['seed']} | "
-                     + " | ".join(error(row, name) for name in ("own", "true", "present", "noise", "other")) + " | "
-                     + " | ".join(difference(row, name) for name in ORACLE_READINGS) + f" | {skill} |")
     return [*lines, ""]
 
 

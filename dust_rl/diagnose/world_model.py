@@ -12,13 +12,13 @@ was not trained on (collect one on other seeds: ``dust-rl collect --seed 5000 ..
    stream knows more than "nothing moves". The joint sample of the policy's own sampler is scored the same way.
 2. **The oracle-future test.** Action chunks are sampled with the policy's sampler and the same action noise
    while the vision stream holds (a) its own joint sample, (b) the *true* future re-noised to each step's
-   tau_o, (c) pure noise at tau_o = 0, (d) the true future of another episode of the same task, re-noised the
-   same way, (e) the present frame ("nothing moves", a zero change for a change target), re-noised the same
+   tau_o, (c) the present frame ("nothing moves", a zero change for a change target), re-noised the same way,
+   (d) pure noise at tau_o = 0, (e) the true future of another episode of the same task, re-noised the same
    way. Scored: the chunk's error against the demonstration, and the action flow-matching loss with the
-   vision stream held at the clean version of each (noise for (c)). If (b) does not beat (c), no better world
-   model can help these actions; if it does, (a) - (b) is what a better world model could buy, (d) tells
-   a future that is read from one that only has to look like the task's, and (e) a future from a second view
-   of the present (what a world model that predicts nothing could already give).
+   vision stream held at the clean version of each (noise for (d)). If (b) does not beat (d), no better world
+   model can help these actions; if it does, (a) - (b) is what a better world model could buy, (c) tells a
+   future from a second view of the present (what a world model that predicts nothing could already give),
+   and (e) a future that is read from one that only has to look like the task's.
 
 Every number is a mean over episodes of the per-episode mean over windows, with a 95% interval from the normal
 approximation over episodes (the windows of one episode are not independent); paired differences (same windows,
@@ -33,6 +33,7 @@ same noise) likewise, with the p-value of a zero mean.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import pathlib
 from collections.abc import Callable
@@ -60,6 +61,15 @@ CONDITIONS = {
     "noise": "pure noise (tau_o = 0)",
     "other": "another episode's future (same task), re-noised",
 }
+# The paired differences of the action error, by name: the first three read the test (can the actions read a
+# future; a future, not only a second view of the present; what a better world model could buy).
+PAIRS = {"true - noise": ("true", "noise"), "true - present": ("true", "present"), "own - true": ("own", "true"),
+         "own - noise": ("own", "noise"), "present - noise": ("present", "noise"), "other - noise": ("other", "noise"),
+         "true - other": ("true", "other")}
+READINGS = tuple(PAIRS)[:3]
+
+SliceSource = Callable[[TensorDict, Tensor], Callable[[DenoiseStep], tuple[Tensor, float]]]
+"""Per slice of windows (its batch, its rows), the :data:`~dust_rl.agents.samplers.VisionSource` of its chunks."""
 
 
 @dataclass
@@ -85,8 +95,8 @@ class WorldModelDiagnosis:
     """auto | cpu | cuda | cuda:N | mps."""
     sampling: Resampling = None
     """The sampler of the policy's own samples: as the policy file says (the default), or `resample` with other
-    settings, given after every other argument (`... resample --vision-step-ratio 4`: N_o = 16 vision steps; one
-    chunk per window, so `--candidates` stays 1)."""
+    settings, given after every other argument (`... resample --vision-step-ratio 4`: N_o = 16 vision steps). One
+    chunk per window: a file's candidates are set to 1, and `--candidates` is refused."""
     threads: int | None = None
     """torch threads (default: torch's choice)."""
     progress: bool = True
@@ -235,8 +245,7 @@ def vision_skill(policy: DustPolicy, windows: Windows, buckets: int, seed: int, 
 
 
 def own_samples(policy: DustPolicy, batch: TensorDict, seed: int, batch_size: int,
-                source: Callable[[TensorDict, Tensor], Callable[[DenoiseStep], tuple[Tensor, float]]] | None = None
-                ) -> tuple[Tensor, Tensor | None]:
+                source: SliceSource | None = None) -> tuple[Tensor, Tensor | None]:
     """Action chunks [N, H, Da] and the future [N, N_o, Dv] of the policy's sampler on ``batch``, each slice of
     ``batch_size`` seeded alike, so that every condition starts from the same action noise; ``source(part,
     rows)`` gives a slice's vision tokens per step (:data:`~dust_rl.agents.samplers.VisionSource`)."""
@@ -249,6 +258,18 @@ def own_samples(policy: DustPolicy, batch: TensorDict, seed: int, batch_size: in
         actions.append(out.get("action_chunk"))
         futures.append(out.get("future_tokens", None))
     return torch.cat(actions), (torch.cat(futures) if futures[0] is not None else None)
+
+
+def renoised_source(future: Tensor | None, noise: Tensor) -> SliceSource:
+    """The vision stream held at ``future`` [N, N_o, Dv] re-noised with ``noise`` to each step's tau_o, as the
+    sampler's own future would stand at that flow time; None: at pure noise, tau_o = 0."""
+    def for_slice(part: TensorDict, rows: Tensor) -> Callable[[DenoiseStep], tuple[Tensor, float]]:
+        held = noise[rows.to(noise.device)]
+        if future is None:
+            return lambda step: (held, 0.0)
+        target = future[rows.to(future.device)]
+        return lambda step: (torch.lerp(held, target, step.tau_o), step.tau_o)
+    return for_slice
 
 
 def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: int) -> dict:
@@ -275,17 +296,10 @@ def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: i
     if "other" in conditions:
         futures["other"] = batch.get("future_tokens")[windows.other.to(device)]
 
-    def source(name: str) -> Callable[[TensorDict, Tensor], Callable[[DenoiseStep], tuple[Tensor, float]]]:
-        def for_slice(part: TensorDict, rows: Tensor) -> Callable[[DenoiseStep], tuple[Tensor, float]]:
-            future, noise = futures[name][rows.to(device)], eps_o[rows.to(device)]
-            if name == "noise":
-                return lambda step: (noise, 0.0)
-            return lambda step: (torch.lerp(noise, future, step.tau_o), step.tau_o)
-        return for_slice
-
     errors = {}
     for name in conditions:
-        chunks, sampled = own_samples(policy, batch, seed, batch_size, None if name == "own" else source(name))
+        source = None if name == "own" else renoised_source(None if name == "noise" else futures[name], eps_o)
+        chunks, sampled = own_samples(policy, batch, seed, batch_size, source)
         errors[name] = per_window_error(chunks, action, valid)
         if name == "own":
             futures["own"] = sampled
@@ -312,11 +326,9 @@ def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: i
                                                None if valid is None else valid[rows]))
         results[name] = {"vision": CONDITIONS[name], "action_error": mean_interval(errors[name], windows.episode),
                          "action_loss": mean_interval(torch.cat(losses), windows.episode)}
-    pairs = (("true", "noise"), ("true", "present"), ("own", "true"), ("own", "noise"), ("present", "noise"),
-             ("other", "noise"), ("true", "other"))
     return {"conditions": results, "skipped": skipped,
-            "paired_action_error": {f"{a} - {b}": paired(errors[a], errors[b], windows.episode) for a, b in pairs
-                                    if a in errors and b in errors}}
+            "paired_action_error": {name: paired(errors[a], errors[b], windows.episode)
+                                    for name, (a, b) in PAIRS.items() if a in errors and b in errors}}
 
 
 def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
@@ -329,6 +341,8 @@ def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
         torch.set_num_threads(config.threads)
     policy = load_policy(config.policy).to(resolve_device(config.device)).eval()
     apply_sampling(policy, config.sampling, config.policy)
+    if policy.config.candidates != 1:  # a file that acts on the best of K samples: one chunk per window here
+        policy.set_sampler(dataclasses.replace(resolved_sampler(policy), candidates=1))
     trained_on = policy.info.get("dataset")
     if trained_on and pathlib.Path(trained_on).resolve() == config.dataset.resolve():
         raise DatasetError(f"{config.dataset} is the dataset {config.policy} was trained on; diagnose on held-out "

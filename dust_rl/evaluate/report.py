@@ -140,8 +140,8 @@ def loss_csvs(source: pathlib.Path) -> list[pathlib.Path]:
 def plot_loss_curves(source: pathlib.Path, out_png: pathlib.Path) -> pathlib.Path | None:
     """Plot the training loss curves logged under ``source`` (a run folder or a ``scalars`` folder).
 
-    Curves are named by file (``loss``, ``loss_action``, ``loss_vision``), prefixed by the experiment
-    folder when several runs log there. Log scale when every value is positive.
+    Curves are named by file (``loss``, ``loss_action``, ``loss_vision``; SB3's ``actor_loss``, ``critic_loss``
+    ...), prefixed by the experiment folder when several runs log there. Log scale when every value is positive.
 
     Returns:
         ``out_png``, or None (nothing written) when there are no loss logs.
