@@ -136,6 +136,10 @@ def test_resample_scores_the_policy_with_another_sampler(trained, tmp_path):
     assert saved["vision_stream"]["buckets"] == q4["vision_stream"]["buckets"]  # one-step estimates: no sampler
     noise = [report["oracle_future"]["conditions"]["noise"]["action_error"] for report in (saved, q4)]
     assert noise[0] == noise[1]
+    main([*args, "--out", str(tmp_path / "cold"), "resample", "--noise-scale", "0"])  # every chunk from the mean
+    cold = json.loads((tmp_path / "cold" / "report.json").read_text())
+    assert cold["sampler"]["noise_scale"] == 0.0
+    assert cold["oracle_future"]["conditions"]["own"] != saved["oracle_future"]["conditions"]["own"]
     assert "sampler async (N_A 4, N_o 16)" in (tmp_path / "q4" / "report.md").read_text()
     with pytest.raises(ConfigError, match="one sampled chunk per window"):
         WorldModelDiagnosis(policy=policies["dust"], dataset=heldout, sampling=SamplerConfig("async", 4, 1, 2))
