@@ -119,6 +119,18 @@ def test_report_of_a_dust_policy(trained, tmp_path, capsys):
     assert buckets[-1]["mean"] < buckets[0]["mean"]
     assert (out / "world_model.png").stat().st_size > 0
     assert "The oracle-future test" in capsys.readouterr().out
+    # Two tasks: each reading per task too, and the episodes split between them (the mean over all episodes is
+    # their episode-weighted mean).
+    per_task, overall = report["oracle_future"]["per_task"], report["oracle_future"]["conditions"]
+    assert len(per_task) == 2 and set(report["vision_stream"]["per_task"]) == set(per_task)
+    for condition in overall:
+        rows = [task["action_error"][condition] for task in per_task.values()]
+        assert sum(row["windows"] for row in rows) == report["windows"]
+        assert sum(row["episodes"] * row["mean"] for row in rows) / sum(row["episodes"] for row in rows) == (
+            pytest.approx(overall[condition]["action_error"]["mean"], rel=1e-12))
+    assert all(set(task["paired_action_error"]) == {"true - noise", "true - present", "own - true"}
+               for task in per_task.values())
+    assert "## Per task" in (out / "report.md").read_text()
 
 
 def test_resample_scores_the_policy_with_another_sampler(trained, tmp_path):
@@ -154,6 +166,7 @@ def test_an_action_only_policy_has_only_its_own_condition(trained, tmp_path):
                                           windows=16, progress=False))
     assert list(report["oracle_future"]["conditions"]) == ["own"]
     assert "vision_stream" not in report
+    assert "| task | windows | own action error |\n" in (tmp_path / "report.md").read_text()
 
 
 def test_the_training_dataset_is_refused(trained, tmp_path):

@@ -27,7 +27,7 @@ same noise) likewise, with the p-value of a zero mean.
 | file | what |
 |---|---|
 | ``report.json`` | every number, per tau bucket and per condition, with the command and windows |
-| ``report.md`` | the two tables |
+| ``report.md`` | the two tables (and both per task, for a dataset of several tasks) |
 | ``world_model.png`` | error per tau bucket against the predictors; each condition's action error minus noise's |
 """
 
@@ -122,6 +122,15 @@ class Windows:
     """[N] the dataset episode of each window (intervals are over episodes)."""
     other: Tensor | None
     """[N] index of a window of another episode of the same task (-1: none), for condition (d)."""
+    task: Tensor
+    """[N] the index of each window's task in `task_names`."""
+    task_names: list[str]
+    """The dataset's tasks."""
+
+    def task_masks(self) -> dict[str, Tensor]:
+        """Per task with windows, which windows are its; empty for a dataset of one task (nothing to split)."""
+        masks = {name: self.task == i for i, name in enumerate(self.task_names) if bool((self.task == i).any())}
+        return masks if len(masks) > 1 else {}
 
 
 def per_window_error(pred: Tensor, target: Tensor, valid: Tensor | None = None) -> Tensor:
@@ -180,10 +189,11 @@ def windows_of(policy: DustPolicy, features: FeatureCache, count: int, seed: int
                 presents.append(present_frame(policy, feature_batch))
     rows = drawn.get("index")
     episode = torch.searchsorted(dataset.episode_starts, rows, right=True) - 1
+    task = dataset.row_task_index[rows]
     if not policy.config.has_vision:
-        return Windows(torch.cat(parts), None, episode, None)
-    return Windows(torch.cat(parts), torch.cat(presents), episode,
-                   other_episode_windows(episode, dataset.row_task_index[rows], seed))
+        return Windows(torch.cat(parts), None, episode, None, task, dataset.tasks)
+    return Windows(torch.cat(parts), torch.cat(presents), episode, other_episode_windows(episode, task, seed),
+                   task, dataset.tasks)
 
 
 def present_frame(policy: DustPolicy, features: TensorDict) -> Tensor:
@@ -226,22 +236,27 @@ def vision_skill(policy: DustPolicy, windows: Windows, buckets: int, seed: int, 
                 _, v_o = model(ctx, interpolate(action, eps_a, tau), noisy, tau, tau, need_action=False)
                 estimate = noisy + (1 - tau).view(-1, 1, 1) * v_o
                 errors[bucket].append(per_window_error(estimate, future))
-    sampled = own_samples(policy, batch, seed, batch_size)[1]
-    reference = {"mean": per_window_error(mean_prediction, target)[valid],
-                 "present": per_window_error(windows.present, target)[valid]}
-    episode = windows.episode[valid.cpu()]
-    present = mean_interval(reference["present"], episode)
+    valid = valid.cpu()
+    joint = per_window_error(own_samples(policy, batch, seed, batch_size)[1], target).cpu()
+    present_error = per_window_error(windows.present, target).cpu()
 
-    def row(error: Tensor) -> dict:
-        error = error[valid]
-        summary = mean_interval(error, episode)
+    def row(error: Tensor, mask: Tensor = valid) -> dict:
+        summary, present = (mean_interval(values[mask], windows.episode[mask]) for values in (error, present_error))
         return {**summary, "skill": 1 - summary["mean"] / present["mean"],
-                "vs_present": paired(error, reference["present"], episode)}
+                "vs_present": paired(error[mask], present_error[mask], windows.episode[mask])}
 
-    return {"valid_windows": int(valid.sum()), "mean_predictor": mean_interval(reference["mean"], episode),
-            "present_predictor": present,
-            "buckets": [{"tau": [b / buckets, (b + 1) / buckets], **row(torch.cat(errors[b]))} for b in range(buckets)],
-            "joint_sample": row(per_window_error(sampled, target))}
+    report = {"valid_windows": int(valid.sum()),
+              "mean_predictor": mean_interval(per_window_error(mean_prediction, target).cpu()[valid],
+                                              windows.episode[valid]),
+              "present_predictor": mean_interval(present_error[valid], windows.episode[valid]),
+              "buckets": [{"tau": [b / buckets, (b + 1) / buckets], **row(torch.cat(errors[b]).cpu())}
+                          for b in range(buckets)],
+              "joint_sample": row(joint)}
+    if masks := windows.task_masks():  # a multi-task policy's world model may know one task and not another
+        report["per_task"] = {name: {"present_predictor": mean_interval(present_error[mask & valid],
+                                                                        windows.episode[mask & valid]),
+                                     "joint_sample": row(joint, mask & valid)} for name, mask in masks.items()}
+    return report
 
 
 def own_samples(policy: DustPolicy, batch: TensorDict, seed: int, batch_size: int,
@@ -326,9 +341,19 @@ def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: i
                                                None if valid is None else valid[rows]))
         results[name] = {"vision": CONDITIONS[name], "action_error": mean_interval(errors[name], windows.episode),
                          "action_loss": mean_interval(torch.cat(losses), windows.episode)}
-    return {"conditions": results, "skipped": skipped,
-            "paired_action_error": {name: paired(errors[a], errors[b], windows.episode)
-                                    for name, (a, b) in PAIRS.items() if a in errors and b in errors}}
+    errors = {name: error.cpu() for name, error in errors.items()}
+
+    def pairs(names: tuple[str, ...], mask: Tensor) -> dict[str, dict]:
+        return {name: paired(errors[a][mask], errors[b][mask], windows.episode[mask])
+                for name, (a, b) in PAIRS.items() if name in names and a in errors and b in errors}
+
+    report = {"conditions": results, "skipped": skipped,
+              "paired_action_error": pairs(tuple(PAIRS), torch.ones(len(action), dtype=torch.bool))}
+    if masks := windows.task_masks():
+        report["per_task"] = {name: {"action_error": {condition: mean_interval(error[mask], windows.episode[mask])
+                                                      for condition, error in errors.items()},
+                                     "paired_action_error": pairs(READINGS, mask)} for name, mask in masks.items()}
+    return report
 
 
 def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
@@ -367,7 +392,7 @@ def _interval(row: dict, digits: int = 4) -> str:
 
 
 def markdown(report: dict) -> str:
-    """The report's two tables."""
+    """The report's tables."""
     sampler = report["sampler"]
     lines = [f"# World-model diagnosis of {report['policy']}", "",
              f"{report['windows']} windows of {report['dataset']}; variant {report['variant']}; sampler "
@@ -397,7 +422,30 @@ def markdown(report: dict) -> str:
             lines.append(f"| {name} | {_interval(row)} | {row['p']:.3g} |")
     lines += [""] * bool(oracle["skipped"]) + [f"Condition '{name}' not run: {why}."
                                                for name, why in oracle["skipped"].items()]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _per_task_lines(report)) + "\n"
+
+
+def _per_task_lines(report: dict) -> list[str]:
+    """The readings of both tests per task, for a dataset of several tasks (none otherwise)."""
+    oracle, vision = report["oracle_future"].get("per_task"), (report.get("vision_stream") or {}).get("per_task")
+    if not oracle:
+        return []
+    readings = [name for name in READINGS if name in next(iter(oracle.values()))["paired_action_error"]]
+    columns = ["task", "windows", "own action error", *(f"{name} (p)" for name in readings),
+               *(["present-frame error", "joint-sample error", "skill"] if vision else [])]
+    lines = ["", "## Per task", "", "Action error of the policy's own sample and the paired readings (p)"
+             + ("; the world model's joint sample against the present frame." if vision else "."), "",
+             "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for task, row in oracle.items():
+        own, pairs = row["action_error"]["own"], row["paired_action_error"]
+        cells = [task, str(own["windows"]), f"{own['mean']:.4f}",
+                 *(f"{pairs[name]['mean']:+.4f} ({pairs[name]['p']:.3g})" for name in readings)]
+        if vision:
+            world = vision[task]
+            cells += [f"{world['present_predictor']['mean']:.4f}", f"{world['joint_sample']['mean']:.4f}",
+                      f"{world['joint_sample']['skill']:+.3f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def plot(report: dict, path: pathlib.Path) -> None:
