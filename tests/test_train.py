@@ -27,6 +27,7 @@ from dust_rl.data.env_state_norm import PER_TASK
 from dust_rl.data.features import FeatureCache
 from dust_rl.data.seeding import VALIDATION_SEED
 from dust_rl.data.tools import dataset_summary
+from dust_rl.diagnose.world_model import vision_skill, windows_of
 from dust_rl.errors import ConfigError, NoSpaceError
 from dust_rl.keys import ACTION_IS_PAD_KEY
 from dust_rl.storage.cache_files import CACHE_FOLDERS, cache_files
@@ -35,7 +36,7 @@ from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import locked_run_folder
 from dust_rl.train.action_free import ActionFreeBatches, with_action_free
 from dust_rl.train.dataset_batches import DatasetBatches
-from dust_rl.train.imitation import RESUMABLE_FIELDS, TrainConfig, train
+from dust_rl.train.imitation import RESUMABLE_FIELDS, SKILL_WINDOWS, TrainConfig, train
 from dust_rl.train.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.train.readout.cache import READOUT_KIND
 from dust_rl.train.settings import GROUPS, DataSettings, OptimSettings, RuntimeSettings
@@ -112,8 +113,10 @@ def test_ema_ramps_up_and_round_trips():
 
 def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     out = tmp_path / "run"
-    result = train(tiny_config(run_inputs, out, eval_every=12, eval_episodes=1, eval_workers=1),
-                   command="dust-rl train ...")
+    config = tiny_config(run_inputs, out, eval_every=12, eval_episodes=1, eval_workers=1)
+    # a learning rate at which 12 steps move every trained weight visibly (the skill check below)
+    config = dataclasses.replace(config, optim=dataclasses.replace(config.optim, lr=1e-2, warmup=0.0))
+    result = train(config, command="dust-rl train ...")
     policy = load_policy(result.policy)
     assert policy.config.horizon == 4 and policy.execute_steps == 2
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button", "open_drawer"]
@@ -131,6 +134,13 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     assert int(success[0]) == 12 and float(success[1]) == evaluated["overall"]["success_rate"]
     step, skill = (out / "logs" / "train" / "scalars" / "wm" / "skill.csv").read_text().split(",")
     assert int(step) == 12 and math.isfinite(float(skill)) and float(skill) < 1  # a world model's skill, logged
+    # ... of the weights evaluated then, the condition layers included (whose tokens change as they train): the
+    # skill of the evaluated policy file on the same windows, computed anew.
+    evaluated_policy = load_policy(out / "eval" / "step-0000012" / "policy.pt")
+    windows = windows_of(evaluated_policy, FeatureCache(DemoDataset(tmp_path / "data"), evaluated_policy,
+                                                        progress=False, store=True), SKILL_WINDOWS, seed=0)
+    again = vision_skill(evaluated_policy, windows, buckets=1, seed=0, batch_size=8)["joint_sample"]["skill"]
+    assert float(skill) == pytest.approx(again, rel=64 * torch.finfo(torch.float32).eps)
     assert [p.name for p in sorted((out / "checkpoints").iterdir())] == ["checkpoint-000000000008",
                                                                         "checkpoint-000000000012"]
     assert (out / "loss.png").stat().st_size > 0

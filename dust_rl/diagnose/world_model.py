@@ -174,7 +174,8 @@ def draw_windows(config: WorldModelDiagnosis, policy: DustPolicy) -> Windows:
 
 def windows_of(policy: DustPolicy, features: FeatureCache, count: int, seed: int, batch_size: int = 128) -> Windows:
     """``count`` windows of ``features``' dataset drawn with ``seed`` (torch's global generator is left as it
-    was), in the trunk's units: the trunk's normalisation must be set before."""
+    was), in the trunk's units: the trunk's normalisation must be set before, and the windows hold for the
+    weights of now (their condition tokens come from trained layers)."""
     dataset = features.dataset
     windows = DemoWindows(dataset, horizon=policy.config.horizon, future_offset=policy.config.future_steps,
                           batch_size=min(count, len(dataset)), images=False)

@@ -56,7 +56,7 @@ from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.data.env_state_norm import PER_TASK, EnvStateNorm
 from dust_rl.data.features import FeatureCache, dataset_policy_kwargs, env_state_width, feature_key
-from dust_rl.diagnose.world_model import Windows, vision_skill, windows_of
+from dust_rl.diagnose.world_model import vision_skill, windows_of
 from dust_rl.envs.factory import make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, UserError, no_space_left
@@ -203,9 +203,9 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
                 for rows in features.image_tokens.split(1024))
         if policy.config.has_vision and policy.config.future_target == "change":
             policy.normalizer.set_future_change_scale(_future_change_rms(policy, features, windows))
-    # A fixed draw of windows on which every periodic evaluation also scores the world model (wm/skill).
-    skill_windows = (windows_of(policy, features, SKILL_WINDOWS, config.seed)
-                     if config.logging.eval_every and policy.config.has_vision and ranks.is_main else None)
+    # Every periodic evaluation also scores the world model (wm/skill) on one fixed draw of windows.
+    skill_features = (features if config.logging.eval_every and policy.config.has_vision and ranks.is_main
+                      else None)
     video = _action_free_batches(config, dataset, policy, n_video) if config.data.video_dataset else None
     extra = (DatasetBatches(DemoDataset(config.data.extra_dataset, cache_dir=config.cache_dir), policy, n_extra,
                             config.data.extra_action_key, progress=config.runtime.progress, **start_rows)
@@ -278,7 +278,7 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
         if ranks.is_main and config.logging.eval_every and (done % config.logging.eval_every == 0
                                                             or done == config.optim.steps):
             with averaged_weights(ema, trained):
-                log_scalars(loggers, _periodic_eval(config, policy, done, skill_windows), done)
+                log_scalars(loggers, _periodic_eval(config, policy, done, skill_features), done)
     bar.close()
     seconds = time.perf_counter() - began
     ranks.check_same(nn.utils.parameters_to_vector(trained.parameters()).detach())
@@ -451,10 +451,12 @@ def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: Dust
 
 
 def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int,
-                   skill_windows: Windows | None) -> dict[str, float]:
-    """Closed-loop success of ``policy`` (holding the averaged weights) and, with a vision stream, the skill of
-    its sampled future on ``skill_windows`` (:mod:`dust_rl.diagnose.world_model`), without touching the
-    training RNG."""
+                   skill_features: FeatureCache | None) -> dict[str, float]:
+    """Closed-loop success of ``policy`` (holding the averaged weights) and, given ``skill_features``, the skill
+    of its sampled future on a fixed draw of their windows (:mod:`dust_rl.diagnose.world_model`), without touching
+    the training RNG. The windows are put in the trunk's units anew each time: their condition tokens come from
+    layers that train (windows drawn once at the start read as if the trunk had lost its inputs: a skill of -0.7
+    where the policy's own was +0.7)."""
     from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 
     folder = config.out / "eval" / f"step-{step:07d}"
@@ -466,8 +468,9 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int,
                                      device=config.runtime.device))
     scalars = {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
         "eval/success_rate": report["overall"]["success_rate"]}
-    if skill_windows is not None:
-        skill = vision_skill(policy, skill_windows, buckets=1, seed=config.seed, batch_size=config.optim.batch_size)
+    if skill_features is not None:
+        windows = windows_of(policy, skill_features, SKILL_WINDOWS, config.seed)
+        skill = vision_skill(policy, windows, buckets=1, seed=config.seed, batch_size=config.optim.batch_size)
         scalars["wm/skill"] = skill["joint_sample"]["skill"]
     return scalars
 
