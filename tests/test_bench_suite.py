@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
+import time
 
 import pytest
 import tyro
@@ -16,7 +18,9 @@ from dust_rl.bench.suite import (
     WITH_VIDEO,
     Cell,
     SuiteConfig,
+    arm_policies,
     arm_policy,
+    claim_folder,
     compare,
     markdown,
     pairs,
@@ -25,12 +29,14 @@ from dust_rl.bench.suite import (
     run_suite,
     t_critical,
     t_interval,
+    train_cell,
     trunk_parameters,
 )
 from dust_rl.cli import with_preset
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
 from dust_rl.errors import ConfigError
+from dust_rl.storage.lock import folder_lock
 from dust_rl.train.imitation import TrainSettings
 from dust_rl.train.recipes import RECIPES, plain, vision_readout
 from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
@@ -169,6 +175,32 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert run_suite(config)["diagnosis"] == results["diagnosis"]
     assert "present" in json.loads(stale.read_text())["oracle_future"]["conditions"]
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items() if p != stale)
+
+
+def test_a_cell_another_suite_holds_comes_last(tiny_encoder, tmp_path):
+    """Two suites on one folder share its cells: while one holds a cell, the other runs the rest, then waits and
+    finds that cell done (here the test holds it, as the other suite would, and trains it meanwhile)."""
+    encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
+    train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
+                          optim=OptimSettings(steps=2, batch_size=8), logging=LoggingSettings(checkpoint_every=2),
+                          runtime=RuntimeSettings(threads=1, progress=False))
+    config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1,), variants=("action_only",),
+                         seeds=(0, 1), recipe="plain", train=train, vision_steps=(), eval_episodes=1,
+                         diagnose_episodes=0, image_size=32, max_steps=6, progress=False)
+    held, other = Cell("action_only", 0, 1), Cell("action_only", 1, 1)
+    finished: list[dict] = []
+    with folder_lock(claim_folder(config.out, held)):
+        suite = threading.Thread(target=lambda: finished.append(run_suite(config)))
+        suite.start()
+        other_report = config.out / "eval" / other.name / "as_trained" / "report.json"
+        while suite.is_alive() and not other_report.is_file():
+            time.sleep(0.2)
+        assert other_report.is_file() and not (config.out / "train" / held.name).exists()
+        train_cell(config, held, arm_policies(config, ["action_only"])["action_only"])  # the other suite's work
+        trained_here = (config.out / "train" / held.name / "policy.pt").stat().st_mtime_ns
+    suite.join(timeout=600)
+    assert not suite.is_alive() and [row["seeds"] for row in finished[0]["rows"]] == [[0, 1]]
+    assert (config.out / "train" / held.name / "policy.pt").stat().st_mtime_ns == trained_here  # found, not redone
 
 
 def test_suite_settings_are_checked():

@@ -21,7 +21,9 @@ its ``report.json`` exists) and ``data/heldout_<n>/`` with ``diagnose/heldout_<n
 episodes and reports), so rerunning the command after an interruption
 redoes nothing that finished (a cell on disk from other ``--train.*`` settings or
 other evaluation seeds is refused, not reused); two suites run side by side on one data
-folder take turns (the second waits while the first collects). The budget (episodes to collect, training
+folder take turns (the second waits while the first collects), and two with one ``out`` share its cells: each
+works on the cells the other does not hold (``claims/<cell>/``, a lock) and ends with those, found done once the
+other lets go of them, so the same command started twice runs the study on two cores. The budget (episodes to collect, training
 steps, evaluation episodes, diagnosed policies) is printed before anything runs. Output:
 ``results.json``, ``results.md`` (the paper's form: success with 95%
 intervals, episodes pooled over training seeds) and ``results.png`` (bars).
@@ -43,6 +45,7 @@ better world model buy them (:mod:`dust_rl.bench.suite_diagnosis`; one table of 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -67,6 +70,7 @@ from dust_rl.evaluate.closed_loop import EvalConfig, evaluate, mcnemar, wilson_i
 from dust_rl.evaluate.report import percent, save_png
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
+from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.train.imitation import TrainConfig, TrainSettings, check_train_folder, train
 from dust_rl.train.recipes import RECIPES, RecipeName
 
@@ -308,20 +312,42 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     splits = [(config.heldout, jobs), *([(config.validation, validation)] if validation else [])]
     reports: dict[str, dict] = {split.folder: {} for split, _ in splits}
     diagnoses: dict[Cell, dict] = {}
-    trained: dict[Cell, pathlib.Path] = {}  # each cell trained (or checked) once, before its first evaluation
-    for split, split_jobs in splits:
-        for cell, name in split_jobs:
-            if cell not in trained:
-                trained[cell] = train_cell(config, cell, policies[cell.variant])
-                if cell in diagnosed:
-                    diagnoses[cell] = diagnose_cell(config, cell, trained[cell], command)
-            reports[split.folder][cell, name] = evaluate_cell(config, cell, name, trained[cell], split, command)
+
+    def run_cell(cell: Cell) -> None:
+        """Train (or check) the cell, diagnose it, and run its evaluations on every split."""
+        policy = train_cell(config, cell, policies[cell.variant])
+        if cell in diagnosed:
+            diagnoses[cell] = diagnose_cell(config, cell, policy, command)
+        for split, split_jobs in splits:
+            for name in (name for job_cell, name in split_jobs if job_cell == cell):
+                reports[split.folder][cell, name] = evaluate_cell(config, cell, name, policy, split, command)
+
+    # A cell another suite on this folder works on comes last, once that suite lets go of it (then found done).
+    busy = cells
+    for wait in (False, True):
+        busy, pending = [], busy
+        for cell in pending:
+            with contextlib.ExitStack() as claim:
+                try:
+                    claim.enter_context(folder_lock(claim_folder(config.out, cell), wait=wait))
+                except FolderLockedError:
+                    busy.append(cell)
+                    continue
+                run_cell(cell)
     results = summarise(config, policies, [(split, split_jobs, reports[split.folder]) for split, split_jobs in splits],
-                        diagnoses)
+                        {cell: diagnoses[cell] for cell in diagnosed})
     write_json_atomic(config.out / "results.json", results, indent=2)
     write_text_atomic(config.out / "results.md", markdown(results, command))
     plot(results, config.out / "results.png")
     return results
+
+
+def claim_folder(out: pathlib.Path, cell: Cell) -> pathlib.Path:
+    """The folder whose lock a suite holds while it trains, diagnoses and evaluates ``cell``: two suites run with
+    one ``out`` share the cells instead of both running each."""
+    folder = out / "claims" / cell.name
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
 
 
 def arm_policies(config: SuiteConfig, arms: Sequence[str]) -> dict[str, PolicyConfig]:
