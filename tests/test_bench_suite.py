@@ -177,9 +177,10 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items() if p != stale)
 
 
-def test_a_cell_another_suite_holds_comes_last(tiny_encoder, tmp_path):
-    """Two suites on one folder share its cells: while one holds a cell, the other runs the rest, then waits and
-    finds that cell done (here the test holds it, as the other suite would, and trains it meanwhile)."""
+@pytest.mark.parametrize("holder", ["suite", "training run"])
+def test_a_cell_another_process_holds_comes_last(holder, tiny_encoder, tmp_path):
+    """Two suites on one folder share its cells: while one holds a cell (or a training run its folder), the other
+    runs the rest, then waits and finds that cell done (here the test holds it and trains it meanwhile)."""
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
     train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
                           optim=OptimSettings(steps=2, batch_size=8), logging=LoggingSettings(checkpoint_every=2),
@@ -188,19 +189,24 @@ def test_a_cell_another_suite_holds_comes_last(tiny_encoder, tmp_path):
                          seeds=(0, 1), recipe="plain", train=train, vision_steps=(), eval_episodes=1,
                          diagnose_episodes=0, image_size=32, max_steps=6, progress=False)
     held, other = Cell("action_only", 0, 1), Cell("action_only", 1, 1)
+    held_folder = claim_folder(config.out, held) if holder == "suite" else config.out / "train" / held.name
+    held_folder.mkdir(parents=True, exist_ok=True)
     finished: list[dict] = []
-    with folder_lock(claim_folder(config.out, held)):
+    with folder_lock(held_folder):
         suite = threading.Thread(target=lambda: finished.append(run_suite(config)))
         suite.start()
         other_report = config.out / "eval" / other.name / "as_trained" / "report.json"
         while suite.is_alive() and not other_report.is_file():
             time.sleep(0.2)
-        assert other_report.is_file() and not (config.out / "train" / held.name).exists()
-        train_cell(config, held, arm_policies(config, ["action_only"])["action_only"])  # the other suite's work
-        trained_here = (config.out / "train" / held.name / "policy.pt").stat().st_mtime_ns
+        assert other_report.is_file() and not (config.out / "train" / held.name / "policy.pt").exists()
+        if holder == "suite":  # the other suite's work (a training run would take the folder's lock itself)
+            trained = train_cell(config, held, arm_policies(config, ["action_only"])["action_only"])
+            stamp = trained.stat().st_mtime_ns
     suite.join(timeout=600)
     assert not suite.is_alive() and [row["seeds"] for row in finished[0]["rows"]] == [[0, 1]]
-    assert (config.out / "train" / held.name / "policy.pt").stat().st_mtime_ns == trained_here  # found, not redone
+    assert (config.out / "eval" / held.name / "as_trained" / "report.json").is_file()
+    if holder == "suite":  # found done, not trained again
+        assert trained.stat().st_mtime_ns == stamp
 
 
 def test_suite_settings_are_checked():

@@ -22,9 +22,10 @@ episodes and reports), so rerunning the command after an interruption
 redoes nothing that finished (a cell on disk from other ``--train.*`` settings or
 other evaluation seeds is refused, not reused); two suites run side by side on one data
 folder take turns (the second waits while the first collects), and two with one ``out`` share its cells: each
-works on the cells the other does not hold (``claims/<cell>/``, a lock) and ends with those, found done once the
-other lets go of them, so the same command started twice runs the study on two cores. The budget (episodes to collect, training
-steps, evaluation episodes, diagnosed policies) is printed before anything runs. Output:
+works on the cells the other does not hold (``claims/<cell>/``, a lock; a cell whose training folder another run
+holds alike) and ends with those, found done once the other lets go of them, so the same command started twice runs
+the study on two cores. The budget (episodes to collect, training steps, evaluation episodes, diagnosed policies)
+is printed before anything runs. Output:
 ``results.json``, ``results.md`` (the paper's form: success with 95%
 intervals, episodes pooled over training seeds) and ``results.png`` (bars).
 
@@ -322,18 +323,23 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
             for name in (name for job_cell, name in split_jobs if job_cell == cell):
                 reports[split.folder][cell, name] = evaluate_cell(config, cell, name, policy, split, command)
 
-    # A cell another suite on this folder works on comes last, once that suite lets go of it (then found done).
+    # A cell another suite on this folder works on (or a training run in its folder) comes last, once that process
+    # lets go of it: then found done, or resumed.
     busy = cells
     for wait in (False, True):
         busy, pending = [], busy
         for cell in pending:
-            with contextlib.ExitStack() as claim:
+            with contextlib.ExitStack() as held:
                 try:
-                    claim.enter_context(folder_lock(claim_folder(config.out, cell), wait=wait))
+                    held.enter_context(folder_lock(claim_folder(config.out, cell), wait=wait))
+                    if wait and (trained := config.out / "train" / cell.name).is_dir():
+                        with folder_lock(trained, wait=True):  # until a training run in it has stopped
+                            pass
+                    run_cell(cell)  # a training folder another process holds: FolderLockedError from train
                 except FolderLockedError:
+                    if wait:
+                        raise
                     busy.append(cell)
-                    continue
-                run_cell(cell)
     results = summarise(config, policies, [(split, split_jobs, reports[split.folder]) for split, split_jobs in splits],
                         {cell: diagnoses[cell] for cell in diagnosed})
     write_json_atomic(config.out / "results.json", results, indent=2)
