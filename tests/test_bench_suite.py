@@ -178,9 +178,9 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
 
 
 @pytest.mark.parametrize("holder", ["suite", "training run"])
-def test_a_cell_another_process_holds_comes_last(holder, tiny_encoder, tmp_path):
+def test_a_cell_another_process_holds_comes_last(holder, tiny_encoder, tmp_path, capfd):
     """Two suites on one folder share its cells: while one holds a cell (or a training run its folder), the other
-    runs the rest, then waits and finds that cell done (here the test holds it and trains it meanwhile)."""
+    runs the rest, then waits for it and finds it done (here the test holds it and, as a suite, trains it)."""
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
     train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
                           optim=OptimSettings(steps=2, batch_size=8), logging=LoggingSettings(checkpoint_every=2),
@@ -191,19 +191,34 @@ def test_a_cell_another_process_holds_comes_last(holder, tiny_encoder, tmp_path)
     held, other = Cell("action_only", 0, 1), Cell("action_only", 1, 1)
     held_folder = claim_folder(config.out, held) if holder == "suite" else config.out / "train" / held.name
     held_folder.mkdir(parents=True, exist_ok=True)
-    finished: list[dict] = []
-    with folder_lock(held_folder):
-        suite = threading.Thread(target=lambda: finished.append(run_suite(config)))
-        suite.start()
-        other_report = config.out / "eval" / other.name / "as_trained" / "report.json"
-        while suite.is_alive() and not other_report.is_file():
+    outcome: list = []
+
+    def run() -> None:
+        try:
+            outcome.append(run_suite(config))
+        except BaseException as err:  # reported below, not lost in the thread
+            outcome.append(err)
+
+    def wait_for(done, what: str) -> None:  # a bound on a hang, not a timing test
+        deadline = time.monotonic() + 600
+        while not done() and suite.is_alive() and time.monotonic() < deadline:
             time.sleep(0.2)
-        assert other_report.is_file() and not (config.out / "train" / held.name / "policy.pt").exists()
+        assert done(), f"the suite did not get to {what}: {outcome}"
+
+    stderr = []
+    with folder_lock(held_folder):
+        suite = threading.Thread(target=run, daemon=True)
+        suite.start()
+        wait_for((config.out / "eval" / other.name / "as_trained" / "report.json").is_file, "the other cell")
+        assert not (config.out / "train" / held.name / "policy.pt").exists()
         if holder == "suite":  # the other suite's work (a training run would take the folder's lock itself)
             trained = train_cell(config, held, arm_policies(config, ["action_only"])["action_only"])
             stamp = trained.stat().st_mtime_ns
+        wait_for(lambda: stderr.append(capfd.readouterr().err) or "waiting for it to finish" in "".join(stderr),
+                 "wait for the held cell")
     suite.join(timeout=600)
-    assert not suite.is_alive() and [row["seeds"] for row in finished[0]["rows"]] == [[0, 1]]
+    assert not suite.is_alive() and isinstance(outcome[0], dict), outcome
+    assert [row["seeds"] for row in outcome[0]["rows"]] == [[0, 1]]
     assert (config.out / "eval" / held.name / "as_trained" / "report.json").is_file()
     if holder == "suite":  # found done, not trained again
         assert trained.stat().st_mtime_ns == stamp

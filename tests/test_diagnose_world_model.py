@@ -123,14 +123,20 @@ def test_report_of_a_dust_policy(trained, tmp_path, capsys):
     # their episode-weighted mean).
     per_task, overall = report["oracle_future"]["per_task"], report["oracle_future"]["conditions"]
     assert len(per_task) == 2 and set(report["vision_stream"]["per_task"]) == set(per_task)
-    for condition in overall:
-        rows = [task["action_error"][condition] for task in per_task.values()]
-        assert sum(row["windows"] for row in rows) == report["windows"]
+    def split_between_tasks(rows: list[dict], whole: dict) -> None:
+        assert sum(row["windows"] for row in rows) == whole["windows"]
         assert sum(row["episodes"] * row["mean"] for row in rows) / sum(row["episodes"] for row in rows) == (
-            pytest.approx(overall[condition]["action_error"]["mean"], rel=1e-12))
+            pytest.approx(whole["mean"], rel=1e-12))
+
+    for condition in overall:
+        split_between_tasks([task["action_error"][condition] for task in per_task.values()],
+                            overall[condition]["action_error"])
+    split_between_tasks([task["joint_sample"] for task in report["vision_stream"]["per_task"].values()],
+                        report["vision_stream"]["joint_sample"])  # of the windows whose t+H is inside the episode
     assert all(set(task["paired_action_error"]) == {"true - noise", "true - present", "own - true"}
                for task in per_task.values())
-    assert "## Per task" in (out / "report.md").read_text()
+    assert "| windows with t+H inside | present-frame error | joint-sample error | skill |" in (
+        out / "report.md").read_text()
 
 
 def test_resample_scores_the_policy_with_another_sampler(trained, tmp_path):

@@ -71,7 +71,7 @@ from dust_rl.evaluate.closed_loop import EvalConfig, evaluate, mcnemar, wilson_i
 from dust_rl.evaluate.report import percent, save_png
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
-from dust_rl.storage.lock import FolderLockedError, folder_lock
+from dust_rl.storage.lock import FolderBusyError, folder_lock
 from dust_rl.train.imitation import TrainConfig, TrainSettings, check_train_folder, train
 from dust_rl.train.recipes import RECIPES, RecipeName
 
@@ -323,8 +323,9 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
             for name in (name for job_cell, name in split_jobs if job_cell == cell):
                 reports[split.folder][cell, name] = evaluate_cell(config, cell, name, policy, split, command)
 
-    # A cell another suite on this folder works on (or a training run in its folder) comes last, once that process
-    # lets go of it: then found done, or resumed.
+    # A cell another suite on this folder works on, or whose training folder another run holds, comes last, once
+    # that process lets go of it: then found done, or resumed. (A run started in its folder between the check and
+    # training's own lock is refused by that lock.)
     busy = cells
     for wait in (False, True):
         busy, pending = [], busy
@@ -332,14 +333,13 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
             with contextlib.ExitStack() as held:
                 try:
                     held.enter_context(folder_lock(claim_folder(config.out, cell), wait=wait))
-                    if wait and (trained := config.out / "train" / cell.name).is_dir():
-                        with folder_lock(trained, wait=True):  # until a training run in it has stopped
+                    if (trained := config.out / "train" / cell.name).is_dir():
+                        with folder_lock(trained, wait=wait):
                             pass
-                    run_cell(cell)  # a training folder another process holds: FolderLockedError from train
-                except FolderLockedError:
-                    if wait:
-                        raise
+                except FolderBusyError:
                     busy.append(cell)
+                    continue
+                run_cell(cell)
     results = summarise(config, policies, [(split, split_jobs, reports[split.folder]) for split, split_jobs in splits],
                         {cell: diagnoses[cell] for cell in diagnosed})
     write_json_atomic(config.out / "results.json", results, indent=2)

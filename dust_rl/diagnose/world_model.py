@@ -121,14 +121,14 @@ class Windows:
     episode: Tensor
     """[N] the dataset episode of each window (intervals are over episodes)."""
     other: Tensor | None
-    """[N] index of a window of another episode of the same task (-1: none), for condition (d)."""
+    """[N] index of a window of another episode of the same task (-1: none), for condition (e)."""
     task: Tensor
     """[N] the index of each window's task in `task_names`."""
     task_names: list[str]
     """The dataset's tasks."""
 
     def task_masks(self) -> dict[str, Tensor]:
-        """Per task with windows, which windows are its; empty for a dataset of one task (nothing to split)."""
+        """Per task with windows, which windows are its; empty when they are all of one task (nothing to split)."""
         masks = {name: self.task == i for i, name in enumerate(self.task_names) if bool((self.task == i).any())}
         return masks if len(masks) > 1 else {}
 
@@ -243,7 +243,7 @@ def vision_skill(policy: DustPolicy, windows: Windows, buckets: int, seed: int, 
 
     def row(error: Tensor, mask: Tensor = valid) -> dict:
         summary, present = (mean_interval(values[mask], windows.episode[mask]) for values in (error, present_error))
-        return {**summary, "skill": 1 - summary["mean"] / present["mean"],
+        return {**summary, "skill": 1 - summary["mean"] / present["mean"], "present_mean": present["mean"],
                 "vs_present": paired(error[mask], present_error[mask], windows.episode[mask])}
 
     report = {"valid_windows": int(valid.sum()),
@@ -254,9 +254,7 @@ def vision_skill(policy: DustPolicy, windows: Windows, buckets: int, seed: int, 
                           for b in range(buckets)],
               "joint_sample": row(joint)}
     if masks := windows.task_masks():  # a multi-task policy's world model may know one task and not another
-        report["per_task"] = {name: {"present_predictor": mean_interval(present_error[mask & valid],
-                                                                        windows.episode[mask & valid]),
-                                     "joint_sample": row(joint, mask & valid)} for name, mask in masks.items()}
+        report["per_task"] = {name: {"joint_sample": row(joint, mask & valid)} for name, mask in masks.items()}
     return report
 
 
@@ -344,12 +342,11 @@ def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: i
                          "action_loss": mean_interval(torch.cat(losses), windows.episode)}
     errors = {name: error.cpu() for name, error in errors.items()}
 
-    def pairs(names: tuple[str, ...], mask: Tensor) -> dict[str, dict]:
+    def pairs(names: tuple[str, ...], mask: Tensor | slice = slice(None)) -> dict[str, dict]:
         return {name: paired(errors[a][mask], errors[b][mask], windows.episode[mask])
                 for name, (a, b) in PAIRS.items() if name in names and a in errors and b in errors}
 
-    report = {"conditions": results, "skipped": skipped,
-              "paired_action_error": pairs(tuple(PAIRS), torch.ones(len(action), dtype=torch.bool))}
+    report = {"conditions": results, "skipped": skipped, "paired_action_error": pairs(tuple(PAIRS))}
     if masks := windows.task_masks():
         report["per_task"] = {name: {"action_error": {condition: mean_interval(error[mask], windows.episode[mask])
                                                       for condition, error in errors.items()},
@@ -433,7 +430,7 @@ def _per_task_lines(report: dict) -> list[str]:
         return []
     readings = [name for name in READINGS if name in next(iter(oracle.values()))["paired_action_error"]]
     columns = ["task", "windows", "own action error", *(f"{name} (p)" for name in readings),
-               *(["present-frame error", "joint-sample error", "skill"] if vision else [])]
+               *(["windows with t+H inside", "present-frame error", "joint-sample error", "skill"] if vision else [])]
     lines = ["", "## Per task", "", "Action error of the policy's own sample and the paired readings (p)"
              + ("; the world model's joint sample against the present frame." if vision else "."), "",
              "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
@@ -442,9 +439,9 @@ def _per_task_lines(report: dict) -> list[str]:
         cells = [task, str(own["windows"]), f"{own['mean']:.4f}",
                  *(f"{pairs[name]['mean']:+.4f} ({pairs[name]['p']:.3g})" for name in readings)]
         if vision:
-            world = vision[task]
-            cells += [f"{world['present_predictor']['mean']:.4f}", f"{world['joint_sample']['mean']:.4f}",
-                      f"{world['joint_sample']['skill']:+.3f}"]
+            world = vision[task]["joint_sample"]
+            cells += [str(world["windows"]), f"{world['present_mean']:.4f}", f"{world['mean']:.4f}",
+                      f"{world['skill']:+.3f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 

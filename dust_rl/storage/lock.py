@@ -36,6 +36,10 @@ class FolderLockedError(UserError):
     """Another process is writing into the folder, or its lock file is not a plain file."""
 
 
+class FolderBusyError(FolderLockedError):
+    """Another process holds the folder's lock (the only :class:`FolderLockedError` that waiting would end)."""
+
+
 @contextlib.contextmanager
 def folder_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
     """Hold the write lock of the folder ``root`` (which must exist) for the ``with`` body.
@@ -44,8 +48,8 @@ def folder_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
         wait: when another process holds it, say so on stderr and wait until it lets go.
 
     Raises:
-        FolderLockedError: another process holds it and ``wait`` is off (the message names that process), or
-            the lock file is a symlink or not a regular file.
+        FolderBusyError: another process holds it and ``wait`` is off (the message names that process).
+        FolderLockedError: the lock file is a symlink or not a regular file, or cannot be opened.
     """
     path = root / LOCK_FILE
     try:
@@ -61,7 +65,7 @@ def folder_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
         except BlockingIOError:
             message = f"{root} is being written by another process ({_holder(fd)})"
             if not wait:
-                raise FolderLockedError(f"{message}; wait for it to finish or stop it") from None
+                raise FolderBusyError(f"{message}; wait for it to finish or stop it") from None
             print(f"{message}; waiting for it to finish", file=sys.stderr, flush=True)
             fcntl.flock(fd, fcntl.LOCK_EX)
         holder = {"pid": os.getpid(), "host": socket.gethostname(), "command": shlex.join(sys.orig_argv),
