@@ -205,7 +205,7 @@ def test_a_cell_another_process_holds_comes_last(holder, tiny_encoder, tmp_path,
             time.sleep(0.2)
         assert done(), f"the suite did not get to {what}: {outcome}"
 
-    stderr = []
+    captured = []
     with folder_lock(held_folder):
         suite = threading.Thread(target=run, daemon=True)
         suite.start()
@@ -214,8 +214,9 @@ def test_a_cell_another_process_holds_comes_last(holder, tiny_encoder, tmp_path,
         if holder == "suite":  # the other suite's work (a training run would take the folder's lock itself)
             trained = train_cell(config, held, arm_policies(config, ["action_only"])["action_only"])
             stamp = trained.stat().st_mtime_ns
-        wait_for(lambda: stderr.append(capfd.readouterr().err) or "waiting for it to finish" in "".join(stderr),
-                 "wait for the held cell")
+        wait_for(lambda: captured.append(capfd.readouterr()) or "waiting for it to finish" in "".join(
+            err for _, err in captured), "wait for the held cell")
+    assert f"{held.name}: another process works on it; back to it last" in "".join(out for out, _ in captured)
     suite.join(timeout=600)
     assert not suite.is_alive() and isinstance(outcome[0], dict), outcome
     assert [row["seeds"] for row in outcome[0]["rows"]] == [[0, 1]]

@@ -337,6 +337,7 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
                         with folder_lock(trained, wait=wait):
                             pass
                 except FolderBusyError:
+                    print(f"{cell.name}: another process works on it; back to it last", flush=True)
                     busy.append(cell)
                     continue
                 run_cell(cell)
