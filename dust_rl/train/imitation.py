@@ -469,10 +469,15 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int,
     scalars = {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
         "eval/success_rate": report["overall"]["success_rate"]}
     if skill_features is not None:
-        windows = windows_of(policy, skill_features, SKILL_WINDOWS, config.seed)
-        skill = vision_skill(policy, windows, buckets=1, seed=config.seed, batch_size=config.optim.batch_size)
-        scalars["wm/skill"] = skill["joint_sample"]["skill"]
+        scalars["wm/skill"] = world_model_skill(policy, skill_features, config.seed, config.optim.batch_size)
     return scalars
+
+
+def world_model_skill(policy: DustPolicy, features: FeatureCache, seed: int, batch_size: int) -> float:
+    """``wm/skill``: the skill of the policy's joint sample against the present frame on the ``SKILL_WINDOWS``
+    windows of ``features`` drawn with the run's ``seed``, put in the trunk's units with the weights of now."""
+    windows = windows_of(policy, features, SKILL_WINDOWS, seed)
+    return vision_skill(policy, windows, buckets=1, seed=seed, batch_size=batch_size)["joint_sample"]["skill"]
 
 
 def _plot_losses(out: pathlib.Path) -> None:
