@@ -27,6 +27,7 @@ from dust_rl.bench.suite import (
     plan,
     rows_of,
     run_suite,
+    t_bounds,
     t_critical,
     t_interval,
     train_cell,
@@ -284,6 +285,7 @@ def test_t_interval_is_students_over_the_training_seeds():
     assert low == pytest.approx(0.6 - 0.24841, abs=1e-5) and high == pytest.approx(0.6 + 0.24841, abs=1e-5)
     assert t_interval([0.9, 1.0]) == [pytest.approx(0.95 - 12.706 * 0.05, abs=1e-4), 1.0]  # clipped to [0, 1]
     assert t_interval([0.4]) is None
+    assert t_bounds([-0.1, 0.1]) == [pytest.approx(-1.2706, abs=1e-4), pytest.approx(1.2706, abs=1e-4)]  # unclipped
 
 
 def report(task_outcomes: dict[str, str], first_seed: int = 100) -> dict:
@@ -309,12 +311,15 @@ def test_rows_keep_each_episode_and_the_comparisons_pair_them_by_task_evaluation
     assert (dust["successes"], dust["episodes"]) == (9, 16) and dust["seed_ci95"] == t_interval([5 / 8, 4 / 8])
     # dust wins a's first and b's last episode of seed 0 and a's first of seed 1, loses b's first of seed 1:
     # 3 won, 1 lost, p = 2 * (1 + 4) / 2**4
+    # per training seed, dust 5/8 against 3/8, then 4/8 against 4/8
+    ahead = {"seed_differences": {"0": 0.25, "1": 0.0}, "difference_ci95": t_bounds([0.25, 0.0])}
     assert compare(rows, None) == [{"variant": "dust", "reference": "action_only", "demos": 10, "episodes": 16,
-                                    "gained": 3, "lost": 1, "p_value": 0.625},
+                                    "gained": 3, "lost": 1, "p_value": 0.625, **ahead},
                                    {"variant": "joint", "reference": "dust", "demos": 10, "episodes": 16,
-                                    "gained": 0, "lost": 0, "p_value": 1.0}]
+                                    "gained": 0, "lost": 0, "p_value": 1.0,
+                                    "seed_differences": {"0": 0.0, "1": 0.0}, "difference_ci95": [0.0, 0.0]}]
     assert compare(rows, "action_only")[1] == {"variant": "joint", "reference": "action_only", "demos": 10,
-                                               "episodes": 16, "gained": 3, "lost": 1, "p_value": 0.625}
+                                               "episodes": 16, "gained": 3, "lost": 1, "p_value": 0.625, **ahead}
 
 
 def test_pairs_compare_dust_with_action_only_and_every_other_arm_with_dust_or_all_with_the_reference():

@@ -147,12 +147,14 @@ def test_average_gives_each_training_seed_and_pairs_episodes_over_tasks_and_seed
     assert dust["per_seed"] == {"0": {"successes": 4, "episodes": 4, "success_rate": 1.0},
                                 "1": {"successes": 2, "episodes": 4, "success_rate": 0.5}}
     assert dust["seed_ci95"] == t_interval([1.0, 0.5])
-    # dust wins each task's first episode of seed 0 and of seed 1: 4 won, none lost, p = 2 / 2**4
+    # dust wins each task's first episode of seed 0 and of seed 1: 4 won, none lost, p = 2 / 2**4; of each training
+    # seed's 4 episodes (2 per task) it wins 2 more: a suite-average difference of +0.5 for both seeds
     assert result["comparisons"] == [{"variant": "dust", "reference": "action_only", "demos": 1, "episodes": 8,
-                                      "gained": 4, "lost": 0, "p_value": 0.125}]
+                                      "gained": 4, "lost": 0, "p_value": 0.125,
+                                      "seed_differences": {"0": 0.5, "1": 0.5}, "difference_ci95": [0.5, 0.5]}]
     assert average(AverageConfig(studies=tuple(studies), reference="dust"))["comparisons"] == [
         {"variant": "action_only", "reference": "dust", "demos": 1, "episodes": 8, "gained": 0, "lost": 4,
-         "p_value": 0.125}]
+         "p_value": 0.125, "seed_differences": {"0": -0.5, "1": -0.5}, "difference_ci95": [-0.5, -0.5]}]
     with pytest.raises(ConfigError, match="--reference joint was not evaluated in every study"):
         average(AverageConfig(studies=tuple(studies), reference="joint"))
 

@@ -508,14 +508,20 @@ def rows_of(jobs: list[tuple[Cell, str]], reports: dict, eval_seeds: list[int]) 
     return list(rows.values())
 
 
-def t_interval(rates: Sequence[float], level: float = 0.95) -> list[float] | None:
-    """Student's t interval of the mean of ``rates`` (one per training seed: the seed is the unit a claim about
-    training generalises over), clipped to [0, 1]; None for fewer than two."""
-    if len(rates) < 2:
+def t_bounds(values: Sequence[float], level: float = 0.95) -> list[float] | None:
+    """Student's t interval of the mean of ``values``, one per training seed (the seed is the unit a claim about
+    training generalises over); None for fewer than two."""
+    if len(values) < 2:
         return None
-    mean = statistics.fmean(rates)
-    half = t_critical(len(rates) - 1, level) * statistics.stdev(rates) / math.sqrt(len(rates))
-    return [max(0.0, mean - half), min(1.0, mean + half)]
+    mean = statistics.fmean(values)
+    half = t_critical(len(values) - 1, level) * statistics.stdev(values) / math.sqrt(len(values))
+    return [mean - half, mean + half]
+
+
+def t_interval(rates: Sequence[float], level: float = 0.95) -> list[float] | None:
+    """:func:`t_bounds` of success rates, clipped to [0, 1]."""
+    bounds = t_bounds(rates, level)
+    return None if bounds is None else [max(0.0, bounds[0]), min(1.0, bounds[1])]
 
 
 def t_critical(df: int, level: float = 0.95) -> float:
@@ -555,11 +561,18 @@ def outcomes(row: dict, seeds: Sequence[int] | None = None) -> dict[tuple[str, i
 
 
 def paired(arm: Mapping[tuple, bool], reference: Mapping[tuple, bool]) -> dict:
-    """``arm`` against ``reference`` over the episodes both have: ``gained``, the episodes the arm wins and the
-    reference loses, ``lost`` the reverse, the exact McNemar ``p_value``, and how many ``episodes`` were paired."""
+    """``arm`` against ``reference`` over the episodes both have (keyed as by :func:`outcomes`): ``gained``, the
+    episodes the arm wins and the reference loses, ``lost`` the reverse, the exact McNemar ``p_value``, how many
+    ``episodes`` were paired, and each training seed's success difference (``seed_differences``) with the t-interval
+    of their mean (``difference_ci95``): McNemar's p counts episodes, this interval counts training runs."""
     keys = arm.keys() & reference.keys()
+    by_seed: dict[int, list[int]] = {}
+    for key in sorted(keys):
+        by_seed.setdefault(key[1], []).append(int(arm[key]) - int(reference[key]))
+    differences = {str(seed): statistics.fmean(d) for seed, d in by_seed.items()}
     return {"episodes": len(keys), **mcnemar(sum(arm[k] and not reference[k] for k in keys),
-                                              sum(reference[k] and not arm[k] for k in keys))}
+                                              sum(reference[k] and not arm[k] for k in keys)),
+            "seed_differences": differences, "difference_ci95": t_bounds(list(differences.values()))}
 
 
 def compare(rows: list[dict], reference: str | None) -> list[dict]:
@@ -584,12 +597,25 @@ def comparison_table(comparisons: list[dict], title: str = "Paired comparisons")
         return []
     lines = [f"## {title}", "",
              "Each episode of an arm against its reference's on the same task, evaluation seed and training seed: "
-             "won, the arm succeeds where the reference fails; lost, the reverse; the exact McNemar p of that split.",
-             "", "| arm | reference | demos | paired episodes | won | lost | McNemar p |",
-             "|---|---|---|---|---|---|---|"]
+             "won, the arm succeeds where the reference fails; lost, the reverse; the exact McNemar p of that split. "
+             "The success difference per training seed, and the t-interval of its mean over the training seeds "
+             "(the seed, not the episode, is what a claim about training generalises over).",
+             "", "| arm | reference | demos | paired episodes | won | lost | McNemar p | difference per training "
+             "seed | seed 95% CI (t) |", "|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {c['variant']} | {c['reference']} | {c['demos']} | {c['episodes']} | {c['gained']} | {c['lost']} "
-              f"| {c['p_value']:.3g} |" for c in comparisons]
+              f"| {c['p_value']:.3g} | {seed_differences(c['seed_differences'])} "
+              f"| {points_interval(c['difference_ci95'])} |" for c in comparisons]
     return [*lines, ""]
+
+
+def seed_differences(differences: Mapping[str, float]) -> str:
+    """Each training seed's success difference, in points."""
+    return " / ".join(f"{seed}: {100 * d:+.0f}" for seed, d in differences.items())
+
+
+def points_interval(bounds: Sequence[float] | None) -> str:
+    """An interval of a success difference, in points ("-" where there is none)."""
+    return "-" if bounds is None else f"{100 * bounds[0]:+.0f} to {100 * bounds[1]:+.0f} points"
 
 
 def markdown(results: dict, command: str | None) -> str:
