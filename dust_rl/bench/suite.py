@@ -567,9 +567,9 @@ def paired(arm: Mapping[tuple, bool], reference: Mapping[tuple, bool]) -> dict:
     of their mean (``difference_ci95``): McNemar's p counts episodes, this interval counts training runs."""
     keys = arm.keys() & reference.keys()
     by_seed: dict[int, list[int]] = {}
-    for key in sorted(keys):
-        by_seed.setdefault(key[1], []).append(int(arm[key]) - int(reference[key]))
-    differences = {str(seed): statistics.fmean(d) for seed, d in by_seed.items()}
+    for task, seed, place in keys:
+        by_seed.setdefault(seed, []).append(int(arm[task, seed, place]) - int(reference[task, seed, place]))
+    differences = {str(seed): statistics.fmean(by_seed[seed]) for seed in sorted(by_seed)}
     return {"episodes": len(keys), **mcnemar(sum(arm[k] and not reference[k] for k in keys),
                                               sum(reference[k] and not arm[k] for k in keys)),
             "seed_differences": differences, "difference_ci95": t_bounds(list(differences.values()))}
