@@ -13,7 +13,7 @@ import pytest
 import torch
 from conftest import as_before_the_groups, kill_after_first_checkpoint
 from crafted import CRAFTS
-from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
+from torchrl.checkpoint import Checkpoint, CheckpointRotation
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
@@ -45,7 +45,7 @@ from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
 from dust_rl.rl.vector import SB3SteeringVecEnv
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.lock import FolderLockedError, folder_lock
-from dust_rl.storage.run_folder import restore
+from dust_rl.storage.run_folder import RunRNGState, restore
 from dust_rl.train.settings import LoggingSettings, OptimSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -382,7 +382,7 @@ def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_pa
     assert saved["train_seconds"] < report["train_seconds"] < saved["train_seconds"] + resumed_wall
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
     state = SB3LearningState(build_agent(config, env))
-    restore(Checkpoint(agent=state, rng=GlobalRNGState()), CheckpointRotation(config.out / "checkpoints", keep_last=2))
+    restore(Checkpoint(agent=state, rng=RunRNGState()), CheckpointRotation(config.out / "checkpoints", keep_last=2))
     env.close()
     assert state.agent.num_timesteps == 16 and report["steps"] == 16
     sac = dataclasses.replace(config, out=tmp_path / "sac", algorithm=SacSettings(learning_starts=4))
@@ -417,7 +417,7 @@ def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path, desi
         env = finetune_env_factory(reference, load_policy(policy_path))[0]()
         state = SB3LearningState(build_agent(reference, env))
         rotation = CheckpointRotation(tmp_path / name / "checkpoints", keep_last=2)
-        restore(Checkpoint(agent=state, rng=GlobalRNGState()), rotation)
+        restore(Checkpoint(agent=state, rng=RunRNGState()), rotation)
         states[name] = state.agent
         env.close()
     envs = reference.collection.envs

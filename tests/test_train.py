@@ -8,6 +8,7 @@ import importlib.util
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 
@@ -16,6 +17,7 @@ import pytest
 import torch
 from conftest import as_before_the_groups, kill_after_first_checkpoint
 from crafted import CRAFTS
+from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
@@ -33,7 +35,7 @@ from dust_rl.keys import ACTION_IS_PAD_KEY
 from dust_rl.storage.cache_files import CACHE_FOLDERS, cache_files
 from dust_rl.storage.checkpoint_dirs import DIGESTS, file_sha256
 from dust_rl.storage.lock import FolderLockedError, folder_lock
-from dust_rl.storage.run_folder import locked_run_folder
+from dust_rl.storage.run_folder import locked_run_folder, restore
 from dust_rl.train.action_free import ActionFreeBatches, with_action_free
 from dust_rl.train.dataset_batches import DatasetBatches
 from dust_rl.train.imitation import RESUMABLE_FIELDS, SKILL_WINDOWS, TrainConfig, train
@@ -253,6 +255,36 @@ def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
     with pytest.raises(FileExistsError, match="--resume"):
         train(tiny_config(run_inputs, out, steps=steps, checkpoint_every=50))
     resumed = train(tiny_config(run_inputs, out, steps=steps, checkpoint_every=50, resume=True))
+    ref, got = trained_weights(reference.policy), trained_weights(resumed.policy)
+    assert ref.keys() == got.keys() and all(torch.equal(ref[k], got[k]) for k in ref)
+
+
+def _as_written_on_a_gpu(checkpoint) -> None:
+    """Rewrite a CPU checkpoint into the files a CUDA run writes: every tensor recorded on ``cuda:0`` (in the
+    schemas and the memmap metadata) and a CUDA generator state beside the CPU one."""
+    for meta in [*checkpoint.rglob("state.json"), *checkpoint.rglob("meta.json")]:
+        meta.write_text(re.sub(r'"device":\s*"cpu"', '"device": "cuda:0"', meta.read_text()))
+    rng = next(checkpoint.glob("components/*-rng")) / "state.json"
+    schema = json.loads(rng.read_text())
+    cpu_state = dict((key["value"], value) for key, value in schema["items"])["torch_cpu"]
+    schema["items"].append([{"kind": "value", "value": "torch_cuda"}, {"kind": "list", "items": [cpu_state]}])
+    rng.write_text(json.dumps(schema))
+    _record_digests(checkpoint)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="resumes a GPU run where CUDA is absent")
+def test_a_run_checkpointed_on_a_gpu_resumes_on_a_cpu(run_inputs, tmp_path):
+    reference = train(tiny_config(run_inputs, tmp_path / "ref", steps=8, checkpoint_every=4))
+    out = tmp_path / "gpu"
+    train(tiny_config(run_inputs, out, steps=8, checkpoint_every=4))
+    checkpoints = sorted((out / "checkpoints").glob("checkpoint-*"))
+    shutil.rmtree(checkpoints[-1])  # back to step 4, as a run stopped there leaves it
+    (out / "policy.pt").unlink()
+    _as_written_on_a_gpu(checkpoints[0])
+    with pytest.raises(CheckpointError, match="CUDA is unavailable"):  # torchrl's own RNG state refuses it
+        restore(Checkpoint(rng=GlobalRNGState()), CheckpointRotation(out / "checkpoints", keep_last=2))
+    with pytest.warns(UserWarning, match="without the saved torch_cuda random state"):
+        resumed = train(tiny_config(run_inputs, out, steps=8, checkpoint_every=4, resume=True))
     ref, got = trained_weights(reference.policy), trained_weights(resumed.policy)
     assert ref.keys() == got.keys() and all(torch.equal(ref[k], got[k]) for k in ref)
 

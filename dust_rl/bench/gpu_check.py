@@ -11,8 +11,8 @@ working between the times a GPU is at hand.
 * **latency**: ``DustModel.predict_action`` for DUST (N_A = 4, N_o = 4 / 16 / 32) and action-only, batch 1
   and 32. Milliseconds per chunk.
 * **ddp**: ``dust-rl collect`` (scripted expert), ``torchrun --nproc-per-node 1 -m dust_rl.train`` (NCCL on
-  CUDA, gloo on the CPU), then the run cut back to its first checkpoint and resumed. Seconds, and the
-  resumed weights' largest difference from the uninterrupted run's.
+  CUDA, gloo on the CPU), then the run cut back to its first checkpoint and resumed; on a GPU, also resumed
+  on the CPU with CUDA hidden. Seconds, and the resumed weights' largest difference from the uninterrupted run's.
 * **eval**: ``dust-rl eval`` of that policy with MuJoCo rendering (EGL where a GPU is). Episodes/s, env
   steps/s.
 * **compile**: the training rows at batch 64 under ``torch.compile``; the first step's seconds are the
@@ -327,14 +327,23 @@ class GpuCheck:
             if row is None:
                 return
             uninterrupted = run / "policy_uninterrupted.pt"
-            (run / "policy.pt").rename(uninterrupted)
-            for checkpoint in (run / "checkpoints").iterdir():  # back to the first checkpoint, as if killed
-                if int(checkpoint.name.rsplit("-", 1)[1]) > half:
-                    shutil.rmtree(checkpoint)
+            _cut_back(run, half, uninterrupted)
             seconds = self._torchrun([*train_args, "--out", str(run), "--resume"])
             gap = _largest_weight_gap(uninterrupted, run / "policy.pt")
             row.value = f"{seconds:.1f} s"
             row.detail = f"largest weight difference from the uninterrupted run: {gap:.3g}"
+        if self.device.type != "cuda":
+            return
+        with self.row("ddp", f"the GPU run resumed from step {half} on a CPU without CUDA") as row:
+            if row is None:
+                return
+            _cut_back(run, half, run / "policy_resumed.pt")
+            on_cpu = [*train_args, "--runtime.device", "cpu"]  # the later flag wins
+            seconds = _run_python(["-m", "dust_rl.train", *on_cpu, "--out", str(run), "--resume"],
+                                  self.config.out / "logs" / "resume_on_cpu.log", {"CUDA_VISIBLE_DEVICES": ""})
+            gap = _largest_weight_gap(uninterrupted, run / "policy.pt")
+            row.value = f"{seconds:.1f} s"
+            row.detail = f"largest weight difference from the uninterrupted GPU run: {gap:.3g} (CPU arithmetic)"
 
     def eval_rows(self) -> None:
         policy = self.config.out / "run" / "policy.pt"
@@ -377,11 +386,19 @@ class GpuCheck:
         return self.rows
 
 
-def _run_python(args: list[str], log: pathlib.Path) -> float:
-    """Seconds a ``python ARGS`` child took; its output goes to ``log``, whose error lines become the row's
-    error if it fails."""
+def _cut_back(run: pathlib.Path, step: int, keep_policy_as: pathlib.Path) -> None:
+    """Leave ``run`` as a run killed after its step-``step`` checkpoint, its finished policy moved aside."""
+    (run / "policy.pt").rename(keep_policy_as)
+    for checkpoint in (run / "checkpoints").iterdir():
+        if int(checkpoint.name.rsplit("-", 1)[1]) > step:
+            shutil.rmtree(checkpoint)
+
+
+def _run_python(args: list[str], log: pathlib.Path, env: dict[str, str] | None = None) -> float:
+    """Seconds a ``python ARGS`` child took (``env`` added to this process's environment); its output goes to
+    ``log``, whose error lines become the row's error if it fails."""
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, *args], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, *args], capture_output=True, text=True, env={**os.environ, **(env or {})})
     log.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(log, done.stdout + done.stderr)
     if done.returncode:

@@ -46,7 +46,7 @@ from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from tensordict.nn import TensorDictModuleBase
-from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
+from torchrl.checkpoint import Checkpoint, CheckpointRotation
 
 from dust_rl.agents import DustPolicy, load_policy
 from dust_rl.agents.checkpoint_io import save_checkpoint
@@ -96,7 +96,7 @@ from dust_rl.runtime.episode_collector import torch_threads
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.checkpoint_dirs import save_checkpoint_dir
 from dust_rl.storage.config_json import config_json
-from dust_rl.storage.run_folder import check_run_folder, locked_run_folder, restore
+from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run_folder, restore
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
 FineTuningEnv = FrozenPolicyEnv | SB3SteeringVecEnv
@@ -179,7 +179,7 @@ def train_rl(config: RLConfig, policy: DustPolicy, make: Callable[[], FineTuning
     env = make()
     agent = build_agent(config, env)
     agent.set_logger(sb3_logger(config.loggers, config.out / "logs"))
-    checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=GlobalRNGState())
+    checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=RunRNGState())
     rotation = CheckpointRotation(config.out / "checkpoints", keep_last=2)
     restored = restore(checkpoint, rotation)
     env.env_steps = int(restored.get("env_steps", 0))

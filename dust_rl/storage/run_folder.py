@@ -5,7 +5,9 @@ the fields a run may change between sittings, such as threads or progress bars, 
 stored run predates counts as its default, so a run started by an older version resumes). The run's
 ``config.json`` records the full config, the command and package versions, and checkpoints are torchrl
 ``Checkpoint`` directories kept by a ``CheckpointRotation``. One run writes into a folder at a time: it holds
-the folder's lock (:func:`~dust_rl.storage.lock.folder_lock`) from its ``config.json`` to its end.
+the folder's lock (:func:`~dust_rl.storage.lock.folder_lock`) from its ``config.json`` to its end. A run resumes
+on another device than it was saved on (a GPU run on a CPU-only machine, or the reverse): checkpoints load onto
+the CPU and every component copies them onto its own device.
 """
 
 from __future__ import annotations
@@ -13,9 +15,11 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping
 
-from torchrl.checkpoint import Checkpoint, CheckpointRotation
+import torch
+from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 
 from dust_rl.agents.checkpoint_io import CheckpointError
@@ -138,6 +142,30 @@ def write_run_config(config, command: str | None) -> None:
                       {"config": config_json(config), "command": command, "versions": package_versions()}, indent=2)
 
 
+# The accelerator generators torchrl's GlobalRNGState saves, by their key, with the test of their presence here.
+_ACCELERATOR_RNGS: dict[str, Callable[[], bool]] = {
+    "torch_cuda": torch.cuda.is_available,
+    "torch_xpu": lambda: hasattr(torch, "xpu") and torch.xpu.is_available(),
+    "torch_mps": torch.backends.mps.is_available,
+}
+
+
+class RunRNGState(GlobalRNGState):
+    """torchrl's process-global RNG state, which also restores where an accelerator it saved is absent.
+
+    torchrl refuses a saved CUDA generator on a machine without CUDA, so a GPU run could not resume on a CPU.
+    Its Python, NumPy and CPU torch generators resume as saved; the absent accelerator's state has nothing to
+    seed, and the run is no longer the GPU run's bit for bit (which a change of device never is).
+    """
+
+    def load_state_dict(self, state_dict: Mapping[str, object]) -> None:
+        absent = [key for key, present in _ACCELERATOR_RNGS.items() if key in state_dict and not present()]
+        if absent:
+            warnings.warn(f"resuming without the saved {', '.join(absent)} random state: that device is absent "
+                          "here, so the run continues, no longer bit for bit", stacklevel=2)
+        super().load_state_dict({key: value for key, value in state_dict.items() if key not in absent})
+
+
 def restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> dict:
     """Load the newest checkpoint (if any) into the run's objects; returns its metadata (``step`` and whatever
     the run saved with it; empty: no checkpoint).
@@ -154,7 +182,7 @@ def restore(checkpoint: Checkpoint, rotation: CheckpointRotation) -> dict:
     except CheckpointError as err:
         raise CheckpointError(f"cannot resume from this checkpoint ({err})") from err
     try:
-        checkpoint.load(latest)
+        checkpoint.load(latest, map_location="cpu")
     except (TorchrlCheckpointError, KeyError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{latest}: cannot resume from this checkpoint ({err})") from err
     return dict(Checkpoint.manifest(latest)["metadata"])

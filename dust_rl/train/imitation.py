@@ -45,7 +45,7 @@ import torch
 import tyro
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
-from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
+from torchrl.checkpoint import Checkpoint, CheckpointRotation
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy
@@ -63,7 +63,7 @@ from dust_rl.errors import ConfigError, UserError, no_space_left
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import log_scalars, make_loggers
 from dust_rl.storage.checkpoint_dirs import save_checkpoint_dir
-from dust_rl.storage.run_folder import check_run_folder, locked_run_folder, restore
+from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run_folder, restore
 from dust_rl.train.action_free import ActionFreeBatches, with_action_free
 from dust_rl.train.dataset_batches import DatasetBatches
 from dust_rl.train.distributed import Ranks, data_parallel, join_process_group, leave_process_group, rank_device, spawn
@@ -238,7 +238,7 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
                                   betas=config.optim.betas, weight_decay=config.optim.weight_decay)
     schedule = warmup_cosine(optimizer, config.optim.steps, config.optim.warmup)
     ema = weight_average(trained, config.optim.ema_decay)
-    checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=GlobalRNGState())
+    checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=RunRNGState())
     start = _resumed_step(restore(checkpoint, rotation), dataset) if config.resume else 0
     loss_of = data_parallel(_ShardLoss(policy, ranks.shard), ranks)
 
