@@ -57,6 +57,8 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
                          eval_episodes=1, val_episodes=1, diagnose_episodes=2,
                          image_size=32, max_steps=6, video_dataset=tmp_path / "suite" / "data" / "1",  # collected
                          progress=False)                                                               # by the suite
+    with pytest.raises(ConfigError, match="no cell of this study has finished yet"):
+        run_suite(dataclasses.replace(config, finished_only=True))
     results = run_suite(config, "dust-rl bench suite ...")
     assert ("budget: collect 2 demonstrations x 1 tasks; train 7 policies (15 steps in all); evaluate 12 x 1 "
             "episodes x 1 tasks and validate 7 x 1 episodes x 1 tasks (19 episodes); diagnose 5 policies on 2 expert "
@@ -149,6 +151,22 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert len(stamps) == 7 + len(rows) + len(validation["rows"]) + len(diagnosis)
     assert run_suite(config) == results
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
+
+    # The cells finished so far give the interim tables; nothing runs, and the unfinished cell is named.
+    missing = tmp_path / "suite" / "validation" / "dust_no_wm_seed0_demos2" / "as_trained" / "report.json"
+    kept = missing.read_bytes()
+    missing.unlink()
+    interim = run_suite(dataclasses.replace(config, finished_only=True), "dust-rl bench suite ...")
+    assert not missing.exists() and interim["unfinished"] == ["dust_no_wm_seed0_demos2"]
+    assert interim["rows"] == [r for r in results["rows"] if r["variant"] != "dust_no_wm"]
+    assert interim["comparisons"] == [c for c in results["comparisons"] if c["variant"] != "dust_no_wm"]
+    assert interim["diagnosis"]["rows"] == [r for r in results["diagnosis"]["rows"] if r["variant"] != "dust_no_wm"]
+    interim_md = (tmp_path / "suite" / "interim.md").read_text()
+    assert "Interim: 1 cells not finished yet (dust_no_wm_seed0_demos2)" in interim_md
+    assert (tmp_path / "suite" / "interim.png").is_file()
+    assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items() if p != missing)
+    missing.write_bytes(kept)
+    stamps[missing] = missing.stat().st_mtime_ns
 
     # Another number of diagnosis episodes diagnoses anew beside the first (one episode: no other episode's future).
     fewer = run_suite(dataclasses.replace(config, diagnose_episodes=1))["diagnosis"]

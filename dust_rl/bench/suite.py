@@ -27,7 +27,8 @@ holds alike) and ends with those, found done once the other lets go of them, so 
 the study on two cores. The budget (episodes to collect, training steps, evaluation episodes, diagnosed policies)
 is printed before anything runs. Output:
 ``results.json``, ``results.md`` (the paper's form: success with 95%
-intervals, episodes pooled over training seeds) and ``results.png`` (bars).
+intervals, episodes pooled over training seeds) and ``results.png`` (bars); ``--finished-only`` writes the same
+tables as ``interim.*`` from the cells finished so far, running nothing.
 
 Every cell trains from one named recipe (``--recipe``, :data:`dust_rl.train.recipes.RECIPES`; ``plain`` feeds
 no privileged state), recorded in ``results.json``. Beside the paper's five variants the comparison has two
@@ -61,7 +62,13 @@ from matplotlib.figure import Figure
 from dust_rl.agents import VARIANTS, PolicyConfig, SamplerConfig
 from dust_rl.agents.backbone import resolve_image_encoder
 from dust_rl.agents.config import MAX_STEPS, DustConfig, Variant
-from dust_rl.bench.suite_diagnosis import diagnose_policy, diagnosis_folder, diagnosis_rows, diagnosis_table
+from dust_rl.bench.suite_diagnosis import (
+    diagnose_policy,
+    diagnosis_folder,
+    diagnosis_rows,
+    diagnosis_table,
+    finished_diagnosis,
+)
 from dust_rl.data import DemoDataset, collect_demos
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
@@ -185,6 +192,9 @@ class SuiteConfig:
     """Env processes for collection and evaluation."""
     progress: bool = True
     """Show progress bars."""
+    finished_only: bool = False
+    """Write `interim.json` / `.md` / `.png` from the cells finished so far (policy, evaluations and diagnosis on
+    disk), naming the others, and run nothing: a study that takes days can be read as it goes."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "eval_episodes", "image_size", "max_steps", "workers")
@@ -293,6 +303,16 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     validation = [(cell, AS_TRAINED) for cell in cells] if config.validation else []
     steps = sum(config.steps_of(cell.variant) for cell in cells)
     diagnosed = [cell for cell in cells if cell.demos == max(config.demos)] if config.diagnose_episodes else []
+    splits = [(config.heldout, jobs), *([(config.validation, validation)] if validation else [])]
+    if config.finished_only:
+        done = [cell for cell in cells if cell_finished(config, cell, splits, cell in diagnosed)]
+        if not done:
+            raise ConfigError(f"{config.out}: no cell of this study has finished yet (its policy, evaluations and "
+                              "diagnosis on disk); run the study without --finished-only")
+        unfinished = [cell.name for cell in cells if cell not in done]
+        splits = [(split, [job for job in split_jobs if job[0] in done]) for split, split_jobs in splits]
+        cells, diagnosed = done, [cell for cell in diagnosed if cell in done]
+        return write_results(config, cells, splits, diagnosed, command, "interim", unfinished)
     evaluations = (len(jobs) * config.eval_episodes + len(validation) * config.val_episodes) * len(tasks)
     print(f"budget: collect {max(config.demos)} demonstrations x {len(tasks)} tasks; train {len(cells)} policies "
           f"({steps} steps in all); evaluate {len(jobs)} x "
@@ -310,19 +330,6 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
                       config.diagnose_episodes, env_kwargs=env_kwargs, workers=config.workers,
                       start_seed=config.eval_seed, progress=config.progress, wait_for_writer=True)
     policies = arm_policies(config, [cell.variant for cell in cells])
-    splits = [(config.heldout, jobs), *([(config.validation, validation)] if validation else [])]
-    reports: dict[str, dict] = {split.folder: {} for split, _ in splits}
-    diagnoses: dict[Cell, dict] = {}
-
-    def run_cell(cell: Cell) -> None:
-        """Train (or check) the cell, diagnose it, and run its evaluations on every split."""
-        policy = train_cell(config, cell, policies[cell.variant])
-        if cell in diagnosed:
-            diagnoses[cell] = diagnose_cell(config, cell, policy, command)
-        for split, split_jobs in splits:
-            for name in (name for job_cell, name in split_jobs if job_cell == cell):
-                reports[split.folder][cell, name] = evaluate_cell(config, cell, name, policy, split, command)
-
     # A cell another suite on this folder works on, or whose training folder another run holds, comes last, once
     # that process lets go of it: then found done, or resumed. (A run started in its folder between the check and
     # training's own lock is refused by that lock.)
@@ -340,12 +347,53 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
                     print(f"{cell.name}: another process works on it; back to it last", flush=True)
                     busy.append(cell)
                     continue
-                run_cell(cell)
+                train_cell(config, cell, policies[cell.variant])
+                run_cell(config, cell, splits, cell in diagnosed, command)
+    return write_results(config, cells, splits, diagnosed, command, "results")
+
+
+def run_cell(config: SuiteConfig, cell: Cell, splits: Sequence[tuple[Split, list[tuple[Cell, str]]]],
+             diagnosed: bool, command: str | None) -> tuple[dict | None, dict[tuple[str, str], dict]]:
+    """Diagnose the cell's trained policy (if ``diagnosed``) and run its evaluations on every split, each unless
+    already on disk; returns the diagnosis and the reports by (split folder, sampler name)."""
+    policy = config.out / "train" / cell.name / "policy.pt"
+    diagnosis = diagnose_cell(config, cell, policy, command) if diagnosed else None
+    return diagnosis, {(split.folder, name): evaluate_cell(config, cell, name, policy, split, command)
+                       for split, split_jobs in splits for job_cell, name in split_jobs if job_cell == cell}
+
+
+def cell_finished(config: SuiteConfig, cell: Cell, splits: Sequence[tuple[Split, list[tuple[Cell, str]]]],
+                  diagnosed: bool) -> bool:
+    """Whether the cell's policy, its every evaluation and (if ``diagnosed``) its complete diagnosis are on disk."""
+    return ((config.out / "train" / cell.name / "policy.pt").is_file()
+            and all((report_folder(config, split, cell, name) / "report.json").is_file()
+                    for split, split_jobs in splits for job_cell, name in split_jobs if job_cell == cell)
+            and (not diagnosed or finished_diagnosis(diagnosis_folder(config.out, "diagnose", config.diagnose_episodes)
+                                                     / cell.name) is not None))
+
+
+def write_results(config: SuiteConfig, cells: Sequence[Cell], splits: Sequence[tuple[Split, list[tuple[Cell, str]]]],
+                  diagnosed: Sequence[Cell], command: str | None, stem: str,
+                  unfinished: Sequence[str] = ()) -> dict:
+    """Read every cell back (all on disk; its training checked against the study's settings), write
+    ``<stem>.json`` / ``.md`` / ``.png``; returns the results (with the ``unfinished`` cells' names, if any)."""
+    policies = arm_policies(config, [cell.variant for cell in cells])
+    reports: dict[str, dict] = {split.folder: {} for split, _ in splits}
+    diagnoses: dict[Cell, dict] = {}
+    for cell in cells:
+        train_cell(config, cell, policies[cell.variant])
+        diagnosis, cell_reports = run_cell(config, cell, splits, cell in diagnosed, command)
+        if diagnosis is not None:
+            diagnoses[cell] = diagnosis
+        for (folder, name), report in cell_reports.items():
+            reports[folder][cell, name] = report
     results = summarise(config, policies, [(split, split_jobs, reports[split.folder]) for split, split_jobs in splits],
-                        {cell: diagnoses[cell] for cell in diagnosed})
-    write_json_atomic(config.out / "results.json", results, indent=2)
-    write_text_atomic(config.out / "results.md", markdown(results, command))
-    plot(results, config.out / "results.png")
+                        diagnoses)
+    if unfinished:
+        results["unfinished"] = list(unfinished)
+    write_json_atomic(config.out / f"{stem}.json", results, indent=2)
+    write_text_atomic(config.out / f"{stem}.md", markdown(results, command))
+    plot(results, config.out / f"{stem}.png")
     return results
 
 
@@ -434,7 +482,7 @@ def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Pa
     Raises:
         ConfigError: the report on disk is of other episodes (seeds, count or step limit) than the study asks for.
     """
-    out = config.out / split.folder / cell.name / name.replace(" ", "_").replace("=", "")
+    out = report_folder(config, split, cell, name)
     if not (out / "report.json").is_file():
         evaluate(EvalConfig(policy=policy, out=out, episodes=split.episodes, seed=split.first,
                             workers=config.workers, videos=0, max_steps=config.max_steps,
@@ -446,6 +494,11 @@ def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Pa
                           f"{report['env_kwargs'].get('max_episode_steps')}), the study asks for seeds {seeds} (step "
                           f"limit {max_steps}); use another --out")
     return report
+
+
+def report_folder(config: SuiteConfig, split: Split, cell: Cell, name: str) -> pathlib.Path:
+    """Where the cell's evaluation with sampler ``name`` on ``split``'s seeds writes its report."""
+    return config.out / split.folder / cell.name / name.replace(" ", "_").replace("=", "")
 
 
 def diagnose_cell(config: SuiteConfig, cell: Cell, policy: pathlib.Path, command: str | None) -> dict:
@@ -643,6 +696,9 @@ def markdown(results: dict, command: str | None) -> str:
              f"from recipe {results['recipe']} with the same settings (but those listed below); episodes pooled over "
              "training seeds (95% CI: Wilson, over the pooled episodes), beside the t-interval over the training "
              "seeds' success.", ""]
+    if unfinished := results.get("unfinished"):
+        lines += [f"Interim: {len(unfinished)} cells not finished yet ({', '.join(unfinished)}); their arms' rows "
+                  "hold the finished training seeds only, and each comparison pairs the seeds both arms have.", ""]
     lines += arm_lines(results["arms"], {r["variant"]: r["trainable_parameters"] for r in rows},
                        results["train"]["optim"]["steps"])
     lines += table("Variants", [r for r in rows if r["demos"] == main and r["sampler"] == AS_TRAINED])
@@ -728,5 +784,6 @@ def plot(results: dict, out_png: pathlib.Path) -> pathlib.Path:
 def suite_command(config: SuiteConfig, command: str | None = None) -> dict:
     """``dust-rl bench suite``: run the study, print where the tables are."""
     results = run_suite(config, command)
-    print(f"{len(results['rows'])} rows: {config.out / 'results.md'}, {config.out / 'results.png'}")
+    stem = "interim" if config.finished_only else "results"
+    print(f"{len(results['rows'])} rows: {config.out / f'{stem}.md'}, {config.out / f'{stem}.png'}")
     return results

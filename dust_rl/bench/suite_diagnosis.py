@@ -27,15 +27,21 @@ def diagnose_policy(out: pathlib.Path, policy: pathlib.Path, dataset: pathlib.Pa
                     progress: bool, command: str | None) -> dict:
     """The diagnosis report of ``policy`` on ``dataset`` in ``out`` (as read back from ``report.json``, whether run
     now or before), run unless a complete one is there."""
-    report_path = out / "report.json"
-    if report_path.is_file():
-        report = json.loads(report_path.read_text())
-        oracle = report["oracle_future"]
-        expected = set(CONDITIONS) if report.get("vision_stream") else {"own"}
-        if set(oracle["conditions"]) | set(oracle["skipped"]) == expected:
-            return report
+    if (report := finished_diagnosis(out)) is not None:
+        return report
     diagnose(WorldModelDiagnosis(policy=policy, dataset=dataset, out=out, threads=threads, progress=progress), command)
-    return json.loads(report_path.read_text())
+    return json.loads((out / "report.json").read_text())
+
+
+def finished_diagnosis(out: pathlib.Path) -> dict | None:
+    """The diagnosis report in ``out`` if one is there with every condition this version measures, else None."""
+    report_path = out / "report.json"
+    if not report_path.is_file():
+        return None
+    report = json.loads(report_path.read_text())
+    oracle = report["oracle_future"]
+    expected = set(CONDITIONS) if report.get("vision_stream") else {"own"}
+    return report if set(oracle["conditions"]) | set(oracle["skipped"]) == expected else None
 
 
 def diagnosis_rows(reports: Mapping[tuple[str, int], dict]) -> list[dict]:
