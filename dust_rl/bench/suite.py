@@ -196,6 +196,11 @@ class SuiteConfig:
     """Write `interim.json` / `.md` / `.png` from the cells finished so far (policy, evaluations and diagnosis on
     disk), naming the others, and run nothing: a study that takes days can be read as it goes."""
 
+    @property
+    def tables_stem(self) -> str:
+        """The name (without suffix) of the tables this run writes: ``interim`` with ``finished_only``."""
+        return "interim" if self.finished_only else "results"
+
     def __post_init__(self) -> None:
         check_at_least(self, 1, "eval_episodes", "image_size", "max_steps", "workers")
         check_at_least(self, 0, "eval_seed", "val_episodes", "val_seed", "diagnose_episodes")
@@ -312,7 +317,7 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
         unfinished = [cell.name for cell in cells if cell not in done]
         splits = [(split, [job for job in split_jobs if job[0] in done]) for split, split_jobs in splits]
         cells, diagnosed = done, [cell for cell in diagnosed if cell in done]
-        return write_results(config, cells, splits, diagnosed, command, "interim", unfinished)
+        return write_results(config, cells, splits, diagnosed, command, unfinished)
     evaluations = (len(jobs) * config.eval_episodes + len(validation) * config.val_episodes) * len(tasks)
     print(f"budget: collect {max(config.demos)} demonstrations x {len(tasks)} tasks; train {len(cells)} policies "
           f"({steps} steps in all); evaluate {len(jobs)} x "
@@ -349,7 +354,7 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
                     continue
                 train_cell(config, cell, policies[cell.variant])
                 run_cell(config, cell, splits, cell in diagnosed, command)
-    return write_results(config, cells, splits, diagnosed, command, "results")
+    return write_results(config, cells, splits, diagnosed, command)
 
 
 def run_cell(config: SuiteConfig, cell: Cell, splits: Sequence[tuple[Split, list[tuple[Cell, str]]]],
@@ -359,7 +364,12 @@ def run_cell(config: SuiteConfig, cell: Cell, splits: Sequence[tuple[Split, list
     policy = config.out / "train" / cell.name / "policy.pt"
     diagnosis = diagnose_cell(config, cell, policy, command) if diagnosed else None
     return diagnosis, {(split.folder, name): evaluate_cell(config, cell, name, policy, split, command)
-                       for split, split_jobs in splits for job_cell, name in split_jobs if job_cell == cell}
+                       for split, name in cell_evaluations(splits, cell)}
+
+
+def cell_evaluations(splits: Sequence[tuple[Split, list[tuple[Cell, str]]]], cell: Cell) -> list[tuple[Split, str]]:
+    """The (split, sampler name) evaluations the study asks of ``cell``."""
+    return [(split, name) for split, split_jobs in splits for job_cell, name in split_jobs if job_cell == cell]
 
 
 def cell_finished(config: SuiteConfig, cell: Cell, splits: Sequence[tuple[Split, list[tuple[Cell, str]]]],
@@ -367,16 +377,15 @@ def cell_finished(config: SuiteConfig, cell: Cell, splits: Sequence[tuple[Split,
     """Whether the cell's policy, its every evaluation and (if ``diagnosed``) its complete diagnosis are on disk."""
     return ((config.out / "train" / cell.name / "policy.pt").is_file()
             and all((report_folder(config, split, cell, name) / "report.json").is_file()
-                    for split, split_jobs in splits for job_cell, name in split_jobs if job_cell == cell)
+                    for split, name in cell_evaluations(splits, cell))
             and (not diagnosed or finished_diagnosis(diagnosis_folder(config.out, "diagnose", config.diagnose_episodes)
                                                      / cell.name) is not None))
 
 
 def write_results(config: SuiteConfig, cells: Sequence[Cell], splits: Sequence[tuple[Split, list[tuple[Cell, str]]]],
-                  diagnosed: Sequence[Cell], command: str | None, stem: str,
-                  unfinished: Sequence[str] = ()) -> dict:
+                  diagnosed: Sequence[Cell], command: str | None, unfinished: Sequence[str] = ()) -> dict:
     """Read every cell back (all on disk; its training checked against the study's settings), write
-    ``<stem>.json`` / ``.md`` / ``.png``; returns the results (with the ``unfinished`` cells' names, if any)."""
+    ``<tables_stem>.json`` / ``.md`` / ``.png``; returns the results (with the ``unfinished`` cells' names, if any)."""
     policies = arm_policies(config, [cell.variant for cell in cells])
     reports: dict[str, dict] = {split.folder: {} for split, _ in splits}
     diagnoses: dict[Cell, dict] = {}
@@ -391,6 +400,7 @@ def write_results(config: SuiteConfig, cells: Sequence[Cell], splits: Sequence[t
                         diagnoses)
     if unfinished:
         results["unfinished"] = list(unfinished)
+    stem = config.tables_stem
     write_json_atomic(config.out / f"{stem}.json", results, indent=2)
     write_text_atomic(config.out / f"{stem}.md", markdown(results, command))
     plot(results, config.out / f"{stem}.png")
@@ -784,6 +794,6 @@ def plot(results: dict, out_png: pathlib.Path) -> pathlib.Path:
 def suite_command(config: SuiteConfig, command: str | None = None) -> dict:
     """``dust-rl bench suite``: run the study, print where the tables are."""
     results = run_suite(config, command)
-    stem = "interim" if config.finished_only else "results"
+    stem = config.tables_stem
     print(f"{len(results['rows'])} rows: {config.out / f'{stem}.md'}, {config.out / f'{stem}.png'}")
     return results
