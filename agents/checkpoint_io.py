@@ -42,8 +42,14 @@ class CheckpointError(RuntimeError):
 
 
 def save_checkpoint(payload: dict, path: str | pathlib.Path, kind: str) -> pathlib.Path:
-    """Write ``payload`` tagged with ``kind`` atomically to ``path``; returns the path."""
+    """Write ``payload`` tagged with ``kind`` atomically to ``path``; returns the path.
+
+    Raises:
+        CheckpointError: ``path`` exists and is not a checkpoint file of ``kind`` (an encoder saved over a trained
+            policy would lose it).
+    """
     path = pathlib.Path(path)
+    check_replaceable_file(path, kind)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     try:
@@ -55,6 +61,13 @@ def save_checkpoint(payload: dict, path: str | pathlib.Path, kind: str) -> pathl
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+def check_replaceable_file(path: pathlib.Path, kind: str) -> None:
+    """Raise :class:`CheckpointError` unless ``path`` is free or a checkpoint file of ``kind`` (what saving one
+    may replace); a command checks its target with it before it works for the file."""
+    if (path.exists() or path.is_symlink()) and not (path.is_file() and checkpoint_kind(path) == kind):
+        raise CheckpointError(f"{path} exists and is not a {kind!r} checkpoint file; remove it or choose another path")
 
 
 def load_checkpoint(path: str | pathlib.Path, kind: str) -> dict:

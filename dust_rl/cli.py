@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> None:
     table = commands()
     name = " ".join(argv[:2]) if " ".join(argv[:2]) in table else argv[0] if argv else None
     try:
-        check_utf8(argv)
+        check_arguments(argv)
         if name in table:  # parsed on its own, so messages name the command ("dust-rl train --help")
             config_class, runner = table[name]
             words = len(name.split())
@@ -91,15 +91,21 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"dust-rl: error: {err}") from err
 
 
-def check_utf8(argv: list[str]) -> None:
-    """Raise :class:`ConfigError` at an argument that is not UTF-8 text (a path with such a byte): torch's
-    files, JSON metadata and tyro need text, and would fail on it deep inside a run."""
-    for arg in argv:
+def check_arguments(argv: list[str]) -> None:
+    """Raise :class:`ConfigError` at an argument that is not UTF-8 text (a path with such a byte: torch's files,
+    JSON metadata and tyro need text, and would fail on it deep inside a run) or that is empty: no setting takes
+    an empty value, and an empty path is the current folder (``--out "$OUT"`` with ``OUT`` unset would make it a
+    dataset or a run)."""
+    for previous, arg in zip(["", *argv], argv):
         try:
             arg.encode()
         except UnicodeEncodeError:
             raise ConfigError(f"argument {os.fsencode(arg)!r} is not UTF-8 text; rename the file or folder "
                               "with a UTF-8 name") from None
+        flag, equals, value = arg.partition("=")
+        if (equals and flag.startswith("--") and not value) or not arg:
+            named = flag if equals else previous if previous.startswith("--") else "an argument"
+            raise ConfigError(f"{named} is given an empty value (an unset shell variable?); give it one or drop it")
 
 
 def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:

@@ -59,9 +59,12 @@ def make_env(env_id: str, env_kwargs: dict) -> gym.Env:
 
 
 def check_tasks(env_id: str, env_kwargs: dict, tasks: Sequence[str]) -> None:
-    """Raise :class:`ConfigError` (listing the suite) unless every task exists, without building envs."""
+    """Raise :class:`ConfigError` (listing the suite) unless every task exists, once, without building envs (a task
+    named twice would count its seeds twice in every pooled rate and interval)."""
     if not tasks:
         raise ConfigError("no tasks given")
+    if repeated := sorted({task for task in tasks if list(tasks).count(task) > 1}):
+        raise ConfigError(f"task(s) {', '.join(repeated)} given more than once; name each task once")
     robot = robot_of(env_id, env_kwargs)
     for task in tasks:
         try:

@@ -118,6 +118,19 @@ def test_a_lock_file_that_is_a_symlink_is_refused_and_its_target_kept(dataset_co
     assert not (tmp_path / "no-such-file").exists()
 
 
+def test_a_lock_file_that_is_a_hard_link_is_refused_and_its_target_kept(dataset_copy):
+    """A hard link survives ``tar``: a shipped dataset whose ``.lock`` names ``meta.json`` must not lose it."""
+    meta, lock = dataset_copy / "meta.json", dataset_copy / ".lock"
+    before = meta.read_bytes()
+    lock.unlink(missing_ok=True)
+    os.link(meta, lock)
+    message = error_of(collect_args(dataset_copy))
+    assert f"{lock}: the lock file is a hard link" in message
+    assert meta.read_bytes() == before
+    lock.unlink()
+    main(collect_args(dataset_copy))  # the dataset is intact and collects again once the link is gone
+
+
 def test_a_waiting_writer_takes_the_lock_when_the_holder_lets_go(tmp_path, capsys):
     holder, acquired = hold_lock(tmp_path), threading.Event()
 
@@ -164,6 +177,50 @@ def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
                                                         "--execute-steps", str(horizon + 1)])
     assert "no such checkpoint file" in error_of(["eval", "--policy", str(tmp_path / "missing.pt")])
     assert not (tmp_path / "bad").exists()
+
+
+EVAL_ARGS = ["--episodes", "1", "--workers", "1", "--max-steps", "5", "--no-progress"]
+
+
+def test_an_eval_folder_holds_one_evaluation_and_never_a_run(tmp_path, minilm):
+    policy, out = tiny_policy_file(tmp_path / "run" / "policy.pt", minilm), tmp_path / "eval"
+    out.mkdir()
+    holder = hold_lock(out)
+    try:  # a second evaluation into a folder another one writes is refused, naming the holder
+        assert f"is being written by another process (pid {holder.pid} on " in error_of(
+            ["eval", "--policy", str(policy), "--out", str(out), *EVAL_ARGS])
+    finally:
+        holder.kill()
+        holder.wait()
+    (out / "videos").mkdir()
+    (out / "videos" / "open_drawer_seed10007.mp4").write_bytes(b"an earlier evaluation's")
+    main(["eval", "--policy", str(policy), "--out", str(out), *EVAL_ARGS, "--videos", "1"])
+    assert [p.name for p in (out / "videos").iterdir()] == ["press_button_seed10000.mp4"]  # no other policy's
+    run = tmp_path / "run"
+    (run / "config.json").write_text("{}")
+    (run / "loss.png").write_bytes(b"the run's")
+    assert "holds a training run or a policy (config.json)" in error_of(
+        ["eval", "--policy", str(policy), "--out", str(run), *EVAL_ARGS])
+    assert (run / "loss.png").read_bytes() == b"the run's"
+    assert "close_drawer given more than once" in error_of(
+        ["eval", "--policy", str(policy), "--out", str(out), *EVAL_ARGS, "--tasks", "close_drawer", "close_drawer"])
+
+
+@pytest.mark.parametrize("spelling", [["--out", ""], ["--out="]])
+def test_an_empty_out_is_refused_rather_than_the_current_folder(spelling, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert "--out is given an empty value" in error_of(["collect", "--task", "close_drawer", "--episodes", "1",
+                                                         "--image-size", "32", *spelling])
+    assert not list(tmp_path.iterdir())
+
+
+def test_pretrain_encoder_does_not_overwrite_a_policy(demo_dir, tmp_path, minilm):
+    policy = tiny_policy_file(tmp_path / "policy.pt", minilm)
+    before = policy.read_bytes()
+    assert "is not a 'dust-rl-image-encoder' checkpoint file" in error_of(
+        ["pretrain-encoder", "--dataset", str(demo_dir), "--out", str(policy), "--steps", "2", "--batch-size", "4",
+         "--image-size", "32", "--width", "8", "--dim", "16", "--device", "cpu"])
+    assert policy.read_bytes() == before
 
 
 @pytest.fixture

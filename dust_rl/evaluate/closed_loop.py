@@ -17,7 +17,10 @@ settings) is checked in this process before any worker starts. A
 above the task's default as well as below it. The report (JSON, markdown, success
 plot, loss curves of the training run) is written by :mod:`dust_rl.evaluate.report`;
 videos of the first episodes of each task by :mod:`dust_rl.evaluate.video`, from
-the evaluated trajectories themselves.
+the evaluated trajectories themselves. One evaluation writes into a folder at a time (it holds the folder's
+lock, as training and collection do), and never into a training run's or a policy's folder (their
+``config.json``, ``loss.png`` and checkpoints are not an evaluation's to overwrite); the videos of an earlier
+evaluation in the folder go when its report is replaced, so a folder never shows two policies' episodes.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import hashlib
 import math
 import pathlib
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -54,6 +57,7 @@ from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import episode_collector, torch_threads
 from dust_rl.runtime.workers import Backend, Workers, ray_runtime
 from dust_rl.storage.config_json import config_json
+from dust_rl.storage.lock import folder_lock
 
 
 @dataclass
@@ -366,6 +370,27 @@ class PolicyWithActor(NamedTuple):
     about: dict
 
 
+@contextlib.contextmanager
+def eval_folder(out: pathlib.Path) -> Iterator[None]:
+    """Hold ``out`` for one evaluation: refused when it holds a training run or a policy folder (a ``config.json``,
+    which an evaluation never writes: the report's ``loss.png`` and videos would land among its files), locked
+    (:func:`~dust_rl.storage.lock.folder_lock`), and cleared of an earlier evaluation's videos, whose report this
+    one replaces.
+
+    Raises:
+        ConfigError: ``out`` holds a training run or a policy.
+        FolderBusyError: another evaluation (or a run) writes into ``out``.
+    """
+    if (out / "config.json").exists():
+        raise ConfigError(f"{out} holds a training run or a policy (config.json), whose files an evaluation would "
+                          f"overwrite; give --out a folder of its own, e.g. {out / 'eval'}")
+    out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out):
+        for stale in sorted((out / "videos").glob("*.mp4")):
+            stale.unlink()
+        yield
+
+
 def evaluate(config: EvalConfig, command: str | None = None, with_actor: PolicyWithActor | None = None) -> dict:
     """Evaluate a policy in closed loop and write the report, plots and videos to ``config.out``.
 
@@ -391,27 +416,30 @@ def evaluate(config: EvalConfig, command: str | None = None, with_actor: PolicyW
         else:
             policy, actor = with_actor.policy, with_actor.actor
             setup = eval_setup(config, policy)
-        for task in setup.tasks:
-            episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config, actor)
-            videos = task_videos(task, episodes, kept, policy, config, setup.fps)
-            rows.append(task_row(task, episodes, videos))
-            startup, running = startup + task_startup, running + task_running
-    steps = sum(e[2] for row in rows for e in row["per_episode"])
-    loss_plot = plot_loss_curves(config.train_dir or config.policy.parent, config.out / "loss.png")
-    report = {
-        "policy": str(config.policy), "variant": policy.config.variant,
-        "trainable_parameters": sum(p.numel() for p in policy.trainable_modules().parameters()),
-        "env_id": setup.env_id,
-        "env_kwargs": setup.env_kwargs, "sampler": describe_sampler(setup.sampler),
-        "rl_agent": None if with_actor is None else with_actor.about,
-        "execute_steps": setup.execute_steps, "command": command,
-        "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],
-        "noise_seeding": NOISE_SEEDING if with_actor is None else with_actor.about["noise_seeding"],
-        "tasks": rows, "overall": summary_row("overall", [Episode(*e) for row in rows for e in row["per_episode"]]),
-        "env_steps": steps, "startup_s": startup, "episodes_time_s": running, "env_steps_per_s": steps / running,
-        "wall_time_s": time.perf_counter() - start, "loss_plot": str(loss_plot) if loss_plot else None,
-    }
-    write_report(report, config.out)
+        with eval_folder(config.out):
+            for task in setup.tasks:
+                episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config, actor)
+                videos = task_videos(task, episodes, kept, policy, config, setup.fps)
+                rows.append(task_row(task, episodes, videos))
+                startup, running = startup + task_startup, running + task_running
+            steps = sum(e[2] for row in rows for e in row["per_episode"])
+            loss_plot = plot_loss_curves(config.train_dir or config.policy.parent, config.out / "loss.png")
+            report = {
+                "policy": str(config.policy), "variant": policy.config.variant,
+                "trainable_parameters": sum(p.numel() for p in policy.trainable_modules().parameters()),
+                "env_id": setup.env_id,
+                "env_kwargs": setup.env_kwargs, "sampler": describe_sampler(setup.sampler),
+                "rl_agent": None if with_actor is None else with_actor.about,
+                "execute_steps": setup.execute_steps, "command": command,
+                "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],
+                "noise_seeding": NOISE_SEEDING if with_actor is None else with_actor.about["noise_seeding"],
+                "tasks": rows,
+                "overall": summary_row("overall", [Episode(*e) for row in rows for e in row["per_episode"]]),
+                "env_steps": steps, "startup_s": startup, "episodes_time_s": running,
+                "env_steps_per_s": steps / running,
+                "wall_time_s": time.perf_counter() - start, "loss_plot": str(loss_plot) if loss_plot else None,
+            }
+            write_report(report, config.out)
     return report
 
 

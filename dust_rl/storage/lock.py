@@ -9,8 +9,9 @@ The holder writes who it is (pid, host, command, start time) into the file, so a
 refused process can say which one holds it. A caller that only needs the data
 to be there (``dust-rl bench suite``, two of which often share a folder) waits
 for the holder instead of failing. The lock file is opened without following a
-symlink and must be a regular file: a ``.lock`` link would otherwise have the
-holder's details written over the file it points to.
+symlink and must be a regular file with one link: a ``.lock`` symlink, or a hard link
+to another file of the folder (hard links survive ``tar``, so a shipped folder can carry
+one), would otherwise have the holder's details written over the file it points to.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def folder_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
 
     Raises:
         FolderBusyError: another process holds it and ``wait`` is off (the message names that process).
-        FolderLockedError: the lock file is a symlink or not a regular file, or cannot be opened.
+        FolderLockedError: the lock file is a symlink, a hard link or not a regular file, or cannot be opened.
     """
     path = root / LOCK_FILE
     try:
@@ -58,8 +59,12 @@ def folder_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
         raise FolderLockedError(f"{path}: cannot open the lock file ({err.strerror}); a symlink is refused, "
                                 "remove it") from err
     try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
+        status = os.fstat(fd)
+        if not stat.S_ISREG(status.st_mode):
             raise FolderLockedError(f"{path}: the lock file is not a regular file; remove it")
+        if status.st_nlink != 1:
+            raise FolderLockedError(f"{path}: the lock file is a hard link ({status.st_nlink} names for one file), "
+                                    "and taking the lock would overwrite the other names; remove it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -46,11 +46,14 @@ class PretrainEncoderCommand:
 
 def run_pretrain_encoder(config: PretrainEncoderCommand, command_line: str) -> None:
     from dust_rl.agents import AutoencoderConfig
+    from dust_rl.agents.backbone import IMAGE_ENCODER_KIND
+    from dust_rl.agents.checkpoint_io import check_replaceable_file
     from dust_rl.data import DemoDataset
     from dust_rl.train.pretrain_encoder import pretrain_encoder
 
     if not config.dataset:
         raise ConfigError("give at least one --dataset folder")
+    check_replaceable_file(config.out, IMAGE_ENCODER_KIND)  # before training, not after it
     encoder = AutoencoderConfig(image_size=config.image_size, latent_grid=config.grid, dim=config.dim,
                                 width=config.width)
     report = pretrain_encoder([DemoDataset(d) for d in config.dataset], config.out, encoder, steps=config.steps,
