@@ -6,6 +6,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import shutil
 import time
 
 import numpy as np
@@ -19,7 +20,7 @@ from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import scan_episodes
-from dust_rl.errors import ConfigError
+from dust_rl.errors import ConfigError, NoSpaceError
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 from dust_rl.evaluate.report import loss_csvs
 from dust_rl.rl.checkpoint import SB3LearningState
@@ -494,6 +495,17 @@ def test_a_pickle_grafted_into_a_finetune_checkpoint_never_runs_on_resume(policy
         finetune(dataclasses.replace(config, resume=True))
     assert not marker.exists()
     assert (config.out / "rl_agent.pt").read_bytes() == agent_file
+
+
+def test_a_full_disk_at_a_checkpoint_ends_fine_tuning_in_one_line(policy_path, tmp_path, monkeypatch):
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: real(path)._replace(free=0))
+    config = ResidualConfig(policy=policy_path, out=tmp_path / "ppo", algorithm=PpoSettings(n_steps=8), steps=8,
+                            batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
+                            checkpoint_every=8, progress=False)
+    with pytest.raises(NoSpaceError, match=f"no space left on device while fine-tuning into {config.out} "):
+        finetune(config)
+    assert not list((config.out / "checkpoints").glob(".*"))  # no half-written checkpoint left
 
 
 def test_a_logger_whose_package_is_missing_is_refused_before_anything_is_written(policy_path, tmp_path, capsys):

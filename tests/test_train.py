@@ -8,6 +8,7 @@ import importlib.util
 import json
 import math
 import os
+import pathlib
 import re
 import shutil
 import subprocess
@@ -682,6 +683,24 @@ def test_a_full_disk_ends_training_in_one_line_and_leaves_no_run_folder(run_inpu
         train(tiny_config(run_inputs, out, steps=2))
     assert not out.exists()  # its config.json could not be written: nothing of the run is left
     assert not [p for p in run_inputs[0].rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_a_full_disk_at_a_checkpoint_ends_in_one_line_and_a_resume_finishes(run_inputs, tmp_path, monkeypatch):
+    """torchrl writes checkpoints through memory maps, where a full disk is SIGBUS: the space is claimed first."""
+    out = tmp_path / "run"
+    real = shutil.disk_usage
+
+    def full_under_checkpoints(path):
+        usage = real(path)
+        return usage._replace(free=0) if "checkpoints" in pathlib.Path(path).parts else usage
+
+    monkeypatch.setattr(shutil, "disk_usage", full_under_checkpoints)
+    with pytest.raises(NoSpaceError, match=f"no space left on device while training into {out} .*--resume"):
+        train(tiny_config(run_inputs, out, steps=8))
+    monkeypatch.undo()
+    (out / "checkpoints" / ".checkpoint-000000000004.killed.stage").mkdir()  # what a killed writer leaves
+    assert train(tiny_config(run_inputs, out, steps=8, resume=True)).policy.is_file()
+    assert not list((out / "checkpoints").glob(".*"))
 
 
 def test_a_run_stored_with_retired_settings_resumes_at_their_value_only(run_inputs, tmp_path):

@@ -16,6 +16,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from dust_rl.errors import DatasetError
 from dust_rl.keys import EXPERT_ACTION_KEY, INSTRUCTION_BYTES_KEY, SEED_KEY, STEP_KEY, SUCCESS_KEY
+from dust_rl.storage.disk_space import reserve_space
 from dust_rl.storage.memmap_io import load_memmap_checked
 from dust_rl.storage.paths import inside
 
@@ -25,7 +26,6 @@ from .layout import (
     EPISODES_DIR,
     episode_dir,
     read_json,
-    reserve_space,
     staging_dir,
     write_json_atomic,
 )

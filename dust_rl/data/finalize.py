@@ -23,10 +23,11 @@ from tqdm import tqdm
 
 from dust_rl.errors import DatasetError
 from dust_rl.keys import ENV_STATE_KEY
+from dust_rl.storage.disk_space import allocate_files
 from dust_rl.storage.memmap_io import load_memmap_checked
 
 from .episodes import EpisodeRecord, episode_rows_dir, load_episode_rows, scan_episodes
-from .layout import DATA_PREFIX, META_FILE, allocate_files, staging_dir, write_json_atomic
+from .layout import DATA_PREFIX, META_FILE, staging_dir, write_json_atomic
 from .metadata import read_meta
 from .selection import select_episodes
 from .stats import compute_stats

@@ -16,9 +16,7 @@ either the old state or the new one, never a half-written file that a reader tru
 
 from __future__ import annotations
 
-import errno
 import json
-import os
 import pathlib
 import shutil
 import uuid
@@ -44,30 +42,6 @@ def staging_dir(root: pathlib.Path) -> pathlib.Path:
     path = root / STAGING_DIR / uuid.uuid4().hex
     path.mkdir(parents=True)
     return path
-
-
-def reserve_space(path: pathlib.Path, nbytes: int) -> None:
-    """Raise ``OSError`` (ENOSPC) unless the file system of ``path`` has ``nbytes`` free.
-
-    Memory-mapped files are written through their pages: on a full disk the kernel answers such a write with
-    SIGBUS, which kills the process, instead of an error it could report and clean up after.
-    """
-    free = shutil.disk_usage(path).free
-    if free < nbytes:
-        raise OSError(errno.ENOSPC, f"{nbytes} bytes needed, {free} free", str(path))
-
-
-def allocate_files(folder: pathlib.Path) -> None:
-    """Give every file under ``folder`` (a fresh memmap folder, whose files are sparse) its disk blocks now,
-    so a full disk fails here with ``OSError`` (ENOSPC) rather than as SIGBUS when a page is written."""
-    for file in sorted(p for p in folder.rglob("*") if p.is_file()):
-        size = file.stat().st_size
-        if size:
-            fd = os.open(file, os.O_RDWR)
-            try:
-                os.posix_fallocate(fd, 0, size)
-            finally:
-                os.close(fd)
 
 
 def clear_staging(root: pathlib.Path) -> None:

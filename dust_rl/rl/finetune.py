@@ -94,7 +94,7 @@ from dust_rl.rl.wm_select import wm_select
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import torch_threads
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
-from dust_rl.storage.checkpoint_dirs import save_checkpoint_dir
+from dust_rl.storage.checkpoint_dirs import run_out_of_space, save_checkpoint_dir
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run_folder, restore
 
@@ -117,7 +117,8 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
                 raise ConfigError(f"self-imitation trains on the policy's demonstrations too; {demos} is not a "
                                   "dataset: pass --demos")
             config = dataclasses.replace(config, demos=demos)
-        with locked_run_folder(config, resumable, command, upgrade=as_this_version):
+        with (run_out_of_space(f"fine-tuning into {config.out}"),
+              locked_run_folder(config, resumable, command, upgrade=as_this_version)):
             return _finetune_in_folder(config, command, policy, env_id, env_kwargs, task)
 
 

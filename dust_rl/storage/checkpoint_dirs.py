@@ -7,11 +7,15 @@ loads as zeros. So :func:`save_checkpoint_dir` records the size and SHA-256 of e
 ``digests.json`` before the folder gets its final name, and :func:`check_checkpoint_dir` refuses, before
 anything is loaded, a folder that is a link or an archive, holds a file or link this package does not
 write, whose files differ from the record, whose manifest points elsewhere, or whose memmap folders fail
-the dataset whitelist (:func:`~dust_rl.storage.memmap_io.check_memmap_dir`).
+the dataset whitelist (:func:`~dust_rl.storage.memmap_io.check_memmap_dir`). torchrl writes the tensors
+through memory maps, and a memory-mapped write to a full disk kills the process with SIGBUS: the space a
+checkpoint takes is reserved first (:func:`reserve_space`), so a full disk ends in ``OSError`` (ENOSPC), which
+the commands report in one line (:func:`run_out_of_space`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -21,12 +25,15 @@ import shutil
 import uuid
 from collections.abc import Mapping
 
+import numpy as np
+import torch
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
 from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 
 from dust_rl.agents.checkpoint_io import CheckpointError
-from dust_rl.errors import DatasetError
+from dust_rl.errors import DatasetError, no_space_left
 from dust_rl.storage.atomic_files import write_json_atomic
+from dust_rl.storage.disk_space import reserve_space
 from dust_rl.storage.memmap_io import check_memmap_dir
 
 DIGESTS = "digests.json"
@@ -54,6 +61,9 @@ def save_checkpoint_dir(checkpoint: Checkpoint, rotation: CheckpointRotation, st
     looks for, so a killed writer never leaves a checkpoint without its record.
     """
     rotation.directory.mkdir(parents=True, exist_ok=True)
+    for leftover in rotation.directory.glob(f".{rotation.prefix}-*.stage"):  # a killed writer's (the run holds
+        shutil.rmtree(leftover, ignore_errors=True)                          # the folder's lock)
+    reserve_space(rotation.directory, 2 * state_bytes(checkpoint.components) + (1 << 20))
     final = rotation.directory / f"{rotation.prefix}-{step:012d}"  # torchrl's name for a directory checkpoint
     stage = final.with_name(f".{final.name}.{uuid.uuid4().hex}.stage")
     old = final.with_name(f".{final.name}.{uuid.uuid4().hex}.old")
@@ -70,6 +80,26 @@ def save_checkpoint_dir(checkpoint: Checkpoint, rotation: CheckpointRotation, st
             shutil.rmtree(leftover, ignore_errors=True)
     rotation.prune()
     return final
+
+
+def state_bytes(value: object) -> int:
+    """Bytes of the tensors and arrays in ``value`` (a component, its ``state_dict``, nested dicts and lists): what
+    a checkpoint of it writes, give or take its JSON."""
+    if hasattr(value, "state_dict"):
+        value = value.state_dict()
+    if isinstance(value, torch.Tensor | np.ndarray):
+        return value.nbytes
+    if isinstance(value, Mapping):
+        return sum(state_bytes(v) for v in value.values())
+    if isinstance(value, list | tuple):
+        return sum(state_bytes(v) for v in value)
+    return 0
+
+
+def run_out_of_space(doing: str) -> contextlib.AbstractContextManager[None]:
+    """A full disk while a run (``doing``: "training into <out>") writes, as one line saying what to do."""
+    return no_space_left(doing, "free some space and run again (with --resume once a checkpoint exists): "
+                         "checkpoints are only ever replaced whole")
 
 
 def newest_checkpoint(rotation: CheckpointRotation) -> pathlib.Path | None:

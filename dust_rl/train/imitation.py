@@ -59,10 +59,10 @@ from dust_rl.data.features import FeatureCache, dataset_policy_kwargs, env_state
 from dust_rl.diagnose.world_model import vision_skill, windows_of
 from dust_rl.envs.factory import make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.errors import ConfigError, UserError, no_space_left
+from dust_rl.errors import ConfigError, UserError
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import log_scalars, make_loggers
-from dust_rl.storage.checkpoint_dirs import save_checkpoint_dir
+from dust_rl.storage.checkpoint_dirs import run_out_of_space, save_checkpoint_dir
 from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run_folder, restore
 from dust_rl.train.action_free import ActionFreeBatches, with_action_free
 from dust_rl.train.dataset_batches import DatasetBatches
@@ -167,8 +167,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
         policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.runtime.device), ranks))
     finally:
         probe.close()
-    with (no_space_left(f"training into {config.out}", "free some space and run again (with --resume once a "
-                        "checkpoint exists): checkpoints are only ever replaced whole"),
+    with (run_out_of_space(f"training into {config.out}"),
           locked_run_folder(config, RESUMABLE_FIELDS, command, RETIRED_FIELDS, grouped_json) if ranks.is_main
           else contextlib.nullcontext()):
         return _train_in_folder(config, ranks, dataset, policy)
