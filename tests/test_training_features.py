@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
+import numpy as np
 import pytest
 import torch
 from conftest import rounding_tolerance
@@ -14,6 +16,8 @@ from dust_rl.agents.backbone import DEFAULT_IMAGE_ENCODER_FILE
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.data.features import FeatureCache, dataset_policy_kwargs
+from dust_rl.storage.cache_files import record_cache, record_path, signing_key
+from dust_rl.storage.checkpoint_dirs import file_sha256
 from dust_rl.train.pretrain_encoder import FramePool, pretrain_encoder
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -67,6 +71,37 @@ def test_pretrain_encoder_command(demo_dir, tmp_path, capsys):
     assert load_image_encoder(out).config == AutoencoderConfig(image_size=32, dim=16, width=8)
     payload = torch.load(out, weights_only=True)
     assert payload["info"]["command"].startswith("dust-rl pretrain-encoder --dataset")
+
+
+def test_a_shipped_cache_whose_record_was_written_anew_is_built_again(demo_dir, tmp_path, tiny_encoder, minilm,
+                                                                      monkeypatch, capsys):
+    """A digest proves integrity, not origin: a poisoned cache with its digest recomputed, or signed with another
+    user's key (a copied dataset), is not read."""
+    dataset = DemoDataset(shutil.copytree(demo_dir, tmp_path / "ds"))
+    policy = small_policy(dataset, tiny_encoder, minilm)
+
+    def features() -> FeatureCache:
+        return FeatureCache(dataset, policy, batch_size=32, progress=False, store=True)
+
+    cache = features()
+    clean, path = cache.image_tokens.clone(), cache.path
+
+    def poison() -> None:
+        np.save(path, np.zeros_like(np.load(path)), allow_pickle=False)
+
+    poison()
+    record_path(path).write_text(json.dumps({"size": path.stat().st_size, "sha256": file_sha256(path)}))
+    assert torch.equal(features().image_tokens, clean)
+    poison()
+    with monkeypatch.context() as elsewhere:  # the record of another machine's user, as a copied dataset brings
+        elsewhere.setenv("XDG_CONFIG_HOME", str(tmp_path / "elsewhere"))
+        signing_key.cache_clear()
+        record_cache(path)
+    signing_key.cache_clear()
+    assert torch.equal(features().image_tokens, clean)
+    assert capsys.readouterr().err.count("(its record is not signed here); building it again") == 2
+    assert features().path == path  # built again, and trusted now
+    assert "cached elsewhere" not in capsys.readouterr().err
 
 
 def test_feature_cache_encodes_each_row_once(dataset, tiny_encoder, minilm, monkeypatch):
