@@ -115,6 +115,7 @@ def save_folder(config: dict, tensors: dict[str, Tensor], path: str | pathlib.Pa
         (tmp / CONFIG_FILE).write_text(text)
         save_file({name: t.detach().cpu().clone(memory_format=torch.contiguous_format) for name, t in tensors.items()},
                   tmp / WEIGHTS_FILE)
+        os.chmod(tmp / WEIGHTS_FILE, (tmp / CONFIG_FILE).stat().st_mode & 0o777)  # safetensors' own is 0600
         for name in (CONFIG_FILE, WEIGHTS_FILE, "."):
             _fsync(tmp / name)
         if path.exists():

@@ -129,6 +129,7 @@ def test_a_lock_file_that_is_a_hard_link_is_refused_and_its_target_kept(dataset_
     assert meta.read_bytes() == before
     lock.unlink()
     main(collect_args(dataset_copy))  # the dataset is intact and collects again once the link is gone
+    assert lock.read_bytes() == b""  # a copy of the folder names no stale holder
 
 
 def test_a_waiting_writer_takes_the_lock_when_the_holder_lets_go(tmp_path, capsys):

@@ -54,6 +54,8 @@ def assert_same_policy(loaded: DustPolicy, policy: DustPolicy) -> None:
 def test_a_policy_folder_round_trips_everything_without_pickle(policy, tmp_path):
     folder = save_policy(policy, tmp_path / "policy")
     assert sorted(p.name for p in folder.iterdir()) == [CONFIG_FILE, WEIGHTS_FILE]
+    modes = {(folder / name).stat().st_mode & 0o777 for name in (CONFIG_FILE, WEIGHTS_FILE)}
+    assert len(modes) == 1  # the weights as readable as the config (the umask's), not safetensors' 0600
     config = json.loads((folder / CONFIG_FILE).read_text())
     assert config["kind"] == POLICY_KIND and config["info"] == policy.info and config["execute_steps"] == 3
     assert "backbone.image.encoder.0.0.weight" in load_file(folder / WEIGHTS_FILE)

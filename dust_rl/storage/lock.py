@@ -77,7 +77,10 @@ def folder_lock(root: pathlib.Path, wait: bool = False) -> Iterator[None]:
                   "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds")}
         os.ftruncate(fd, 0)
         os.pwrite(fd, json.dumps(holder).encode(), 0)
-        yield
+        try:
+            yield
+        finally:
+            os.ftruncate(fd, 0)  # no stale holder in a folder copied later
     finally:
         os.close(fd)  # releases the lock; the file stays (removing it would race with the next locker)
 
