@@ -25,6 +25,7 @@ import os
 import pathlib
 import shutil
 import uuid
+from collections.abc import Collection, Mapping
 
 import torch
 from safetensors import SafetensorError
@@ -78,7 +79,8 @@ def load_checkpoint(path: str | pathlib.Path, kind: str) -> dict:
     """
     path = pathlib.Path(path)
     if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
+        raise CheckpointError(f"{path}: not a regular file (a FIFO, device or socket); give a checkpoint file or folder"
+                              if path.exists() else f"{path}: no such checkpoint file")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises several types for truncated or foreign files
@@ -88,7 +90,10 @@ def load_checkpoint(path: str | pathlib.Path, kind: str) -> dict:
 
 def checkpoint_kind(path: str | pathlib.Path) -> str | None:
     """The kind a checkpoint file is tagged with, read without loading its tensors (memory-mapped); None for a
-    folder or anything that is not a readable checkpoint file (its loader then says what is wrong)."""
+    folder or anything that is not a readable checkpoint file (its loader then says what is wrong); a FIFO or device is
+    never opened (reading one would block or never end)."""
+    if not pathlib.Path(path).is_file():
+        return None
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception:  # a folder, a missing, truncated or foreign file: for the loader to report
@@ -186,7 +191,7 @@ def _read_config(path: pathlib.Path, kind: str) -> dict:
         raise CheckpointError(f"{file}: {size} bytes, over the {MAX_CONFIG_BYTES} a checkpoint config may have")
     try:
         config = json.loads(file.read_bytes())
-    except (ValueError, OSError) as err:
+    except (ValueError, RecursionError, OSError) as err:  # RecursionError: nested deeper than Python's stack
         raise CheckpointError(f"{file}: not JSON ({one_line(err)})") from err
     return _checked(config, kind, file)
 
@@ -200,6 +205,40 @@ def _checked(payload: object, kind: str, source: pathlib.Path) -> dict:
         raise CheckpointError(f"{source}: format version {payload.get('format_version')!r}; "
                               f"this dust-rl reads version {FORMAT_VERSION}")
     return payload
+
+
+def non_finite(tensors: Mapping[str, object], unbounded: Collection[str] = ()) -> list[str]:
+    """The names of the floating-point tensors among ``tensors`` that hold NaN or infinity (only NaN for the names in
+    ``unbounded``, where infinity means no bound)."""
+    def bad(name: str, t: Tensor) -> bool:
+        return bool(t.isnan().any() if name in unbounded else ~torch.isfinite(t).all())
+
+    return sorted(name for name, t in tensors.items()
+                  if isinstance(t, Tensor) and t.is_floating_point() and bad(name, t))
+
+
+def check_tensor_values(tensors: Mapping[str, object], into: Mapping[str, Tensor],
+                        unbounded: Collection[str] = ()) -> None:
+    """Raise ``ValueError`` naming the ``tensors`` that would poison the module they load into (``into``: its
+    tensors, by the same names): integers where it holds floats, and NaN or infinity (``unbounded``: names that
+    may be infinite, as :func:`non_finite` takes them).
+
+    Why: either loads without a complaint (an integer tensor is cast into weights nothing trained) and makes every
+    action NaN, first noticed deep inside an env step; checked where the file is read, the error names it.
+    """
+    integers = sorted(name for name, t in tensors.items() if isinstance(t, Tensor) and name in into
+                      and into[name].is_floating_point() and not t.is_floating_point())
+    nan = non_finite(tensors, unbounded)
+    problems = ([f"integer values where the model holds floats in {_few(integers)}"] if integers else []) + (
+        [f"NaN or infinity in {_few(nan)}"] if nan else [])
+    if problems:
+        raise ValueError(f"{'; '.join(problems)} (the file was damaged, or saved from a run that diverged)")
+
+
+def _few(names: list[str], shown: int = 4) -> str:
+    """``names`` in a message: the first ``shown`` and how many more."""
+    more = f" and {len(names) - shown} more" if len(names) > shown else ""
+    return f"{names[:shown]}{more}"
 
 
 def one_line(err: BaseException) -> str:

@@ -27,9 +27,17 @@ from torchrl.envs import EnvBase
 from dust_rl.keys import IMAGE_KEY, STATE_KEY, flat_name
 
 from .backbone import FrozenBackbone, resolve_image_encoder, stores_image_weights
-from .checkpoint_io import CheckpointError, load_checkpoint, load_folder, one_line, save_checkpoint, save_folder
-from .config import MAX_CAMERAS, RETIRED_SETTINGS, DustConfig, check_size, without_retired
-from .image_encoder import ImageEncoder
+from .checkpoint_io import (
+    CheckpointError,
+    check_tensor_values,
+    load_checkpoint,
+    load_folder,
+    one_line,
+    save_checkpoint,
+    save_folder,
+)
+from .config import MAX_CAMERAS, MAX_IMAGE_SIZE, RETIRED_SETTINGS, DustConfig, check_size, without_retired
+from .image_encoder import ImageEncoder, channels_first
 from .normalizer import Normalizer
 from .policy import DustPolicy
 from .text_encoder import TextEncoder, TransformersTextEncoder
@@ -43,11 +51,13 @@ LEGACY_TRUNK_PREFIX = "agent.model."
 IMAGE_WEIGHTS_PREFIX = "backbone.image."
 # Suffix of a path that save_policy writes as one torch file; any other path becomes a folder.
 FILE_SUFFIX = ".pt"
+# A policy's buffers (set_action_bounds) where infinity means "no bound".
+ACTION_BOUNDS = ("action_low", "action_high")
 
 
 def frame_size(shape: Sequence[int]) -> list[int]:
     """[height, width] of a camera frame of ``shape``, channels first (torchrl) or last (gymnasium)."""
-    return [int(n) for n in (shape[-2:] if shape[-3] == 3 else shape[-3:-1])]
+    return [int(n) for n in (shape[-2:] if channels_first(shape) else shape[-3:-1])]
 
 
 def env_spec(env: EnvBase) -> dict:
@@ -218,18 +228,19 @@ def policy_from_entries(payload: dict, source: str | pathlib.Path, execute_steps
         policy = DustPolicy(config, backbone, cameras, payload["future_camera"],
                             execute_steps or payload["execute_steps"])
         weights = _current_names(payload["state_dict"])
-        _check_weights(policy, weights)
+        _check_weights(policy, weights, payload["image_weights"] or {})
         policy.load_state_dict(weights, strict=False)
-        policy.info = dict(payload.get("info", {}))
+        policy.info = _checked_info(payload.get("info", {}))
     except (KeyError, TypeError, ValueError, RuntimeError) as err:
         raise CheckpointError(f"{source}: policy does not load ({one_line(err)})") from err
     return policy
 
 
-def _check_weights(policy: DustPolicy, weights: dict) -> None:
+def _check_weights(policy: DustPolicy, weights: dict, image_weights: dict) -> None:
     """Raise ``ValueError`` unless ``weights`` are exactly the trainable weights and buffers of ``policy``
     (the frozen backbone's are not among them), each of its shape; only the optional normaliser buffers of older
-    files may be missing (identity stats)."""
+    files may be missing (identity stats). They and the stored image encoder's ``image_weights`` must be floats
+    where the policy holds floats, and finite; the normaliser's scales > 0."""
     expected = {k: v.shape for k, v in policy.state_dict().items() if not k.startswith("backbone.")}
     optional = {f"normalizer.{name}" for name in Normalizer.OPTIONAL_BUFFERS}
     missing = sorted(k for k in expected.keys() - weights.keys() if k not in optional)
@@ -239,6 +250,24 @@ def _check_weights(policy: DustPolicy, weights: dict) -> None:
     if missing or unexpected or misshapen:
         raise ValueError(f"weights do not match the stored config (missing {missing}, unexpected {unexpected}, "
                          f"wrong shape {misshapen})")
+    check_tensor_values({**weights, **{IMAGE_WEIGHTS_PREFIX + k: v for k, v in image_weights.items()}},
+                        policy.state_dict(), unbounded=ACTION_BOUNDS)
+    scales = [f"normalizer.{name}" for name in Normalizer.SCALES]
+    if not_positive := [k for k in scales if k in weights and not bool((weights[k] > 0).all())]:
+        raise ValueError(f"normaliser scales {not_positive} hold values <= 0 (standard deviations of the data, at "
+                         "least 1e-3 as training writes them): the policy would divide by zero")
+
+
+def _checked_info(info: object) -> dict:
+    """A policy's ``info`` as a dict, its frame size (compared with an env's) [height, width] in pixels if given."""
+    info = dict(info)
+    size = info.get(IMAGE_SIZE_INFO)
+    if size is not None:
+        if not (isinstance(size, list | tuple) and len(size) == 2):
+            raise ValueError(f"info.{IMAGE_SIZE_INFO} must be [height, width] in pixels, got {size!r}")
+        for side in size:
+            check_size(f"info.{IMAGE_SIZE_INFO} height and width", side, MAX_IMAGE_SIZE)
+    return info
 
 
 def _shape(value: object) -> list[int] | str:

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from .config import MAX_ENCODER_LAYERS, MAX_IMAGE_SIZE, MAX_PARAMETERS, MAX_WIDTH, check_size
 from .image_encoder import ImageEncoder
-from .text_encoder import local_model_folder
+from .text_encoder import pretrained_model
 
 PROCESSOR_FILE = "preprocessor_config.json"
 # ViT-shaped vision models (patch embedding, ``image_size``, ``patch_size``) that a stored config may build.
@@ -68,7 +68,8 @@ class TransformersImageEncoder(ImageEncoder):
         std: per-channel pixel std, overriding the processor's (default 0.5).
 
     Raises:
-        ValueError: ``path`` is not a local folder (nothing is downloaded), or a config in
+        ValueError: ``path`` is not a local folder of safetensors weights (nothing is downloaded, nothing unpickled;
+            :func:`~.text_encoder.pretrained_model`), or a config in
             ``to_dict()`` form (as stored in a policy file) of another model type or beyond the size caps.
     """
 
@@ -81,7 +82,7 @@ class TransformersImageEncoder(ImageEncoder):
             raise ValueError("give exactly one of path (pretrained weights) and config (random init)")
         processor = {}
         if path is not None:
-            model = AutoModel.from_pretrained(local_model_folder(path), local_files_only=True)
+            model = pretrained_model(path)
             if (pathlib.Path(path) / PROCESSOR_FILE).is_file():
                 processor = json.loads((pathlib.Path(path) / PROCESSOR_FILE).read_text())
         else:

@@ -40,6 +40,8 @@ class Normalizer(nn.Module):
     # Buffers that policy files written before they existed lack (identity then).
     FUTURE_STATS = ("future_mean", "future_std")  # the world-model target's standardisation after pooling
     OPTIONAL_BUFFERS = ("vision_mean", "vision_std", "future_change_scale", *FUTURE_STATS)
+    # The scales (standard deviations) the statistics divide by: at least MIN_STD as the setters write them.
+    SCALES = ("vision_std", "future_std", "future_change_scale", "state_std", "action_std")
 
     def __init__(self, state_dim: int, action_dim: int, vision_dim: int) -> None:
         super().__init__()

@@ -14,6 +14,7 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor, nn
 
+from .checkpoint_io import one_line
 from .config import MAX_TEXT_TOKENS, check_size
 
 
@@ -68,6 +69,25 @@ def local_model_folder(path: str | pathlib.Path) -> pathlib.Path:
     return folder
 
 
+def pretrained_model(path: str | pathlib.Path) -> nn.Module:
+    """The ``transformers`` model in the local folder ``path``, its weights read from ``model.safetensors`` only.
+
+    Why: a folder may hold a pickled ``pytorch_model.bin`` instead; torch refuses to unpickle it with a
+    multi-line ``UnpicklingError``, and loading it otherwise would run whatever code it names.
+
+    Raises:
+        ValueError: not a local folder, or one without safetensors weights (or with unreadable ones).
+    """
+    from transformers import AutoModel
+
+    folder = local_model_folder(path)
+    try:
+        return AutoModel.from_pretrained(folder, local_files_only=True, use_safetensors=True)
+    except OSError as err:
+        raise ValueError(f"model folder {str(path)!r} does not load ({one_line(err)}); dust-rl reads a model's "
+                         "weights from model.safetensors only (save it with transformers' save_pretrained)") from err
+
+
 class TransformersTextEncoder(TextEncoder):
     """Last hidden states of a ``transformers`` text model (BERT family) loaded from a local folder.
 
@@ -76,12 +96,13 @@ class TransformersTextEncoder(TextEncoder):
         max_tokens: tokens kept per instruction, [CLS] and [SEP] included.
 
     Raises:
-        ValueError: ``path`` is not a local folder, or ``max_tokens`` is out of range.
+        ValueError: ``path`` is not a local folder of safetensors weights (:func:`pretrained_model`), or
+            ``max_tokens`` is out of range.
     """
 
     def __init__(self, path: str | pathlib.Path | None = None, max_tokens: int = 16) -> None:
         super().__init__()
-        from transformers import AutoModel, AutoTokenizer
+        from transformers import AutoTokenizer
         from transformers.utils import logging
 
         check_size("max_tokens", max_tokens, MAX_TEXT_TOKENS)
@@ -91,7 +112,7 @@ class TransformersTextEncoder(TextEncoder):
         logging.disable_progress_bar()  # no weight-loading bar on every policy load
         try:
             self.tokenizer = AutoTokenizer.from_pretrained(folder, local_files_only=True)
-            self.model = AutoModel.from_pretrained(folder, local_files_only=True).eval()
+            self.model = pretrained_model(folder).eval()
         finally:
             if bar:
                 logging.enable_progress_bar()

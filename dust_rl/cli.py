@@ -110,7 +110,8 @@ def check_arguments(argv: list[str]) -> None:
 
 def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:
     """``args`` without ``--recipe NAME`` and ``--preset NAME``, and the default config they give (None: the
-    command's own), train, quickstart and bench suite starting from a named recipe (:mod:`dust_rl.train.recipes`).
+    command's own), train, quickstart and bench suite starting from a named recipe (:mod:`dust_rl.train.recipes`;
+    ``dust-rl train --resume`` from the run's own saved settings and dataset).
 
     Raises:
         ConfigError: ``--recipe`` or ``--preset`` where it does not apply, without a name, or with an unknown one.
@@ -125,12 +126,14 @@ def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:
     from dust_rl.train.imitation import TrainConfig
     from dust_rl.train.recipes import starting_settings
 
-    args, recipe, settings = starting_settings(name, args)
-    if settings is None:
-        return args, None
+    start = starting_settings(name, args)
+    if start.settings is None:
+        return start.args, None
     if name == "train":
-        return args, TrainConfig.from_settings(settings, dataset=tyro.MISSING, recipe=recipe)
-    return args, {"quickstart": QuickstartConfig, "bench suite": SuiteConfig}[name](recipe=recipe, train=settings)
+        return start.args, TrainConfig.from_settings(start.settings, **{"dataset": tyro.MISSING, **start.run},
+                                                      recipe=start.recipe)
+    return start.args, {"quickstart": QuickstartConfig, "bench suite": SuiteConfig}[name](recipe=start.recipe,
+                                                                                           train=start.settings)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from tensordict import TensorDict
 from test_evaluate import tiny_policy_file
 from test_train import TINY_ARGS
 
-from dust_rl.agents import load_policy, save_image_encoder
+from dust_rl.agents import load_policy, save_image_encoder, save_policy
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset
 from dust_rl.data.layout import STAGING_DIR
@@ -224,6 +224,18 @@ def test_pretrain_encoder_does_not_overwrite_a_policy(demo_dir, tmp_path, minilm
     assert policy.read_bytes() == before
 
 
+def test_a_policy_that_acts_nan_ends_eval_in_one_line_naming_it(tmp_path, minilm):
+    """Statistics near zero pass the load checks (they are > 0) and overflow into NaN actions, which the env would
+    refuse with a traceback from inside the collector."""
+    policy = load_policy(tiny_policy_file(tmp_path / "policy.pt", minilm))
+    policy.normalizer.state_std.fill_(1e-30)
+    path = save_policy(policy, tmp_path / "overflows.pt")
+    message = error_of(["eval", "--policy", str(path), "--out", str(tmp_path / "eval"), "--episodes", "1",
+                        "--workers", "1", "--max-steps", "5", "--videos", "0", "--no-progress"])
+    assert f"{path}: the policy's action holds NaN or infinity (at episode seed " in message
+    assert not list((tmp_path / "eval").glob("report.*"))
+
+
 @pytest.fixture
 def train_args(dataset_copy, tiny_encoder, tmp_path):
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
@@ -322,7 +334,43 @@ def _no_spec(tmp_path, demo_dir) -> list[str]:
     return ["dataset", "info", str(dataset)]
 
 
+def _run_config(text: str):
+    """A run folder whose ``config.json`` is ``text``, resumed."""
+    def make(tmp_path, demo_dir) -> list[str]:
+        (tmp_path / "run").mkdir()
+        (tmp_path / "run" / "config.json").write_text(text)
+        return ["train", "--dataset", str(demo_dir), "--out", str(tmp_path / "run"), "--resume"]
+    return make
+
+
+def _fifo_policy(tmp_path, demo_dir) -> list[str]:
+    os.mkfifo(tmp_path / "policy.pt")  # opening it would wait for a writer forever
+    return ["eval", "--policy", str(tmp_path / "policy.pt"), "--out", str(tmp_path / "eval")]
+
+
+def _odd_size_export(tmp_path, demo_dir) -> list[str]:
+    main(["collect", "--task", "press_button", "--episodes", "1", "--image-size", "31", "--out", str(tmp_path / "ds"),
+          "--no-progress"])
+    return ["dataset", "export", str(tmp_path / "ds"), "--out", str(tmp_path / "lerobot")]
+
+
 BAD_INPUT = {
+    "run-config-not-settings": (_run_config('{"config": 5}'),
+                                "run/config.json: unreadable run config (TypeError(\"'config' is 5, not an object"),
+    "run-config-too-deep": (_run_config("[" * 200_000 + "]" * 200_000), "unreadable run config (RecursionError("),
+    "policy-fifo": (_fifo_policy, "policy.pt: not a regular file (a FIFO, device or socket)"),
+    "eval-seed-overflow": (lambda tmp, demos: ["eval", "--policy", str(tmp / "p.pt"), "--seed", str(2**63 - 1),
+                                               "--episodes", "1", "--workers", "1"],
+                           f"--seed {2**63 - 1}: the 2 episode seeds from it must fit in [0, {2**63 - 1}] (an "
+                           f"episode's seed is stored as an int64); give --seed in [0, {2**63 - 2}]"),
+    "collect-seed-overflow": (lambda tmp, demos: [*collect_args(tmp / "ds", 1, "press_button"), "--seed",
+                                                  str(2**64 - 1)],
+                              f"--seed {2**64 - 1}: the 14 episode seeds from it must fit in [0, {2**63 - 1}]"),
+    "tau-buckets": (lambda tmp, demos: ["diagnose", "world-model", "--policy", str(tmp / "p.pt"), "--dataset",
+                                        str(demos), "--tau-buckets", "100000"],
+                    "tau_buckets must be at most 50 (each is one more pass over every window), got 100000"),
+    "export-odd-size": (_odd_size_export, "ds: its frames are 31x31 px; a LeRobot dataset stores frames as H.264 "
+                                          "(yuv420p) video, which needs even sizes"),
     "vision-steps-0": (lambda tmp, demos: ["bench", "suite", "--vision-steps", "0", "--out", str(tmp / "s")],
                        r"vision_steps must be multiples of N_A = 4 in [4, 1024], got (0,)"),
     "vision-steps-5000": (lambda tmp, demos: ["bench", "suite", "--vision-steps", "8", "5000", "--out", str(tmp / "s")],

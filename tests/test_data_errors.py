@@ -103,3 +103,21 @@ def test_info_and_video_tools(demo_dir, tmp_path, capsys):
     frames = list(read_mp4(tmp_path / "grid.mp4"))
     longest = max(e["length"] for e in DemoDataset(demo_dir).meta["episodes"])
     assert len(frames) == longest and frames[0].shape == (2 * 32 * 4, 3 * 2 * 32 * 4, 3)
+
+
+def test_a_video_grid_wider_than_h264_takes_is_refused_before_a_file_is_made(demo_dir, tmp_path):
+    """More columns than episodes used to widen the grid with blank cells until libx264 refused it (1000 columns) or
+    the first frame took gigabytes (100,000 columns, a hang leaving a temp file)."""
+    from dust_rl.data.tools import MAX_VIDEO_SIDE, write_episode_grid
+    from dust_rl.data.video import read_mp4
+    from dust_rl.errors import ConfigError
+
+    main(["dataset", "video", str(demo_dir), "--out", str(tmp_path / "grid.mp4"), "--episodes", "2", "--columns",
+          "1000"])
+    assert next(read_mp4(tmp_path / "grid.mp4")).shape == (32 * 4, 2 * 2 * 32 * 4, 3)  # the two episodes' cells only
+    cell_width = 2 * 32 * 4  # front | wrist at scale 4
+    many = [0] * (MAX_VIDEO_SIDE // cell_width + 1)
+    with pytest.raises(ConfigError, match=rf"is 128x{len(many) * cell_width} px, over the {MAX_VIDEO_SIDE} px a side "
+                                          rf"H.264 takes; give at most {MAX_VIDEO_SIDE // cell_width} --columns"):
+        write_episode_grid(DemoDataset(demo_dir), tmp_path / "wide.mp4", many, columns=len(many))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["grid.mp4"]  # nothing half written, no temp file

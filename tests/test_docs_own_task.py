@@ -1,5 +1,6 @@
 """docs/own_task.md works as written: its task file and launcher, then its commands (expert demo, collect, train,
-eval) at a tiny size, in one fresh interpreter (the registered task must not leak into this test process)."""
+eval) as the page gives them with only options that make them tiny added (the page's recipe and settings stand), in
+one fresh interpreter (the registered task must not leak into this test process)."""
 
 from __future__ import annotations
 
@@ -19,13 +20,15 @@ from dust_rl.envs import list_tasks
 
 PAGE = ROOT / "docs" / "own_task.md"
 TASK, LAUNCHER = "reach_ball", "my_dust.py"
-# What makes each of the page's commands tiny; given after the page's own options, so these win.
+# What makes each of the page's commands tiny (counts, sizes, threads, progress bars), nothing that changes what
+# they do; given after the page's own options, so these win. Training keeps the recipe the page's data picks
+# (vision-readout), whose read-out scales down with the steps.
 TINY = {
     "demo": ["--episodes", "1", "--image-size", "32"],
     "collect": ["--episodes", "2", "--image-size", "32"],
-    # --recipe plain: the default for data with environment_state fits a read-out first
     "train": ["--optim.steps", "5", "--runtime.threads", "1", "--runtime.no-progress",
-              "--policy.image-encoder", "encoder.pt", *TINY_ARGS, "--recipe", "plain"],
+              "--policy.image-encoder", "encoder.pt", "--policy.cond-grid", "4", "4", "--policy.readout-grid", "4", "4",
+              *[arg for arg in TINY_ARGS if not arg.startswith("--recipe")]],
     "eval": ["--episodes", "1", "--workers", "1", "--videos", "0", "--no-progress"],
 }
 # Runs each command of the page through the launcher's main(), in one interpreter.
@@ -58,5 +61,9 @@ def test_the_page_registers_collects_trains_and_evaluates_its_task(tmp_path):
     assert all(episode["success"] for episode in dataset.meta["episodes"])  # the expert solved every seed it kept
     assert [episode["seed"] for episode in dataset.meta["episodes"]] == [0, 1]  # ... and the first two it tried
     assert (tmp_path / "runs/train/reach_ball/policy.pt").is_file()
+    trained = json.loads((tmp_path / "runs/train/reach_ball/config.json").read_text())["config"]
+    assert (trained["recipe"], trained["readout"]["aux_frames"], trained["readout"]["warmup_steps"]) == (
+        "vision-readout", 20, 10)  # as the page says: the read-out, at 5 of its 2,000 steps
+    assert "read-out: 20 aux frames and 20 held out" in done.stdout
     report = json.loads((tmp_path / "runs/eval/reach_ball/report.json").read_text())
     assert [(row["task"], row["episodes"]) for row in report["tasks"]] == [(TASK, 1)]

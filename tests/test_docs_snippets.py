@@ -1,5 +1,6 @@
-"""The README's code runs: every python block executes in a fresh interpreter, and every ``dust-rl`` command its
-bash blocks use exists (``--help`` exits 0); the commands themselves are not run (they train for minutes).
+"""The README's code runs: every python block executes in a fresh interpreter, with each value a line's comment states
+(``obs["language_instruction"]  # "..."``: a comment that is one string literal) asserted, and every ``dust-rl``
+command its bash blocks use exists (``--help`` exits 0); the commands themselves are not run (they train for minutes).
 
 A block that must not run is marked on the line before its fence with ``<!-- no-test: why -->``.
 """
@@ -20,6 +21,8 @@ README = ROOT / "README.md"
 SKIP_MARKER = re.compile(r"<!--\s*no-test:\s*(\S.*?)\s*-->")
 FENCE = re.compile(r"^```(\w*)\s*$")
 SNIPPET_TIMEOUT = 120  # seconds per python block: imports and a gym/torchrl env are most of it
+# A python line that states its expression's value in its comment, a string literal and nothing else.
+STATED = re.compile(r'^(?P<code>\S.*?)\s+#\s*(?P<value>"[^"]*")\s*$')
 # A dust-rl command in a shell line: one or two words (``dust-rl bench suite``) before the options.
 COMMAND = re.compile(r"(?:^|[\s/;&|(])dust-rl\s+([a-z][\w-]*)(?:\s+([a-z][\w-]*))?")
 
@@ -55,6 +58,15 @@ def shell_commands(code: str) -> list[str]:
             not line.lstrip().startswith("#")]
 
 
+def with_stated_values(code: str) -> str:
+    """``code`` with each line that states its value in its comment (:data:`STATED`) asserting it."""
+    lines = []
+    for line in code.splitlines():
+        stated = STATED.match(line)
+        lines.append(f"assert ({stated['code']}) == {stated['value']}, {stated['code']}" if stated else line)
+    return "\n".join(lines) + "\n"
+
+
 PYTHON_BLOCKS = code_blocks(README, "python")
 
 
@@ -62,8 +74,8 @@ PYTHON_BLOCKS = code_blocks(README, "python")
 def test_readme_python_block_runs(block, tmp_path):
     if block.skip:
         pytest.skip(block.skip)
-    done = subprocess.run([sys.executable, "-c", block.code], cwd=tmp_path, capture_output=True, text=True,
-                          timeout=SNIPPET_TIMEOUT, env=os.environ | {"OMP_NUM_THREADS": "1"})
+    done = subprocess.run([sys.executable, "-c", with_stated_values(block.code)], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=SNIPPET_TIMEOUT, env=os.environ | {"OMP_NUM_THREADS": "1"})
     assert done.returncode == 0, f"README.md:{block.line} failed:\n{done.stderr[-3000:]}"
 
 

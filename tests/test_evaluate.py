@@ -102,6 +102,8 @@ def test_wilson_interval_known_values():
     assert wilson_interval(10, 20) == pytest.approx((0.2993, 0.7007), abs=1e-4)
     assert wilson_interval(1, 1, z=0.0) == (1.0, 1.0)
     assert wilson_interval(0, 0) == (0.0, 1.0)
+    for n in range(1, 200):  # the interval holds the rate itself (rounding put 100/100's upper end at 1 - 1e-16)
+        assert wilson_interval(0, n)[0] == 0.0 and wilson_interval(n, n)[1] == 1.0
 
 
 def test_report_rows_count_each_seed_once(report, eval_config):

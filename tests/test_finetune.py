@@ -14,6 +14,7 @@ import pytest
 import torch
 from conftest import as_before_the_groups, kill_after_first_checkpoint
 from crafted import CRAFTS
+from tensordict import TensorDict
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy
@@ -25,6 +26,7 @@ from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 from dust_rl.evaluate.report import loss_csvs
 from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
+    RL_AGENT_FILE,
     LatentSettings,
     PpoSettings,
     ResidualConfig,
@@ -47,6 +49,7 @@ from dust_rl.rl.vector import SB3SteeringVecEnv
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import RunRNGState, restore
+from dust_rl.train.imitation import NonFiniteLossError
 from dust_rl.train.settings import LoggingSettings, OptimSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -321,6 +324,13 @@ def test_q_bounds_hold_the_critic_and_its_target_within_the_returns(policy_path)
 def test_bad_finetune_settings_are_named(policy_path, tmp_path):
     with pytest.raises(ConfigError, match="noise_bound"):
         SteerConfig(policy=policy_path, noise_bound=0.0)
+    with pytest.raises(ConfigError, match=r"noise_bound must be at most 10.0, got 1e\+30: the policy draws its noise "):
+        SteerConfig(policy=policy_path, noise_bound=1e30)  # used to overflow the sampler into NaN actions
+    with pytest.raises(ConfigError, match=r"seed must be in \[0, 4294967295\] \(SB3 seeds numpy's generator"):
+        SteerConfig(policy=policy_path, seed=2**40)
+    for flag, field in (("--eval-seed", "eval_seed"), ("--curve-seed", "curve_seed")):
+        with pytest.raises(ConfigError, match=rf"give {flag} in \[0, {2**63 - 21}\]"):  # 20 episodes, one more started
+            SteerConfig(policy=policy_path, **{field: 2**63 - 1}, eval_episodes=20, curve_episodes=20)
     with pytest.raises(ConfigError, match="residual_scale"):
         ResidualConfig(policy=policy_path, residual_scale=float("inf"))
     with pytest.raises(ConfigError, match="initial_std must be a finite number > 0"):
@@ -480,6 +490,110 @@ def test_a_rounds_time_adds_up_over_resumed_invocations(tmp_path):
     assert _add_seconds(tmp_path, 100.0) == 100.0  # the invocation that collected and trained
     assert _add_seconds(tmp_path, 0.5) == 100.5  # a resume that read the cached stages back
     assert json.loads((tmp_path / ROUND_SECONDS).read_text()) == {"seconds": 100.5}
+
+
+@pytest.fixture(scope="module")
+def sac_run(policy_path, tmp_path_factory) -> SteerConfig:
+    """A finished SAC steering run of 8 steps, checkpointed at 4 and 8 (tests that change it put it back)."""
+    config = SteerConfig(policy=policy_path, out=tmp_path_factory.mktemp("sac") / "ft", steps=8, checkpoint_every=4,
+                         algorithm=SacSettings(learning_starts=2), batch_size=4, net_arch=(16,), eval_episodes=1,
+                         max_steps=EPISODE_STEPS, progress=False)
+    finetune(config)
+    return config
+
+
+def _tampered_agent(run: SteerConfig, path: pathlib.Path, edit) -> pathlib.Path:
+    """The run's ``rl_agent.pt`` with ``edit`` applied to its entries, saved at ``path``."""
+    payload = torch.load(run.out / "rl_agent.pt", weights_only=True)
+    edit(payload)
+    torch.save(payload, path)
+    return path
+
+
+def _nan_weights(payload: dict) -> None:
+    for value in payload["state_dict"].values():
+        value.fill_(float("nan"))
+
+
+TAMPERED_AGENTS = {
+    "settings-a-string": (lambda d: d.update(config="x"), "the fine-tuning settings do not read back (TypeError: the "
+                                                          "fine-tuning settings are 'x', not an object of settings)"),
+    "noise-bound-1e30": (lambda d: d["config"].update(noise_bound=1e30),
+                         "the fine-tuning settings do not read back (ConfigError: noise_bound must be at most 10.0"),
+    "nan-weights": (_nan_weights, "the RL agent does not load (ValueError: NaN or infinity in ['actor."),
+}
+
+
+@pytest.mark.parametrize("case", TAMPERED_AGENTS)
+def test_eval_of_a_tampered_rl_agent_file_ends_in_one_line_naming_it(sac_run, tmp_path, case):
+    from test_cli_errors import error_of
+
+    edit, problem = TAMPERED_AGENTS[case]
+    agent = _tampered_agent(sac_run, tmp_path / "rl_agent.pt", edit)
+    assert f"{agent}: {problem}" in error_of(["eval", "--policy", str(agent), "--out", str(tmp_path / "eval"),
+                                             "--episodes", "1", "--no-progress"])
+
+
+def _forge(checkpoint: pathlib.Path, entry: str, value: object) -> None:
+    """Set the agent component's state ``entry`` (``replay_buffer/pos``) to the JSON ``value``, or fill the tensor there
+    with NaN (``value`` None), then write the digests anew, as a forger would."""
+    from test_train import _record_digests
+
+    component = next((checkpoint / "components").glob("*-agent"))
+    state = json.loads((component / "state.json").read_text())
+    node = state
+    for name in entry.split("/"):
+        node = next(v for k, v in node["items"] if k.get("value") == name)
+    if value is None:
+        memmap = component / "state" / f"{node['key']}.memmap"
+        np.full(memmap.stat().st_size // 4, np.nan, np.float32).tofile(memmap)
+    else:
+        node["value"] = value
+    (component / "state.json").write_text(json.dumps(state))
+    _record_digests(checkpoint)
+
+
+FORGED = {  # the first checkpoint holds 4 steps of 1 env in a buffer of 8 rows
+    "pos-1e9": ("replay_buffer/pos", 10**9, r"the saved replay buffer \(pos 1000000000, full False, 4 rows\) is not "
+                                            r"what 4 steps of 1 env\(s\) fill in a buffer of 8 rows"),
+    "full-but-half-empty": ("replay_buffer/full", True, r"\(pos 4, full True, 4 rows\) is not what 4 steps"),
+    "negative-step": ("counters/num_timesteps", -100, r"counters/num_timesteps is -100, not a count >= 0"),
+    "step-past-the-run": ("counters/num_timesteps", 10**12, r"num_timesteps is 1000000000000, past the run's 8 steps"),
+    "nan-rewards": ("replay_buffer/rewards", None, r"NaN or infinity in \['rewards'\]"),
+}
+
+
+@pytest.mark.parametrize("case", FORGED)
+def test_a_forged_replay_buffer_or_step_counter_is_refused_on_resume(sac_run, tmp_path, case):
+    """The digests are the writer's own, so a forger writes them anew; what a checkpoint restores is checked itself."""
+    entry, value, problem = FORGED[case]
+    checkpoints = sac_run.out / "checkpoints"
+    kept = shutil.copytree(checkpoints, tmp_path / "kept")
+    agent_file = (sac_run.out / RL_AGENT_FILE).read_bytes()
+    try:
+        first, last = sorted(checkpoints.iterdir())
+        shutil.rmtree(last)  # resume from the first
+        _forge(first, entry, value)
+        with pytest.raises(CheckpointError, match=rf"{first.name}: cannot resume from this checkpoint .*{problem}"):
+            finetune(dataclasses.replace(sac_run, resume=True))
+    finally:
+        shutil.rmtree(checkpoints)
+        shutil.move(kept, checkpoints)
+    assert (sac_run.out / RL_AGENT_FILE).read_bytes() == agent_file
+
+
+def test_diverging_rl_training_stops_before_non_finite_weights_act_or_are_saved(policy_path, tmp_path):
+    config = SteerConfig(policy=policy_path, out=tmp_path / "ft", steps=16, checkpoint_every=8, lr=1e30,
+                         algorithm=SacSettings(learning_starts=8), batch_size=4, net_arch=(16,), eval_episodes=1,
+                         max_steps=EPISODE_STEPS, progress=False)
+    with pytest.raises(NonFiniteLossError, match=r"training diverged at step 9: NaN or infinity in the RL agent's "
+                                                 r"weights .*no rl_agent\.pt was written and the newest checkpoint, "
+                                                 r"checkpoint-000000000008, is intact; lower --lr"):
+        finetune(config)  # the first update (after step 8's checkpoint) makes the weights infinite
+    assert not (config.out / RL_AGENT_FILE).exists()
+    (state,) = (config.out / "checkpoints").glob("checkpoint-*/components/*-agent/state")
+    tensors = TensorDict.load_memmap(state).values(include_nested=True, leaves_only=True)
+    assert all(torch.isfinite(t).all() for t in tensors if t.is_floating_point())
 
 
 def test_a_pickle_grafted_into_a_finetune_checkpoint_never_runs_on_resume(policy_path, tmp_path):

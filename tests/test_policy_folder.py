@@ -9,12 +9,14 @@ import shutil
 
 import pytest
 import torch
+from crafted import TouchOnUnpickle
 from safetensors.torch import load_file, save_file
 from test_agents_policy import observation, perturb, tiny_policy
 
 from dust_rl.agents import CheckpointError, DustPolicy, SamplerConfig, load_policy, save_policy
 from dust_rl.agents.checkpoint_io import CONFIG_FILE, MAX_CONFIG_BYTES, WEIGHTS_FILE
 from dust_rl.agents.factory import POLICY_KIND
+from dust_rl.agents.text_encoder import minilm_path
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -116,6 +118,22 @@ def _text_encoder_tensor(tensors: dict) -> None:
     tensors["backbone.text.model.embeddings.word_embeddings.weight"] = torch.zeros(30522, 384)
 
 
+def _fill(prefix: str, value: float, dtype: torch.dtype | None = None):
+    """Set every floating tensor whose name starts with ``prefix`` to ``value`` (of ``dtype``, default its own)."""
+    def change(tensors: dict) -> None:
+        for name, tensor in tensors.items():
+            if name.startswith(prefix) and tensor.is_floating_point():
+                tensors[name] = torch.full_like(tensor, value, dtype=dtype)
+    return change
+
+
+def _with_info(**entries):
+    def edit(folder: pathlib.Path) -> None:
+        config = json.loads((folder / CONFIG_FILE).read_text())
+        (folder / CONFIG_FILE).write_text(json.dumps({**config, "info": {**config["info"], **entries}}))
+    return edit
+
+
 FOLDER_CRAFTS = {
     "config-not-json": (lambda f: (f / CONFIG_FILE).write_text("{'kind': 1"), r"config\.json: not JSON \("),
     "config-a-list": (lambda f: (f / CONFIG_FILE).write_text("[1, 2]"),
@@ -140,6 +158,20 @@ FOLDER_CRAFTS = {
                        r"missing \['model\.state_in\.weight'\]"),
     "image-encoder-tensor-missing": (_edit_tensors(lambda t: t.pop("backbone.image.encoder.0.0.weight")),
                                      r"policy does not load \(RuntimeError: .*encoder\.0\.0\.weight"),
+    # Content that loads without a complaint and makes every action NaN (or the env check trip over its type).
+    "config-nested-too-deep": (lambda f: (f / CONFIG_FILE).write_text("[" * 200_000 + "]" * 200_000),
+                               r"config\.json: not JSON \(RecursionError: "),
+    "weights-nan": (_edit_tensors(_fill("model.", float("nan"))), r"NaN or infinity in \['model\."),
+    "normaliser-nan": (_edit_tensors(_fill("normalizer.state_mean", float("nan"))),
+                       r"NaN or infinity in \['normalizer\.state_mean'\]"),
+    "normaliser-zero-std": (_edit_tensors(_fill("normalizer.state_std", 0.0)),
+                            r"normaliser scales \['normalizer\.state_std'\] hold values <= 0"),
+    "weights-int8": (_edit_tensors(_fill("model.", 1, torch.int8)), r"integer values where the model holds floats in "
+                                                                    r"\['model\."),
+    "image-encoder-weights-inf": (_edit_tensors(_fill("backbone.image.", float("inf"))),
+                                  r"NaN or infinity in \['backbone\.image\."),
+    "info-image-size-int": (_with_info(image_size=32), r"info\.image_size must be \[height, width\] in pixels, got 32"),
+    "info-image-size-text": (_with_info(image_size="32x32"), r"info\.image_size must be .* got '32x32'"),
     "config-links-out": (_link_out(CONFIG_FILE), r"config\.json: links to .*outside-config\.json, outside the"),
     "weights-link-out": (_link_out(WEIGHTS_FILE), r"model\.safetensors: links to .*outside-model\.safetensors"),
 }
@@ -165,3 +197,17 @@ def test_a_misshapen_tensor_in_a_policy_file_is_refused_in_one_line(policy, tmp_
     with pytest.raises(CheckpointError, match=problem) as error:
         load_policy(tmp_path / "crafted.pt")
     assert "\n" not in str(error.value)
+
+
+def test_a_text_encoder_folder_holding_a_pickle_is_refused_and_never_unpickled(policy, tmp_path):
+    """transformers would torch.load a ``pytorch_model.bin`` (a pickle) where ``model.safetensors`` is missing."""
+    folder = shutil.copytree(minilm_path(), tmp_path / "encoder", ignore=shutil.ignore_patterns(WEIGHTS_FILE))
+    marker = tmp_path / "code-ran"
+    torch.save({"weights": TouchOnUnpickle(marker)}, folder / "pytorch_model.bin")
+    payload = torch.load(save_policy(policy, tmp_path / "policy.pt"), weights_only=True)
+    payload["backbone"]["text"]["path"] = str(folder)
+    torch.save(payload, tmp_path / "crafted.pt")
+    problem = r"crafted\.pt: policy does not load \(ValueError: model folder .*encoder' does not load .*safetensors"
+    with pytest.raises(CheckpointError, match=problem) as error:
+        load_policy(tmp_path / "crafted.pt")
+    assert "\n" not in str(error.value) and not marker.exists()

@@ -10,15 +10,16 @@ import shutil
 from dataclasses import replace
 
 import pytest
+import torch
 import tyro
-from test_train import TINY_ARGS, tiny_config
+from test_train import TINY_ARGS, tiny_config, trained_weights
 
 from dust_rl.agents import PolicyConfig, save_image_encoder
 from dust_rl.cli import main, with_preset
 from dust_rl.quickstart import QuickstartConfig
 from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TrainConfig, train
-from dust_rl.train.recipes import RECIPES, default_recipe, plain, vision_readout
+from dust_rl.train.recipes import RECIPES, default_recipe, plain, scaled_to_steps, vision_readout
 from dust_rl.train.settings import GROUPED_SETTINGS, DataSettings, OptimSettings, ReadoutSettings, TrainSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -105,7 +106,7 @@ def test_train_without_a_recipe_picks_one_by_the_dataset(demo_dir, tiny_encoder,
     meta = json.loads((dataset / "meta.json").read_text())
     del meta["stats"]["observation.environment_state"]
     (dataset / "meta.json").write_text(json.dumps(meta))
-    name, why = default_recipe(dataset, tmp_path / "new", resume=False)
+    name, why = default_recipe(dataset)
     assert name == "plain" and "records no observation.environment_state" in why
 
 
@@ -127,6 +128,76 @@ def test_resume_keeps_the_recipe_the_run_started_with(run_inputs, tmp_path, caps
     (out / "config.json").write_text(json.dumps(saved))
     with pytest.raises(SystemExit, match="trained with recipe 'fastest', which this version does not have"):
         main(["train", "--dataset", str(dataset), "--out", str(out), "--resume"])
+
+
+def parsed(args: list[str]) -> TrainConfig:
+    """What ``dust-rl train ARGS`` trains with, parsed as the command parses it."""
+    args, default = with_preset("train", args)
+    return tyro.cli(TrainConfig, args=args, default=default)
+
+
+def test_fewer_steps_than_the_recipes_scale_its_readout_down(run_inputs, tmp_path, capsys):
+    for recipe in RECIPES.values():  # at its own step count and above, every recipe is as measured
+        own = recipe.settings()
+        assert scaled_to_steps(own, own.optim.steps) == own == scaled_to_steps(own, 2 * own.optim.steps)
+    readout = parsed(["--dataset", "d", "--recipe", "vision-readout", "--optim.steps", "20"]).readout
+    assert (readout.aux_frames, readout.warmup_steps) == (80, 40)  # 8,000 and 4,000 at 2,000 steps
+    readout = parsed(["--dataset", "d", "--recipe", "pick-place-readout", "--optim.steps=1"]).readout
+    assert (readout.aux_frames, readout.warmup_steps) == (1, 1)  # 32,000 and 16,000 at 20,000: at least one each
+    given = parsed(["--dataset", "d", "--recipe", "vision-readout", "--optim.steps", "20", "--readout.aux-frames",
+                    "8000"]).readout
+    assert (given.aux_frames, given.warmup_steps) == (8000, 40)  # a value given is kept
+    assert capsys.readouterr().out == ""
+    # The run says what its read-out will do before it renders a frame, with no progress bar too.
+    dataset, encoder = run_inputs
+    out = tmp_path / "run"
+    main(["train", "--dataset", str(dataset), "--out", str(out), "--optim.steps", "2", "--runtime.threads", "1",
+          "--runtime.no-progress", "--policy.image-encoder", str(encoder), "--policy.cond-grid", "4", "4",
+          "--policy.readout-grid", "4", "4", *[a for a in TINY_ARGS if not a.startswith("--recipe")]])
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0].startswith("recipe vision-readout: ")
+    assert printed[1] == ("read-out: 8 aux frames and 8 held out (rendered once per dataset), 4 warm-up steps, then "
+                          "the 2 training steps (--readout.aux-frames and --readout.warmup-steps set them)")
+    stored = json.loads((out / "config.json").read_text())["config"]
+    assert (stored["readout"]["aux_frames"], stored["readout"]["warmup_steps"]) == (8, 4)
+    # A run stopped before its first checkpoint (in its warm-up, say) is told apart from one with checkpoints.
+    stopped = tmp_path / "stopped"
+    stopped.mkdir()
+    shutil.copy(out / "config.json", stopped)
+    with pytest.raises(SystemExit, match=f"{stopped} holds a run stopped before its first checkpoint; pass --resume "
+                       "to start it again with its own settings, delete the folder to start another there"):
+        main(["train", "--dataset", str(dataset), "--out", str(stopped), "--recipe", "plain"])
+
+
+def test_resume_restores_the_runs_own_settings_and_refuses_a_flag_against_them(run_inputs, tmp_path, capsys):
+    dataset, encoder = run_inputs
+    out = tmp_path / "run"
+    main(["train", "--dataset", str(dataset), "--out", str(out), "--optim.steps", "6", "--optim.lr", "3e-3",
+          "--data.start-rows", "2", "--seed", "3", "--logging.checkpoint-every", "3", "--logging.log-every", "3",
+          "--policy.image-encoder", str(encoder), "--runtime.threads", "1", "--runtime.no-progress", *TINY_ARGS])
+    uninterrupted = trained_weights(out / "policy.pt")
+    shutil.rmtree(sorted((out / "checkpoints").glob("checkpoint-*"))[-1])  # as a run stopped at step 3 leaves it
+    (out / "policy.pt").unlink()
+    capsys.readouterr()
+    main(["train", "--out", str(out), "--resume"])  # its dataset, recipe and flags are the run's own
+    assert f"recipe defaults: the one {out} started with, resumed with the settings it saved" in capsys.readouterr().out
+    resumed = trained_weights(out / "policy.pt")
+    assert all(torch.equal(uninterrupted[k], resumed[k]) for k in uninterrupted)
+    logged = (out / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text().split()
+    assert [int(row.split(",")[0]) for row in logged] == [3, 6, 6]  # continued from step 3
+    # A flag may repeat the run's value or change one a run may change between sittings; one against it is refused.
+    main(["train", "--dataset", str(dataset), "--out", str(out), "--resume", "--optim.lr", "0.003",
+          "--logging.eval-episodes", "3"])
+    for args, message in [
+        (["--optim.lr", "1e-3"], f"dust-rl: error: {out} was started with other settings (optim.lr): --optim.lr 0.001 "
+         "given, the run's is 0.003; resume without those flags (or with the run's values) or use a new --out"),
+        (["--optim.steps", "9", "--policy.text-fusion"], "(policy.text_fusion, optim.steps): --policy.text-fusion "
+         "given, the run's is False; --optim.steps 9 given, the run's is 6;"),
+        (["--recipe", "plain"], f"dust-rl: error: --recipe plain: {out} was started with recipe defaults, whose saved "
+         "settings --resume restores; drop --recipe, or start a new run with another --out")]:
+        with pytest.raises(SystemExit) as refused:
+            main(["train", "--out", str(out), "--resume", *args])
+        assert message in str(refused.value) and "\n" not in str(refused.value)
 
 
 @pytest.fixture

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+import re
 import shutil
 
 import pytest
@@ -198,3 +199,52 @@ def test_a_study_from_before_the_settings_groups_compares_as_todays():
     assert recipe(before) == recipe(today) and recipe(today)["optim.lr"] == 3e-4
     assert "runtime.threads" not in recipe(today)  # how a run was carried out, not what it trained
     assert recipe({"train": {**before["train"], "lr": 1e-4}}) == {**recipe(today), "optim.lr": 1e-4}
+
+
+def _each_row(change):
+    def edit(study: dict) -> None:
+        for row in study["rows"]:
+            change(row)
+    return edit
+
+
+HOSTILE_STUDIES = {
+    "rows-null": (lambda s: s.update(rows=None), "rows must be a list of results rows"),
+    "successes-above-the-episodes": (_each_row(lambda r: r.update(per_seed_successes=[51])),
+                                     r"row 'dust' \('as trained', 100 demos\): per_seed_successes must be one count in "
+                                     r"\[0, 50\] per training seed \[0\], got \[51\]"),
+    "successes-negative": (_each_row(lambda r: r.update(per_seed_successes=[-3])), r"got \[-3\]"),
+    "successes-text": (_each_row(lambda r: r.update(per_seed_successes=["x"])), r"got \['x'\]"),
+    "rate-nan": (_each_row(lambda r: r.update(per_seed=[float("nan")])),
+                 r"per_seed must be one rate in \[0, 1\] per training seed \[0\], got \[nan\]"),
+    "task-with-markup": (lambda s: s.update(task="open_drawer|<script>alert(1)</script>\n# x"),
+                         r"task 'open_drawer\|<script>.* is not a task name"),
+}
+
+
+@pytest.mark.parametrize("case", HOSTILE_STUDIES)
+def test_a_hostile_results_file_is_refused_naming_it_before_anything_is_written(case, tmp_path):
+    """The counts feed Wilson intervals and the task name is written raw into average.md: each is checked on load."""
+    edit, problem = HOSTILE_STUDIES[case]
+    study = json.loads((KEPT / "open_drawer.json").read_text())
+    edit(study)
+    path = write_study(tmp_path / "open_drawer.json", study)
+    with pytest.raises(ConfigError, match=rf"{re.escape(str(path))}: .*{problem}.*the file was edited: run `dust-rl "
+                                          "bench suite` again"):
+        average_command(AverageConfig(studies=(KEPT / "push.json", path), out=tmp_path / "average"))
+    assert not (tmp_path / "average").exists()
+
+
+def test_a_cell_report_that_is_no_evaluation_is_refused_naming_it(two_studies):
+    """A study reuses the evaluations on disk: one that is not a report (``{}``) ended in a KeyError."""
+    (press, results), _ = two_studies
+    report = next((press.out / "eval").rglob("report.json"))
+    kept = report.read_bytes()
+    try:
+        report.write_text("{}")
+        with pytest.raises(ConfigError, match=rf"{re.escape(str(report))}: not an evaluation report \(no seeds, "
+                                              r"env_kwargs, .*\); delete it and run the same command again"):
+            run_suite(press)
+    finally:
+        report.write_bytes(kept)
+    assert run_suite(press)["rows"] == results["rows"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import importlib.util
+import io
 import json
 import math
 import os
@@ -18,6 +19,7 @@ import pytest
 import torch
 from conftest import as_before_the_groups, kill_after_first_checkpoint
 from crafted import CRAFTS
+from PIL import Image
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder
@@ -148,6 +150,40 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
                                                                         "checkpoint-000000000012"]
     assert (out / "loss.png").stat().st_size > 0
     assert list((tmp_path / "data" / "features").glob("*.npy"))  # cached for the next run on this dataset
+
+
+def test_tensorboard_gets_the_config_the_success_plot_and_a_rollout_video_under_the_runs_name(run_inputs, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData
+    from tensorboard.util.tensor_util import make_ndarray
+
+    out = tmp_path / "run"
+    train(tiny_config(run_inputs, out, steps=2, log_every=1, eval_every=2, eval_episodes=1, eval_workers=1,
+                      run_name="trial"))
+    logs = out / "logs"
+    assert (logs / "trial" / "scalars" / "train" / "loss.csv").is_file() and not (logs / "train").exists()
+    events = EventAccumulator(str(logs / "trial"), size_guidance={"images": 0, "tensors": 0})
+    events.Reload()
+    (plot,) = events.Images("eval/success")
+    assert plot.step == 2 and plot.encoded_image_string.startswith(b"\x89PNG")
+    # The video: the periodic evaluation's first episode, every observation a frame of an animated GIF.
+    (video,) = events.Images("eval/rollout/press_button")
+    evaluated = json.loads((out / "eval" / "step-0000002" / "report.json").read_text())
+    episode = evaluated["tasks"][0]["videos"][0]
+    with Image.open(io.BytesIO(video.encoded_image_string)) as gif:
+        assert (video.step, gif.format, gif.n_frames, gif.size) == (2, "GIF", episode["length"] + 1,
+                                                                      (video.width, video.height))
+    # The config, as text (its JSON) and as hparams by dotted name.
+    (text,) = events.Tensors("config/text_summary")
+    stored = json.loads((out / "config.json").read_text())["config"]
+    assert json.loads(make_ndarray(text.tensor_proto).item().decode()) == stored
+    content = events.PluginTagToContent("hparams")["_hparams_/session_start_info"]
+    hparams = HParamsPluginData.FromString(content).session_start_info.hparams
+    assert (hparams["optim.steps"].number_value, hparams["logging.run_name"].string_value) == (2, "trial")
+    experiment = HParamsPluginData.FromString(events.PluginTagToContent("hparams")["_hparams_/experiment"]).experiment
+    assert [m.name.tag for m in experiment.metric_infos] == ["train/loss", "eval/success_rate"]
+    with pytest.raises(ConfigError, match=r"--logging.run-name must name one folder .*, got '../x'"):
+        tiny_config(run_inputs, out, run_name="../x")
 
 
 def test_loggers_are_chosen_by_name(run_inputs, tmp_path):
@@ -569,9 +605,9 @@ def test_a_second_run_into_a_busy_folder_is_refused_naming_the_first(run_inputs,
     with folder_lock(out), pytest.raises(FolderLockedError, match=f"pid {os.getpid()}"):  # as a run holds it
         train(tiny_config(run_inputs, out, steps=2))
     assert sorted(p.name for p in out.iterdir()) == [".lock"]  # nothing of the refused run's
-    # A run holds the lock until its end (the holder's details are its own), then lets go: --resume runs.
+    # A run holds the lock until its end, then lets go (its details gone with it): --resume runs.
     train(tiny_config(run_inputs, out, steps=2))
-    assert json.loads((out / ".lock").read_text())["pid"] == os.getpid()
+    assert (out / ".lock").read_bytes() == b""
     train(tiny_config(run_inputs, out, steps=2, resume=True))
     # Refused under the lock (the folder changed since the first check), a run leaves no folder it created.
     fresh = tmp_path / "fresh" / "run"

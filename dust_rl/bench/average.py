@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +43,7 @@ from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import wilson_interval
 from dust_rl.evaluate.report import percent, save_png
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
+from dust_rl.storage.paths import SAFE_NAME
 from dust_rl.train.imitation import RESUMABLE_FIELDS
 from dust_rl.train.settings import RETIRED_FIELDS, grouped_json
 
@@ -49,6 +51,8 @@ from dust_rl.train.settings import RETIRED_FIELDS, grouped_json
 NOT_THE_RECIPE = (*RESUMABLE_FIELDS, "seed", "logging.log_every", "logging.checkpoint_every", "runtime.nproc")
 SHARED = ("env", "main_demos", "eval_seeds")  # what every study must have in common besides the recipe
 READ = (*SHARED, "task", "train", "rows")  # the entries of results.json this command reads
+ROW_KEYS = ("variant", "sampler", "demos", "seeds")  # and of each of its rows
+REWRITE = "run `dust-rl bench suite` again into its folder to rewrite it"
 
 
 @dataclass
@@ -82,14 +86,54 @@ def load_study(study: pathlib.Path) -> dict:
         raise ConfigError(f"{study} holds no results.json: run (or finish) `dust-rl bench suite --out {study}`")
     try:
         study = json.loads(path.read_text())
-    except (UnicodeDecodeError, ValueError) as err:
-        raise ConfigError(f"{path}: not a readable results file ({err}); run `dust-rl bench suite` again into its "
-                          "folder to rewrite it") from err
+    except (ValueError, RecursionError) as err:  # RecursionError: nested past Python's stack
+        raise ConfigError(f"{path}: not a readable results file ({err}); {REWRITE}") from err
     missing = [key for key in READ if key not in study] if isinstance(study, dict) else list(READ)
     if missing:
-        raise ConfigError(f"{path}: not a results file (no {', '.join(missing)}); run `dust-rl bench suite` again "
-                          "into its folder to rewrite it")
+        raise ConfigError(f"{path}: not a results file (no {', '.join(missing)}); {REWRITE}")
+    if problem := study_problem(study):
+        raise ConfigError(f"{path}: {problem}; the file was edited: {REWRITE}")
     return study
+
+
+def study_problem(study: dict) -> str | None:
+    """What in ``study`` this command cannot read, in words (None: nothing): a task that is not a task's name (it is
+    written into the table and the plot as it is), evaluation seeds that are not a range, rows that are not results
+    rows, or a row's per-seed successes that are not one count in [0, episodes per seed] per training seed (rates
+    in [0, 1] in a study from before the counts were recorded)."""
+    task, seeds, rows = study["task"], study["eval_seeds"], study["rows"]
+    if not (isinstance(task, str) and SAFE_NAME.fullmatch(task)):
+        return f"task {task!r:.80} is not a task name (letters, digits, '_', '.', '-')"
+    if not (isinstance(seeds, list) and len(seeds) == 2 and all(_is_int(s) for s in seeds) and 0 <= seeds[0]
+            <= seeds[1]):
+        return f"eval_seeds must be [first, last] seeds, got {seeds!r:.80}"
+    if not (isinstance(rows, list) and all(isinstance(r, dict) and all(k in r for k in ROW_KEYS) for r in rows)):
+        return f"rows must be a list of results rows (each with {', '.join(ROW_KEYS)}), got {rows!r:.80}"
+    episodes = seeds[1] - seeds[0] + 1
+    for row in rows:
+        name = f"row {row['variant']!r:.40} ({row['sampler']!r:.40}, {row['demos']!r:.20} demos)"
+        if not _per_seed(row["seeds"], row["seeds"], _is_int):
+            return f"{name}: seeds must be a list of training seeds, got {row['seeds']!r:.80}"
+        counted = "per_seed_successes" if row.get("per_seed_successes") else "per_seed"
+        each, valid = ((f"count in [0, {episodes}]", lambda k: _is_int(k) and 0 <= k <= episodes)
+                       if counted == "per_seed_successes" else ("rate in [0, 1]", _is_rate))
+        if not _per_seed(row.get(counted), row["seeds"], valid):
+            return (f"{name}: {counted} must be one {each} per training seed {row['seeds']}, got "
+                    f"{row.get(counted)!r:.80}")
+    return None
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_rate(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and 0 <= value <= 1  # NaN is not
+
+
+def _per_seed(values: object, seeds: list, valid: Callable[[object], bool]) -> bool:
+    """Whether ``values`` is a list of one valid value per training seed."""
+    return isinstance(values, list) and len(values) == len(seeds) and all(map(valid, values))
 
 
 def recipe(study: dict) -> dict:

@@ -85,6 +85,7 @@ from dust_rl.train.recipes import RECIPES, RecipeName
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
 VISION_AS_NOISE = "vision as noise N_A=4"  # DUST's actions sampled with its world-model stream left as noise
+CELL_REPORT = ("seeds", "env_kwargs", "trainable_parameters", "overall", "tasks")  # a study reads these of a cell
 DEFAULT_RECIPE = "vision-readout"  # the quickstart's: a comparison means little where every variant fails
 
 
@@ -497,12 +498,31 @@ def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Pa
         evaluate(EvalConfig(policy=policy, out=out, episodes=split.episodes, seed=split.first,
                             workers=config.workers, videos=0, max_steps=config.max_steps,
                             sampling=samplers(config, cell.variant)[name], progress=config.progress), command)
-    report = json.loads((out / "report.json").read_text())
+    report = read_cell_report(out / "report.json")
     seeds, max_steps = split.seeds, config.max_steps
     if report["seeds"] != seeds or report["env_kwargs"].get("max_episode_steps") != max_steps:
         raise ConfigError(f"{out} holds an evaluation of seeds {report['seeds']} (step limit "
                           f"{report['env_kwargs'].get('max_episode_steps')}), the study asks for seeds {seeds} (step "
                           f"limit {max_steps}); use another --out")
+    return report
+
+
+def read_cell_report(path: pathlib.Path) -> dict:
+    """A cell's evaluation report on disk, checked to hold the entries the study reads from it.
+
+    Raises:
+        ConfigError: unreadable, or not an evaluation report (the message says to delete it: the cell is then
+            evaluated again).
+    """
+    again = "delete it and run the same command again to evaluate the cell again"
+    try:
+        report = json.loads(path.read_text())
+    except (ValueError, RecursionError) as err:  # RecursionError: nested past Python's stack
+        raise ConfigError(f"{path}: not a readable evaluation report ({err}); {again}") from err
+    missing = [key for key in CELL_REPORT if key not in report] if isinstance(report, dict) else list(CELL_REPORT)
+    if missing or not all(isinstance(report[key], dict) for key in ("env_kwargs", "overall")):
+        raise ConfigError(f"{path}: not an evaluation report (no {', '.join(missing) or 'env_kwargs or overall object'}"
+                          f"); {again}")
     return report
 
 

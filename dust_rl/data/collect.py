@@ -47,11 +47,18 @@ from .finalize import finalize_dataset
 from .layout import clear_staging
 from .metadata import open_meta, recorded_env_spec
 from .policy import load_rollout_policy, make_expert_policy
+from .seeding import check_seeds
 from .selection import select_episodes
 
 # Give up on a task when this many seeds per requested episode have not produced enough successes: the
 # expert fails rarely; a trained policy worth rolling out succeeds in 5% of its episodes or more.
 MAX_SEEDS_PER_EPISODE = {"expert": 3, "policy": 20}
+
+
+def seeds_tried(policy: object | None, episodes: int) -> int:
+    """The most episodes a task's collection runs for ``episodes`` successes before it gives up, of the scripted
+    expert (``policy`` None) or of a policy."""
+    return MAX_SEEDS_PER_EPISODE["expert" if policy is None else "policy"] * episodes + 10
 
 
 class SuccessesOutOfReachError(UserError):
@@ -97,6 +104,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
     if not (isinstance(start_seed, int) and start_seed >= 0) or not (math.isfinite(noise_std) and noise_std >= 0):
         raise ConfigError(f"start_seed must be an int >= 0 and noise_std a finite number >= 0, "
                           f"got {start_seed!r} and {noise_std!r}")
+    check_seeds(start_seed, seeds_tried(policy, episodes) + workers.count)  # a worker may start one more
     if policy is not None and noise_std:
         raise ConfigError("noise_std perturbs the scripted expert's actions; a policy's rollouts take none")
     try:
@@ -166,7 +174,7 @@ def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, 
             bar.update(min(_successes(records), episodes) - bar.n)
             if select_episodes(records, start_seed, episodes, keep_failed) is not None:
                 return
-            if len(records) >= MAX_SEEDS_PER_EPISODE[actor] * episodes + 10:
+            if len(records) >= seeds_tried(policy, episodes):
                 raise SuccessesOutOfReachError(
                     f"the {task} {actor} succeeded in only {_successes(records)} of {len(records)} episodes; "
                     f"{episodes} successes are out of reach (the episodes so far are kept): ask for fewer (collect "

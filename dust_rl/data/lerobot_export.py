@@ -30,6 +30,7 @@ import torch
 from tensordict import TensorDictBase
 from tqdm import tqdm
 
+from dust_rl.errors import DatasetError
 from dust_rl.keys import ENV_STATE_KEY, EXPERT_ACTION_KEY, IMAGE_KEY, STATE_KEY
 
 from .dataset import DemoDataset
@@ -64,10 +65,22 @@ def export_lerobot(dataset: DemoDataset, out: str | pathlib.Path, crf: int = 18,
 
     Written to a temporary sibling folder first and renamed into place, so ``out`` is
     either complete or absent. ``crf`` is the H.264 quality (0 lossless luma, 18 near-transparent).
+
+    Raises:
+        FileExistsError: ``out`` exists.
+        DatasetError: the frames have an odd height or width. LeRobot keeps frames as H.264 (yuv420p) video, which
+            needs even sizes, and a LeRobot user trains on the frames as stored: padded or cropped ones would no
+            longer be the dataset's. Refused before anything is written.
     """
     out = pathlib.Path(out)
     if out.exists():
         raise FileExistsError(f"{out} already exists; choose a new --out")
+    height, width = dataset.meta["spec"]["image_shape"][:2]
+    if height % 2 or width % 2:
+        raise DatasetError(f"{dataset.root}: its frames are {height}x{width} px; a LeRobot dataset stores frames as "
+                           f"H.264 ({PIX_FMT}) video, which needs even sizes, and padding or cropping would change "
+                           "the frames a policy trains on: collect the dataset at an even --image-size (e.g. "
+                           f"{height + height % 2}) to export it")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.tmp")
     try:

@@ -15,16 +15,31 @@ from collections.abc import Iterator
 
 import gymnasium as gym
 import numpy as np
-import torch
 
-from dust_rl.envs.env import MAX_INSTRUCTION_LENGTH
+from dust_rl.envs.instruction_space import (  # noqa: F401  (re-exported for the data package)
+    INSTRUCTION_BYTES,
+    decode_instruction,
+    encode_instruction,
+    instruction_bytes_space,
+)
+from dust_rl.errors import ConfigError
 from dust_rl.keys import INSTRUCTION_BYTES_KEY, INSTRUCTION_KEY, SEED_KEY, SUCCESS_KEY
 
-INSTRUCTION_BYTES = 4 * MAX_INSTRUCTION_LENGTH  # UTF-8 takes at most 4 bytes a character
 # The seed ranges every command shares: demonstrations from 0, validation episodes (to choose settings on) from
 # VALIDATION_SEED, held-out episodes (to report) from HELDOUT_SEED.
 VALIDATION_SEED = 5000
 HELDOUT_SEED = 10_000
+MAX_SEED = int(np.iinfo(np.int64).max)  # episodes record their seed as an int64 (EpisodeSeedWrapper, episode.json)
+
+
+def check_seeds(first: int, count: int, flag: str = "--seed") -> None:
+    """Raise :class:`ConfigError` unless the ``count`` episode seeds from ``first`` on fit in [0, MAX_SEED].
+
+    Why: each episode's seed is stored as an int64, so a larger one fails at the first reset, deep inside a worker.
+    """
+    if not 0 <= first <= MAX_SEED - count + 1:
+        raise ConfigError(f"{flag} {first}: the {count} episode seeds from it must fit in [0, {MAX_SEED}] (an "
+                          f"episode's seed is stored as an int64); give {flag} in [0, {MAX_SEED - count + 1}]")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,19 +59,6 @@ class SeedSchedule:
         return itertools.islice(unknown, self.worker, None, self.num_workers)
 
 
-def encode_instruction(text: str) -> np.ndarray:
-    """``text`` as zero-padded UTF-8 bytes (uint8 ``[INSTRUCTION_BYTES]``)."""
-    raw = text.encode()
-    if len(raw) > INSTRUCTION_BYTES:
-        raise ValueError(f"instruction of {len(raw)} UTF-8 bytes, more than {INSTRUCTION_BYTES}: {text[:60]!r}...")
-    return np.frombuffer(raw.ljust(INSTRUCTION_BYTES, b"\0"), dtype=np.uint8)
-
-
-def decode_instruction(data: np.ndarray | torch.Tensor) -> str:
-    """The string :func:`encode_instruction` encoded."""
-    return bytes(np.asarray(data, dtype=np.uint8)).rstrip(b"\0").decode()
-
-
 class EpisodeSeedWrapper(gym.Wrapper):
     """Resets from a seed schedule and reports the seed, instruction and success flag as observations.
 
@@ -72,7 +74,7 @@ class EpisodeSeedWrapper(gym.Wrapper):
         self.observation_space = gym.spaces.Dict({
             **env.observation_space.spaces,
             SEED_KEY: gym.spaces.Box(0, np.iinfo(np.int64).max, (1,), np.int64),
-            INSTRUCTION_BYTES_KEY: gym.spaces.Box(0, 255, (INSTRUCTION_BYTES,), np.uint8),
+            INSTRUCTION_BYTES_KEY: instruction_bytes_space(),
             SUCCESS_KEY: gym.spaces.MultiBinary(1),
         })
         self._seeds = iter(schedule)

@@ -7,10 +7,14 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
+from dust_rl.errors import ConfigError
 from dust_rl.keys import IMAGE_KEY
 
 from .dataset import DemoDataset
 from .video import write_mp4
+
+# The largest side of a grid video: H.264's highest level (6.2) frames are 8192 px wide (libx264 refuses far wider).
+MAX_VIDEO_SIDE = 8192
 
 
 def folder_size(path: pathlib.Path) -> int:
@@ -68,16 +72,26 @@ def write_episode_grid(dataset: DemoDataset, out: str | pathlib.Path, episodes: 
 
     Args:
         episodes: episode indices; defaults to the first 16.
-        columns: cells per grid row.
+        columns: cells per grid row (at most the episodes shown).
         scale: integer upscaling of the pixels; defaults to reaching at least 128 pixels per image.
+
+    Raises:
+        ConfigError: the grid would be more than :data:`MAX_VIDEO_SIDE` px high or wide.
     """
     episodes = list(episodes) if episodes is not None else list(range(min(16, dataset.num_episodes)))
     if not episodes:
         raise ValueError("no episodes to show")
-    height = dataset.meta["spec"]["image_shape"][0]
+    height, width = dataset.meta["spec"]["image_shape"][:2]
     scale = scale or max(1, -(-128 // height))
+    columns = min(columns, len(episodes))  # more would only add blank cells
+    cell = (height * scale, width * len(dataset.cameras) * scale)
+    grid = (-(-len(episodes) // columns) * cell[0], columns * cell[1])
+    if max(grid) > MAX_VIDEO_SIDE:  # checked before the file is opened: a frame that size takes minutes and GBs
+        raise ConfigError(f"a grid of {len(episodes)} episodes in {columns} columns is {grid[0]}x{grid[1]} px, over "
+                          f"the {MAX_VIDEO_SIDE} px a side H.264 takes; give at most {MAX_VIDEO_SIDE // cell[1]} "
+                          f"--columns and {(MAX_VIDEO_SIDE // cell[0]) * (MAX_VIDEO_SIDE // cell[1])} --episodes")
     out = pathlib.Path(out)
-    write_mp4(out, _grid_frames(dataset, episodes, columns, scale), dataset.meta["spec"]["fps"])
+    write_mp4(out, _grid_frames(dataset, episodes, columns, scale), dataset.meta["spec"]["fps"], pad_odd=True)
     return out
 
 

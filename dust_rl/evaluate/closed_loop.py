@@ -42,17 +42,17 @@ from torchrl.collectors import BaseCollector
 from torchrl.envs import InitTracker, StepCounter, TransformedEnv
 from tqdm import tqdm
 
-from dust_rl.agents import ChunkExecutor, DustPolicy, SamplerConfig, load_policy
+from dust_rl.agents import DustPolicy, SamplerConfig, load_policy
 from dust_rl.agents.factory import check_fits_env
 from dust_rl.agents.precision import Precision
-from dust_rl.data.seeding import HELDOUT_SEED, EpisodeSeedWrapper, SeedSchedule
+from dust_rl.data.seeding import HELDOUT_SEED, EpisodeSeedWrapper, SeedSchedule, check_seeds
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.errors import ConfigError, check_at_least
+from dust_rl.errors import ConfigError, UserError, check_at_least
 from dust_rl.evaluate.report import plot_loss_curves, write_report
 from dust_rl.evaluate.resampling import Resampling, apply_sampling, describe_sampler, resolved_sampler
 from dust_rl.evaluate.video import write_episode_video
-from dust_rl.keys import SEED_KEY, STATE_KEY, STEP_KEY, SUCCESS_KEY
+from dust_rl.keys import ACTION_KEY, SEED_KEY, STATE_KEY, STEP_KEY, SUCCESS_KEY
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import episode_collector, torch_threads
 from dust_rl.runtime.workers import Backend, Workers, ray_runtime
@@ -111,6 +111,7 @@ class EvalConfig:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "episodes", "workers", "threads", "max_steps", "execute_steps")
         check_at_least(self, 0, "videos", "seed")
+        check_seeds(self.seed, self.episodes + self.workers)  # each worker may start one episode past the last
         resolve_device(self.device)
         self.worker_pool()
 
@@ -168,7 +169,7 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     p, z2 = successes / n, z * z
     center = (p + z2 / (2 * n)) / (1 + z2 / n)
     half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
-    return max(0.0, center - half), min(1.0, center + half)
+    return max(0.0, min(p, center - half)), min(1.0, max(p, center + half))  # rounding keeps 100 of 100 below 1
 
 
 BASE_ROW = "base policy"  # the row a fine-tuning report compares every other row with, on the same seeds
@@ -209,12 +210,37 @@ def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule, count_s
     return env
 
 
-def make_eval_policy(setup: EvalSetup) -> ChunkExecutor:
+class FiniteActions(TensorDictModuleBase):
+    """The evaluated policy (or an actor around it) whose every action is checked to be finite.
+
+    Why: the env refuses a NaN action with a traceback from inside the collector; a policy whose weights load clean
+    can still overflow into NaN (statistics near zero), and the error should name the policy file.
+
+    Args:
+        actor: the torchrl policy that writes ``action``.
+        source: the policy file, named in the error.
+    """
+
+    def __init__(self, actor: TensorDictModuleBase, source: pathlib.Path) -> None:
+        super().__init__()
+        self.actor, self.source = actor, source
+        self.in_keys, self.out_keys = actor.in_keys, actor.out_keys
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        out = self.actor(tensordict)
+        if not bool(torch.isfinite(out.get(ACTION_KEY)).all()):
+            raise UserError(f"{self.source}: the policy's action holds NaN or infinity (at episode seed "
+                            f"{out.get(SEED_KEY).reshape(-1).tolist()}); its weights or statistics overflow: "
+                            "retrain it or re-export it from a run that did not diverge")
+        return out
+
+
+def make_eval_policy(setup: EvalSetup) -> FiniteActions:
     """The policy of one worker process, built from the checkpoint file (a live policy is not pickled)."""
     policy = load_policy(setup.policy_path, execute_steps=setup.execute_steps).to(setup.device)
     policy.set_sampler(setup.sampler)
     policy.set_runtime(setup.precision, setup.compile)
-    return policy.executor(seeded=True)
+    return FiniteActions(policy.executor(seeded=True), setup.policy_path)
 
 
 def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
@@ -277,7 +303,8 @@ def eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: Wor
     env_fns = [functools.partial(make_eval_env, setup.env_id, {**setup.env_kwargs, "task": task},
                                  SeedSchedule(seed, worker=worker, num_workers=workers.count), count_steps)
                for worker in range(workers.count)]
-    return episode_collector(env_fns, workers, policy=policy.executor(seeded=True) if actor is None else actor,
+    actor = FiniteActions(policy.executor(seeded=True) if actor is None else actor, setup.policy_path)
+    return episode_collector(env_fns, workers, policy=actor,
                              policy_factory=None if local else functools.partial(make_eval_policy, setup),
                              policy_device=setup.device)
 
@@ -347,13 +374,13 @@ def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy, config: EvalC
 def task_videos(task: str, episodes: Sequence[Episode], trajectories: dict[int, TensorDictBase],
                 policy: DustPolicy, config: EvalConfig, fps: int) -> list[dict]:
     """``<out>/videos/<task>_seed<seed>.mp4`` of the kept evaluated episodes; one ``{"seed", "success", "length",
-    "digest", "path"}`` each."""
+    "digest", "path", "fps"}`` each."""
     rows = []
     for episode in episodes:
         if episode.seed in trajectories:
             path = config.out / "videos" / f"{task}_seed{episode.seed}.mp4"
             write_episode_video(trajectories[episode.seed], policy, path, fps)
-            rows.append({**episode._asdict(), "path": str(path)})
+            rows.append({**episode._asdict(), "path": str(path), "fps": fps})
     return rows
 
 

@@ -11,7 +11,6 @@ is kept, so no ``--train.policy.*``). Each config records its method (and an SB3
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import pathlib
 from dataclasses import dataclass, field
@@ -20,17 +19,23 @@ from typing import Annotated, Literal
 import tyro
 
 from dust_rl.agents.config import PolicyConfig
-from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
+from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED, check_seeds
 from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.keys import EXPERT_ACTION_KEY
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import LoggerKind, check_loggers
+from dust_rl.storage.config_json import config_from_json
 from dust_rl.train.settings import DataSettings, OptimSettings, RuntimeSettings, TrainSettings, grouped_json
 
 VALIDATION_EVERY = 5  # every 5th rollout episode validates the scorer
 RL_AGENT_KIND = "dust-rl rl agent"
 RL_AGENT_FILE = "rl_agent.pt"  # the fine-tuned policy as one file (dust_rl.rl.fine_tuned_policy)
 ROLLOUT_SEED = 20_000  # rollouts start away from the training, validation and held-out seeds
+# Steering's largest noise magnitude: the policy samples from N(0, 1) noise in its standardised action units, in
+# which the data's actions lie within a few units; a draw past 10 has probability 1.5e-23, so an RL action there
+# maps to no chunk the policy was trained to give, and 1e30 overflows the sampler into NaN.
+MAX_NOISE_BOUND = 10.0
+MAX_RL_SEED = 2**32 - 1  # numpy's legacy seeding, which SB3's set_random_seed calls, takes 32 bits
 # rounds: a finished self_imitation run resumed with more rounds goes on from its last round.
 RESUMABLE_FIELDS = ("resume", "progress", "threads", "rounds", "control")
 # PPO keeps no replay buffer sized by the run, so a resumed PPO run may also be given a larger budget.
@@ -69,6 +74,10 @@ class FinetuneSettings:
     def __post_init__(self) -> None:
         check_at_least(self, 1, "eval_episodes", "threads", "max_steps")
         check_at_least(self, 0, "seed", "eval_seed")
+        if self.seed > MAX_RL_SEED:
+            raise ConfigError(f"seed must be in [0, {MAX_RL_SEED}] (SB3 seeds numpy's generator, which takes 32 bits), "
+                              f"got {self.seed}")
+        check_seeds(self.eval_seed, self.eval_episodes + 1, "--eval-seed")  # its one worker may start one more
         resolve_device(self.device)
 
 
@@ -85,6 +94,7 @@ class CurveSettings(FinetuneSettings):
         super().__post_init__()
         check_at_least(self, 1, "curve_episodes")
         check_at_least(self, 0, "curve_seed")
+        check_seeds(self.curve_seed, self.curve_episodes + 1, "--curve-seed")
 
 
 @dataclass
@@ -275,6 +285,9 @@ class SteerConfig(RLSettings):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_finite(self, "noise_bound", positive=True)
+        if self.noise_bound > MAX_NOISE_BOUND:
+            raise ConfigError(f"noise_bound must be at most {MAX_NOISE_BOUND}, got {self.noise_bound}: the policy "
+                              "draws its noise from N(0, 1) in standardised action units, never past that")
         envs = self.collection.envs
         counts = {"steps": self.steps, "checkpoint_every": self.checkpoint_every, "eval_every": self.eval_every}
         if isinstance(self.algorithm, PpoSettings):
@@ -435,31 +448,23 @@ ALGORITHM_CONFIGS: dict[str, type] = {"sac": SacSettings, "ppo": PpoSettings}
 def rl_config_from_json(values: dict, **changes) -> RLConfig:
     """The config of an SB3 run as its ``config.json`` (or ``rl_agent.pt``) records it, with ``changes``; fields the
     run predates keep their defaults, earlier names read as today's (:func:`as_this_version`), and a run from before
-    the algorithm had its own settings (``"algorithm": "sac"``, its settings beside the others) reads too."""
+    the algorithm had its own settings (``"algorithm": "sac"``, its settings beside the others) reads too.
+
+    Raises:
+        TypeError, KeyError, ValueError, ConfigError: ``values`` is not such a record (not an object of settings, an
+            unknown method or algorithm, a setting out of range).
+    """
+    if not isinstance(values, dict):
+        raise TypeError(f"the fine-tuning settings are {values!r:.60}, not an object of settings")
     values = as_this_version(values)
     settings = values.get("algorithm", "sac")
     if isinstance(settings, str):
         algorithm, settings = ALGORITHM_CONFIGS[settings], values
     else:
         algorithm = ALGORITHM_CONFIGS[settings["name"]]
-    return _from_json(METHOD_CONFIGS[values["method"]], {k: v for k, v in values.items() if k != "algorithm"},
-                      policy=pathlib.Path(values["policy"]), out=pathlib.Path(values["out"]),
-                      algorithm=_from_json(algorithm, settings), **changes)
-
-
-def _from_json(cls: type, values: dict, **changes) -> object:
-    """A ``cls`` from the JSON ``values`` of its fields (lists as tuples, a settings group from its own values;
-    fields absent keep their defaults), with ``changes``."""
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if not f.init or f.name not in values or f.name in changes:
-            continue
-        value = values[f.name]
-        group = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
-        if dataclasses.is_dataclass(group) and isinstance(value, dict):
-            value = _from_json(type(group), value)
-        kwargs[f.name] = tuple(value) if isinstance(value, list) else value
-    return cls(**kwargs, **changes)
+    return config_from_json(METHOD_CONFIGS[values["method"]], {k: v for k, v in values.items() if k != "algorithm"},
+                            policy=pathlib.Path(values["policy"]), out=pathlib.Path(values["out"]),
+                            algorithm=config_from_json(algorithm, settings), **changes)
 
 
 def is_dagger(extra_action_key: str) -> bool:

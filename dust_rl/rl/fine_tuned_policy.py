@@ -20,7 +20,13 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 
-from dust_rl.agents.checkpoint_io import CheckpointError, checkpoint_kind, load_checkpoint, one_line
+from dust_rl.agents.checkpoint_io import (
+    CheckpointError,
+    check_tensor_values,
+    checkpoint_kind,
+    load_checkpoint,
+    one_line,
+)
 from dust_rl.agents.factory import policy_from_entries
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import NOISE_SEEDING, EvalConfig, PolicyWithActor, evaluate_command
@@ -59,6 +65,7 @@ def load_fine_tuned(path: pathlib.Path, device: str = "auto") -> tuple[RLConfig,
     try:
         policy_class, kwargs = policy_network(config)
         network = policy_class(env.observation_space, env.action_space, lambda _: config.lr, **kwargs)
+        check_tensor_values(payload["state_dict"], network.state_dict())
         network.load_state_dict(payload["state_dict"])
         network.to(where).set_training_mode(False)
         actor = env.closed_loop_actor(deterministic(network))

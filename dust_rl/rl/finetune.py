@@ -44,12 +44,13 @@ from collections.abc import Callable
 import numpy as np
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
 from tensordict.nn import TensorDictModuleBase
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
 
 from dust_rl.agents import DustPolicy, load_policy
-from dust_rl.agents.checkpoint_io import save_checkpoint
+from dust_rl.agents.checkpoint_io import non_finite, save_checkpoint
 from dust_rl.agents.factory import policy_entries
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
@@ -97,6 +98,7 @@ from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.checkpoint_dirs import run_out_of_space, save_checkpoint_dir
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run_folder, restore
+from dust_rl.train.imitation import diverged
 
 ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"sac": SAC, "ppo": PPO}
 FineTuningEnv = FrozenPolicyEnv | SB3SteeringVecEnv
@@ -180,7 +182,7 @@ def train_rl(config: RLConfig, policy: DustPolicy, make: Callable[[], FineTuning
     env = make()
     agent = build_agent(config, env)
     agent.set_logger(sb3_logger(config.loggers, config.out / "logs"))
-    checkpoint = Checkpoint(agent=SB3LearningState(agent), rng=RunRNGState())
+    checkpoint = Checkpoint(agent=SB3LearningState(agent, config.steps), rng=RunRNGState())
     rotation = CheckpointRotation(config.out / "checkpoints", keep_last=2)
     restored = restore(checkpoint, rotation)
     env.env_steps = int(restored.get("env_steps", 0))
@@ -197,9 +199,10 @@ def train_rl(config: RLConfig, policy: DustPolicy, make: Callable[[], FineTuning
     sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
     warmup = (CriticWarmup(config.algorithm.critic_warmup)
               if isinstance(config.algorithm, PpoSettings) and config.algorithm.critic_warmup else None)
+    callbacks = [DivergenceCheck(rotation), *([warmup] if warmup else [])]
     while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every (or eval_every) steps
         agent.learn(total_timesteps=min(sitting, config.steps - agent.num_timesteps), reset_num_timesteps=False,
-                    progress_bar=config.progress, callback=warmup)
+                    progress_bar=config.progress, callback=callbacks)
         last_eval = curve[-1]["rl_steps"] if curve else 0
         if config.eval_every and (agent.num_timesteps >= last_eval + config.eval_every
                                   or agent.num_timesteps >= config.steps):
@@ -234,6 +237,30 @@ def train_rl(config: RLConfig, policy: DustPolicy, make: Callable[[], FineTuning
         agent.logger.record(f"eval/success_rate_{key}", summary_row(key, episodes)["success_rate"])
     agent.logger.dump(agent.num_timesteps)
     return rows, trained_s
+
+
+class DivergenceCheck(BaseCallback):
+    """Stop RL training once an update leaves the agent's weights non-finite, before they act (the next rollout)
+    or are saved (the sitting's checkpoint), as imitation training stops at a non-finite loss
+    (:func:`~dust_rl.train.imitation.diverged`); without it the NaN action ends in a traceback from the env."""
+
+    def __init__(self, checkpoints: CheckpointRotation) -> None:
+        super().__init__()
+        self.checkpoints = checkpoints
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        self._check()
+
+    def _on_training_end(self) -> None:
+        self._check()
+
+    def _check(self) -> None:
+        if bad := non_finite(self.model.policy.state_dict()):
+            raise diverged(self.model.num_timesteps, f"NaN or infinity in the RL agent's weights {bad[:4]}",
+                           RL_AGENT_FILE, self.checkpoints, "lower --lr or check the rewards for non-finite values")
 
 
 def build_agent(config: RLConfig, env: FineTuningEnv) -> BaseAlgorithm:

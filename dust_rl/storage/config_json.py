@@ -1,12 +1,15 @@
 """Provenance for the files a run writes (config.json, reports, dataset metadata): the command's dataclass config
-as JSON values and the versions of the packages that shaped the result."""
+as JSON values (and back, for a run that resumes with its own settings) and the versions of the packages that shaped
+the result."""
 
 from __future__ import annotations
 
 import dataclasses
 import importlib.metadata
 import json
+import pathlib
 import platform
+import typing
 
 _VERSIONED_PACKAGES = ("dust-rl", "mujoco", "torch", "torchrl", "tensordict", "gymnasium")
 
@@ -14,6 +17,27 @@ _VERSIONED_PACKAGES = ("dust-rl", "mujoco", "torch", "torchrl", "tensordict", "g
 def config_json(config: object) -> dict:
     """``config`` (a dataclass) as plain JSON values: paths become strings, tuples lists."""
     return json.loads(json.dumps(dataclasses.asdict(config), default=str))
+
+
+def config_from_json(cls: type, values: dict, **changes) -> object:
+    """A ``cls`` (a dataclass) from the JSON ``values`` of its fields as :func:`config_json` wrote them (lists as
+    tuples, strings as paths where the field is one, a settings group from its own values; fields absent keep their
+    defaults), with ``changes``."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if not f.init or f.name not in values or f.name in changes:
+            continue
+        value = values[f.name]
+        group = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(group) and isinstance(value, dict):
+            value = config_from_json(type(group), value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        elif isinstance(value, str) and pathlib.Path in (hints[f.name], *typing.get_args(hints[f.name])):
+            value = pathlib.Path(value)
+        kwargs[f.name] = value
+    return cls(**kwargs, **changes)
 
 
 def package_versions() -> dict[str, str | None]:

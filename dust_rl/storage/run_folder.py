@@ -2,7 +2,9 @@
 
 A new run needs an unused folder; ``--resume`` needs a run there started with the same settings (only
 the fields a run may change between sittings, such as threads or progress bars, may differ; a field the
-stored run predates counts as its default, so a run started by an older version resumes). The run's
+stored run predates counts as its default, so a run started by an older version resumes). ``dust-rl train
+--resume`` reads them back (:func:`saved_run_config`) as its defaults, so only a flag given against them is
+refused, named with the value given and the run's. The run's
 ``config.json`` records the full config, the command and package versions, and checkpoints are torchrl
 ``Checkpoint`` directories kept by a ``CheckpointRotation``. One run writes into a folder at a time: it holds
 the folder's lock (:func:`~dust_rl.storage.lock.folder_lock`) from its ``config.json`` to its end. A run resumes
@@ -15,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import pathlib
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping
 
@@ -31,6 +34,32 @@ from dust_rl.storage.config_json import config_json, package_versions
 from dust_rl.storage.lock import LOCK_FILE, folder_lock
 
 
+def saved_run_config(out: pathlib.Path, retired: Mapping[str, object] | None = None,
+                     upgrade: Callable[[dict], dict] | None = None) -> dict:
+    """The config the run in ``out`` was started with (its ``config.json``), as JSON values named as this version
+    names its settings; ``retired`` and ``upgrade`` as :func:`check_run_folder` takes them.
+
+    Raises:
+        FileNotFoundError: no run there.
+        ConfigError: an unreadable config, or one with a retired setting at another value.
+    """
+    saved = out / "config.json"
+    if not saved.is_file():
+        raise FileNotFoundError(f"{out}: nothing to resume (no config.json); drop --resume to start a run")
+    try:
+        stored = json.loads(saved.read_text())["config"]
+        if not isinstance(stored, dict):
+            raise TypeError(f"'config' is {stored!r:.60}, not an object of settings")
+    except (ValueError, KeyError, TypeError, RecursionError) as err:  # RecursionError: nested past Python's stack
+        raise ConfigError(f"{saved}: unreadable run config ({err!r}); start a new run with another --out") from err
+    try:
+        stored = without_retired(stored, retired or {})
+    except ValueError as err:
+        raise ConfigError(f"{out} was started with {err}; it cannot resume: start a new run with another "
+                          "--out") from None
+    return upgrade(stored) if upgrade is not None else stored
+
+
 def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, object] | None = None,
                      upgrade: Callable[[dict], dict] | None = None) -> None:
     """Raise unless ``config.out`` suits ``config.resume`` (a dataclass with ``out`` and ``resume``); ``retired``:
@@ -42,32 +71,41 @@ def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, obj
     Raises:
         FileNotFoundError: ``resume`` without a run there.
         FileExistsError: a new run in a folder that holds one.
-        ConfigError: ``resume`` with settings other than the stored run's (fields not in ``resumable``), or of a run
-            stored with a retired setting at another value.
+        ConfigError: ``resume`` with settings other than the stored run's (fields not in ``resumable``; the message
+            names each one's flag, the value given and the run's), or of a run stored with a retired setting at
+            another value.
     """
-    saved = config.out / "config.json"
     if config.resume:
-        if not saved.is_file():
-            raise FileNotFoundError(f"{config.out}: nothing to resume (no config.json); drop --resume to start a run")
-        try:
-            stored = json.loads(saved.read_text())["config"]
-        except (ValueError, KeyError, TypeError) as err:
-            raise ConfigError(f"{saved}: unreadable run config ({err!r}); start a new run with another --out") from err
-        try:
-            stored = without_retired(stored, retired or {})
-        except ValueError as err:
-            raise ConfigError(f"{config.out} was started with {err}; it cannot resume: start a new run with another "
-                              "--out") from None
-        stored = upgrade(stored) if upgrade is not None else stored
+        stored = saved_run_config(config.out, retired, upgrade)
         resumable = set(resumable)
         defaults = _defaults(config)
-        changed = [k for k, v in _dotted(config, config_json(config)).items()
-                   if k not in resumable and _at(stored, k, _at(defaults, k, None)) != v]
+        given = {k: v for k, v in _dotted(config, config_json(config)).items() if k not in resumable}
+        saved = {k: _at(stored, k, _at(defaults, k, None)) for k in given}
+        changed = [k for k in given if saved[k] != given[k]]
         if changed:
-            raise ConfigError(f"{config.out} was started with other settings ({', '.join(changed)}); "
-                              "resume with the same arguments or use a new --out")
-    elif (config.out / "checkpoints").exists() or saved.exists():
+            flags = "; ".join(f"{_flag(k, given[k])} given, the run's is {_shown(saved[k])}" for k in changed)
+            raise ConfigError(f"{config.out} was started with other settings ({', '.join(changed)}): {flags}; resume "
+                              "without those flags (or with the run's values) or use a new --out")
+    elif any((config.out / "checkpoints").glob("*")):
         raise FileExistsError(f"{config.out} already holds a run; pass --resume to continue it or choose another --out")
+    elif (config.out / "config.json").exists():
+        raise FileExistsError(f"{config.out} holds a run stopped before its first checkpoint; pass --resume to start "
+                              "it again with its own settings, delete the folder to start another there, or choose "
+                              "another --out")
+
+
+def _flag(name: str, value: object) -> str:
+    """The command-line flag that gives the dotted setting ``name`` the JSON ``value`` (``--optim.steps 20``,
+    ``--runtime.no-progress``)."""
+    group, dot, field = name.rpartition(".")
+    if isinstance(value, bool):
+        return f"--{group}{dot}{'' if value else 'no-'}{field}".replace("_", "-")
+    return f"--{name.replace('_', '-')} {_shown(value)}"
+
+
+def _shown(value: object) -> str:
+    """A JSON value as a command line gives it (a list as its items)."""
+    return " ".join(map(str, value)) if isinstance(value, list) else str(value)
 
 
 def _defaults(config) -> dict:

@@ -13,7 +13,9 @@ A run folder holds
   holding anything that could run code when loaded, is refused), and a run killed at any
   point and resumed ends with the same weights as one never interrupted;
 * ``logs/``: scalars through torchrl's ``get_logger`` (``--logging.loggers``; by default CSV files
-  in ``logs/train/scalars/`` and TensorBoard events in ``logs/train/``);
+  in ``logs/train/scalars/`` and TensorBoard events in ``logs/train/``, ``train`` being ``--logging.run-name``),
+  and in TensorBoard also the config (text and hparams) and each periodic evaluation's success plot and first
+  rollout video;
 * ``policy.pt``: the EMA policy (:func:`dust_rl.agents.save_policy`), whose ``info``
   names the env, tasks and dataset it was trained for; ``loss.png``.
 
@@ -41,11 +43,14 @@ from dataclasses import dataclass, fields
 from typing import Annotated
 
 import gymnasium as gym
+import numpy as np
 import torch
 import tyro
+from PIL import Image
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
+from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy
@@ -56,13 +61,15 @@ from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.data.env_state_norm import PER_TASK, EnvStateNorm
 from dust_rl.data.features import FeatureCache, dataset_policy_kwargs, env_state_width, feature_key
+from dust_rl.data.video import read_mp4
 from dust_rl.diagnose.world_model import vision_skill, windows_of
 from dust_rl.envs.factory import make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, UserError
 from dust_rl.runtime.device import resolve_device
-from dust_rl.runtime.loggers import log_scalars, make_loggers
+from dust_rl.runtime.loggers import log_config, log_image, log_scalars, log_video, make_loggers
 from dust_rl.storage.checkpoint_dirs import run_out_of_space, save_checkpoint_dir
+from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run_folder, restore
 from dust_rl.train.action_free import ActionFreeBatches, with_action_free
 from dust_rl.train.dataset_batches import DatasetBatches
@@ -79,7 +86,7 @@ from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings, g
 # compared one by one).
 RESUMABLE_FIELDS = ("resume", "runtime.progress", "runtime.threads", "runtime.device", "runtime.compile",
                     "logging.eval_every", "logging.eval_episodes", "logging.eval_workers", "logging.eval_seed",
-                    "logging.loggers", "cache_dir", "recipe")
+                    "logging.loggers", "logging.run_name", "cache_dir", "recipe")
 SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
 
 
@@ -210,7 +217,10 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
                             config.data.extra_action_key, progress=config.runtime.progress, **start_rows)
              if config.data.extra_dataset else None)
     rotation = CheckpointRotation(out / "checkpoints", keep_last=2)
-    loggers = make_loggers(config.logging.loggers, out / "logs", "train") if ranks.is_main else []
+    loggers = make_loggers(config.logging.loggers, out / "logs", config.logging.run_name) if ranks.is_main else []
+    if not config.resume:  # the HParams dashboard sets the loss, and success where it is measured, against them
+        log_config(loggers, config_json(config),
+                   ["train/loss", *(["eval/success_rate"] if config.logging.eval_every else [])])
     progress = config.runtime.progress and ranks.is_main
     policy.train()
     if config.runtime.compile:
@@ -229,6 +239,7 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
                              lambda scalars, step: log_scalars(loggers, scalars, step))
         policy.readout_modules().requires_grad_(False)
     elif config.readout.aux_frames:
+        print(_readout_plan(config))
         aux = _aux_frame_batches(config, dataset, policy)
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
@@ -277,7 +288,7 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
         if ranks.is_main and config.logging.eval_every and (done % config.logging.eval_every == 0
                                                             or done == config.optim.steps):
             with averaged_weights(ema, trained):
-                log_scalars(loggers, _periodic_eval(config, policy, done, skill_features), done)
+                _periodic_eval(config, policy, done, skill_features, loggers)
     bar.close()
     seconds = time.perf_counter() - began
     ranks.check_same(nn.utils.parameters_to_vector(trained.parameters()).detach())
@@ -345,11 +356,16 @@ def _check_finite(loss: torch.Tensor, grad_norm: torch.Tensor, step: int, checkp
     """Stop before a non-finite loss or gradient reaches the weights, so no saved state holds NaN."""
     if torch.isfinite(torch.stack([loss.detach(), grad_norm])).all():
         return
+    raise diverged(step, f"loss {loss.item()}, gradient norm {grad_norm.item()}", "policy.pt", checkpoints,
+                   "lower lr or check the dataset for non-finite values")
+
+
+def diverged(step: int, what: str, output: str, checkpoints: CheckpointRotation, advice: str) -> NonFiniteLossError:
+    """The error of a run that stopped at ``step`` because ``what`` is no longer finite, before ``output`` or a
+    checkpoint could hold it (imitation and RL training alike): it names the newest checkpoint, which is intact."""
     latest = checkpoints.latest()
     kept = f"the newest checkpoint, {latest.name}, is intact" if latest else "no checkpoint was written"
-    raise NonFiniteLossError(f"training diverged at step {step}: loss {loss.item()}, gradient norm {grad_norm.item()}; "
-                             f"no policy.pt was written and {kept}; lower lr or check the dataset for "
-                             "non-finite values")
+    return NonFiniteLossError(f"training diverged at step {step}: {what}; no {output} was written and {kept}; {advice}")
 
 
 def _resumed_step(metadata: dict, dataset: DemoDataset) -> int:
@@ -399,6 +415,7 @@ def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPoli
                                                                 feature_key(dataset, policy))
 
     def warm_up(log_fit: Callable[[dict[str, float], int], None]) -> None:
+        print(_readout_plan(config))
         heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.readout.aux_frames),
                                      HELDOUT_FIRST_SEED)
         warm_up_readout(policy, demo_batch, _aux_frame_batches(config, dataset, policy),
@@ -408,6 +425,18 @@ def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPoli
 
     if warm_up_or_load(path, policy.readout_modules(), config.seed, warm_up, log):
         print(f"read-out warm-up: the fit cached by an earlier run of the same read-out settings ({path})")
+
+
+def _readout_plan(config: TrainConfig) -> str:
+    """One line on the read-out's work before or beside the training steps, printed before its first frame is
+    rendered: with a recipe's 8,000 frames that work takes minutes, and without a progress bar nothing else shows."""
+    frames = config.readout.aux_frames
+    if not config.readout.warmup_steps:
+        return (f"read-out: {frames} aux frames (rendered once per dataset), their loss in each of the "
+                f"{config.optim.steps} training steps (--readout.aux-frames sets them)")
+    return (f"read-out: {frames} aux frames and {min(HELDOUT_FRAMES, frames)} held out (rendered once per dataset), "
+            f"{config.readout.warmup_steps} warm-up steps, then the {config.optim.steps} training steps "
+            "(--readout.aux-frames and --readout.warmup-steps set them)")
 
 
 def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, count: int | None = None,
@@ -449,27 +478,36 @@ def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: Dust
 
 
 
-def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int,
-                   skill_features: FeatureCache | None) -> dict[str, float]:
-    """Closed-loop success of ``policy`` (holding the averaged weights) and, given ``skill_features``, the skill
+def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int, skill_features: FeatureCache | None,
+                   loggers: list[Logger]) -> None:
+    """Log the closed-loop success of ``policy`` (holding the averaged weights), its success plot and the video of
+    its first episode (with TensorBoard among the loggers, which shows them), and, given ``skill_features``, the skill
     of its sampled future on a fixed draw of their windows (:mod:`dust_rl.diagnose.world_model`), without touching
     the training RNG. The windows are put in the trunk's units anew each time: their condition tokens come from
     layers that train (windows drawn once at the start read as if the trunk had lost its inputs: a skill of -0.7
     where the policy's own was +0.7)."""
     from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+    from dust_rl.evaluate.report import SUCCESS_PNG
 
     folder = config.out / "eval" / f"step-{step:07d}"
     path = save_policy(policy, folder / "policy.pt")
+    media = "tensorboard" in config.logging.loggers
     with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
         report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.logging.eval_episodes,
-                                     seed=config.logging.eval_seed,
-                                     workers=config.logging.eval_workers, videos=0, progress=False,
-                                     device=config.runtime.device))
+                                     seed=config.logging.eval_seed, workers=config.logging.eval_workers,
+                                     videos=int(media), progress=False, device=config.runtime.device))
     scalars = {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
         "eval/success_rate": report["overall"]["success_rate"]}
     if skill_features is not None:
         scalars["wm/skill"] = world_model_skill(policy, skill_features, config.seed, config.optim.batch_size)
-    return scalars
+    log_scalars(loggers, scalars, step)
+    if media:
+        with Image.open(folder / SUCCESS_PNG) as plot:
+            log_image(loggers, "eval/success", np.asarray(plot.convert("RGB")), step)
+        task = report["tasks"][0]
+        video = task["videos"][0]
+        log_video(loggers, f"eval/rollout/{task['task']}", list(read_mp4(pathlib.Path(video["path"]))), video["fps"],
+                  step)
 
 
 def world_model_skill(policy: DustPolicy, features: FeatureCache, seed: int, batch_size: int) -> float:

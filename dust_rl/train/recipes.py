@@ -3,26 +3,41 @@
 ``dust-rl train --recipe NAME`` and ``dust-rl quickstart --recipe NAME`` start from one; any flag given beside it
 overrides that setting, as ``--preset`` (a policy size, laid over the recipe's policy) does. Without ``--recipe``,
 ``dust-rl train`` picks by the dataset (:func:`default_recipe`): ``vision-readout`` where it records the simulator's
-object state (``observation.environment_state``, what the read-out is fitted on), ``plain`` where it does not, and
-with ``--resume`` the recipe the run started with (``defaults`` for a run that predates recipes). Which recipe ran
-is recorded in the run's ``config.json``.
+object state (``observation.environment_state``, what the read-out is fitted on), ``plain`` where it does not. Which
+recipe ran is recorded in the run's ``config.json``, and ``--resume`` starts from the settings recorded there (the
+run's recipe with its flags; ``defaults`` for a run that predates recipes), so a flag is needed only to change one
+a run may change between sittings (:data:`~dust_rl.train.imitation.RESUMABLE_FIELDS`).
+
+A recipe's read-out is fitted for its own step count: ``vision-readout`` renders 8,000 aux frames and fits 4,000
+warm-up steps before its 2,000 policy steps. ``dust-rl train --optim.steps N`` with fewer steps than the recipe's
+scales both down with N (:func:`scaled_to_steps`), so a short trial run does not spend minutes on a full run's
+read-out; at the recipe's step count and above they are the recipe's.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import pathlib
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
-from typing import Literal
+from typing import Literal, NamedTuple
 
 from dust_rl.agents.config import POLICY_PRESETS, PolicyConfig
 from dust_rl.data import DatasetError, DemoDataset
 from dust_rl.data.features import env_state_width
 from dust_rl.errors import ConfigError
-from dust_rl.train.settings import DEFAULT_OUT, DataSettings, OptimSettings, ReadoutSettings, TrainSettings
+from dust_rl.storage.config_json import config_from_json
+from dust_rl.storage.run_folder import saved_run_config
+from dust_rl.train.settings import (
+    DEFAULT_OUT,
+    RETIRED_FIELDS,
+    DataSettings,
+    OptimSettings,
+    ReadoutSettings,
+    TrainSettings,
+    grouped_json,
+)
 
 
 @dataclass(frozen=True)
@@ -85,25 +100,15 @@ LEGACY_RECIPE = "defaults"  # what a run folder that records no recipe was train
 
 def recipe_help() -> str:
     """The recipes, one line each, for ``--help``."""
-    return "A named recipe to start from (flags given beside it override it). Default: vision-readout where the " \
-        "dataset records observation.environment_state, else plain; with --resume, the run's own. " + \
+    return "A named recipe to start from (flags given beside it override it; with fewer --optim.steps than its own, " \
+        "its read-out's aux frames and warm-up steps scale down with them). Default: vision-readout where the " \
+        "dataset records observation.environment_state, else plain; with --resume, the run's own settings. " + \
         "; ".join(f"{name}: {recipe.description} [{recipe.result}]" for name, recipe in RECIPES.items())
 
 
-def default_recipe(dataset: pathlib.Path, out: pathlib.Path, resume: bool) -> tuple[str, str | None]:
-    """The recipe ``dust-rl train`` starts from when given none, and one line saying why and how to choose another
-    (None for a dataset that does not open: training then says what is wrong with it).
-
-    Raises:
-        ConfigError: the run to resume records a recipe this version does not have.
-    """
-    stored = _stored_config(out) if resume else None
-    if stored is not None:
-        name = stored.get("recipe", LEGACY_RECIPE)
-        if name not in RECIPES:
-            raise ConfigError(f"{out} was trained with recipe {name!r}, which this version does not have; start a "
-                              f"new run with another --out and one of --recipe {sorted(RECIPES)}")
-        return name, f"recipe {name}: the one {out} started with"
+def default_recipe(dataset: pathlib.Path) -> tuple[str, str | None]:
+    """The recipe ``dust-rl train`` starts a new run from when given none, and one line saying why and how to choose
+    another (None for a dataset that does not open: training then says what is wrong with it)."""
     try:
         with_state = env_state_width(DemoDataset(dataset)) > 0
     except DatasetError:
@@ -115,32 +120,88 @@ def default_recipe(dataset: pathlib.Path, out: pathlib.Path, resume: bool) -> tu
                      "NAME picks another (dust-rl train --help lists them)")
 
 
-def starting_settings(command: str, args: list[str]) -> tuple[list[str], str | None, TrainSettings | None]:
-    """What ``dust-rl train`` / ``quickstart`` starts from: ``args`` without ``--recipe NAME`` and ``--preset NAME``,
-    the recipe's name and its settings with the preset's policy size laid over them (None, None: the command's own
-    defaults, as for ``--help`` without ``--recipe``).
+def scaled_to_steps(settings: TrainSettings, steps: int) -> TrainSettings:
+    """``settings`` (a recipe's) for a run of ``steps`` optimiser steps: below the recipe's own count, its read-out's
+    aux frames and warm-up steps in proportion to them (rounded down, at least one of each it has), so a trial run
+    of 20 steps does not render 8,000 frames and fit 4,000 warm-up steps first; at or above it, unchanged."""
+    own = settings.optim.steps
+    if steps >= own:
+        return settings
+
+    def scaled(count: int) -> int:
+        return max(1, count * steps // own) if count else 0
+
+    return replace(settings, optim=replace(settings.optim, steps=steps),
+                   readout=replace(settings.readout, aux_frames=scaled(settings.readout.aux_frames),
+                                   warmup_steps=scaled(settings.readout.warmup_steps)))
+
+
+class Start(NamedTuple):
+    """What ``dust-rl train`` / ``quickstart`` / ``bench suite`` start from (:func:`starting_settings`)."""
+
+    args: list[str]
+    """The command line without ``--recipe NAME`` and ``--preset NAME``."""
+    recipe: str | None
+    """The recipe's name (None where ``settings`` is)."""
+    settings: TrainSettings | None
+    """The settings to parse the command line over (None: the command's own defaults, as for ``--help``)."""
+    run: dict[str, pathlib.Path]
+    """On ``--resume``, the resumed run's own ``dataset`` and ``cache_dir`` (what it trains on beside the settings)."""
+
+
+def starting_settings(command: str, args: list[str]) -> Start:
+    """What ``dust-rl train`` / ``quickstart`` starts from: the recipe (``--recipe``, else one chosen by the data
+    (:func:`default_recipe`), scaled to the ``--optim.steps`` given (:func:`scaled_to_steps`); with ``--resume``
+    the run's own saved settings) with the preset's policy size laid over it.
 
     Raises:
-        ConfigError: an unknown recipe or preset, a flag without its name, ``--preset`` on quickstart.
+        ConfigError: an unknown recipe or preset, a flag without its name, ``--preset`` on quickstart, a run to
+            resume that records a recipe this version does not have or another than ``--recipe`` names.
+        FileNotFoundError: ``--resume`` without a run to resume.
     """
     args, recipe = _pop_option(args, "--recipe", RECIPES)
     args, preset = _pop_option(args, "--preset", POLICY_PRESETS)
     if preset is not None and command != "train":
         raise ConfigError(f"--preset applies to dust-rl train, not dust-rl {command}")
-    if recipe is None and command == "train" and not {"-h", "--help"} & set(args):
-        where = _where(args)
-        if where.dataset is not None:
-            recipe, why = default_recipe(where.dataset, where.out, where.resume)
-            if why is not None and not int(os.environ.get("RANK", "0")):  # torchrun's other ranks stay quiet
-                print(why)
+    where = _where(args) if command == "train" and not {"-h", "--help"} & set(args) else None
+    settings, run, why = None, {}, None
+    if where is not None and where.resume:
+        recipe, settings, run = _resumed(where.out, recipe)
+        why = f"recipe {recipe}: the one {where.out} started with, resumed with the settings it saved"
+    elif recipe is None and where is not None and where.dataset is not None:
+        recipe, why = default_recipe(where.dataset)
+    if why is not None and not int(os.environ.get("RANK", "0")):  # torchrun's other ranks stay quiet
+        print(why)
     if recipe is None and preset is None:
-        return args, None, None
-    settings = RECIPES[recipe or LEGACY_RECIPE].settings()
+        return Start(args, None, None, run)
+    if settings is None:
+        settings = RECIPES[recipe or LEGACY_RECIPE].settings()
+        if where is not None and where.steps is not None:
+            settings = scaled_to_steps(settings, where.steps)
     if preset is not None:
         size = {f.name: getattr(POLICY_PRESETS[preset], f.name) for f in fields(PolicyConfig)
                 if getattr(POLICY_PRESETS[preset], f.name) != getattr(PolicyConfig(), f.name)}
         settings = replace(settings, policy=replace(settings.policy, **size))
-    return args, recipe or LEGACY_RECIPE, settings
+    return Start(args, recipe or LEGACY_RECIPE, settings, run)
+
+
+def _resumed(out: pathlib.Path, given: str | None) -> tuple[str, TrainSettings, dict[str, pathlib.Path]]:
+    """The recipe, settings and dataset (and cache folder) the run in ``out`` saved, which ``--resume`` starts from.
+
+    Raises:
+        ConfigError: a recipe this version does not have, or another than ``given`` (``--recipe``).
+        FileNotFoundError: no run in ``out``.
+    """
+    stored = saved_run_config(out, RETIRED_FIELDS, grouped_json)
+    name = stored.get("recipe", LEGACY_RECIPE)
+    if name not in RECIPES:
+        raise ConfigError(f"{out} was trained with recipe {name!r}, which this version does not have; start a "
+                          f"new run with another --out and one of --recipe {sorted(RECIPES)}")
+    if given not in (None, name):
+        raise ConfigError(f"--recipe {given}: {out} was started with recipe {name}, whose saved settings --resume "
+                          "restores; drop --recipe, or start a new run with another --out")
+    run = {key: pathlib.Path(stored[key]) for key in ("dataset", "cache_dir") if stored.get(key) is not None}
+    return name, config_from_json(TrainSettings, stored), run
 
 
 def _pop_option(args: list[str], flag: str, choices: dict) -> tuple[list[str], str | None]:
@@ -157,18 +218,13 @@ def _pop_option(args: list[str], flag: str, choices: dict) -> tuple[list[str], s
 
 
 def _where(args: list[str]) -> argparse.Namespace:
-    """``--dataset``, ``--out`` and ``--resume`` as ``args`` give them (the rest left to the command's parser)."""
+    """``--dataset``, ``--out``, ``--resume`` and ``--optim.steps`` as ``args`` give them (the rest, and a step count
+    that is not a number, left to the command's parser)."""
     parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     parser.add_argument("--dataset", type=pathlib.Path)
     parser.add_argument("--out", type=pathlib.Path, default=DEFAULT_OUT)
     parser.add_argument("--resume", action=argparse.BooleanOptionalAction, default=False)
-    return parser.parse_known_args(args)[0]
-
-
-def _stored_config(out: pathlib.Path) -> dict | None:
-    """The config a run folder's ``config.json`` records (None: none readable; resuming reports that itself)."""
-    try:
-        stored = json.loads((out / "config.json").read_text())["config"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    return stored if isinstance(stored, dict) else None
+    parser.add_argument("--optim.steps", dest="steps")
+    where = parser.parse_known_args(args)[0]
+    where.steps = int(where.steps) if where.steps is not None and where.steps.isdigit() else None
+    return where

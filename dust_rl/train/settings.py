@@ -22,7 +22,7 @@ from dust_rl.agents.precision import Precision
 from dust_rl.data.seeding import VALIDATION_SEED
 from dust_rl.errors import ConfigError, check_at_least, check_finite, check_fraction
 from dust_rl.runtime.device import resolve_device
-from dust_rl.runtime.loggers import LoggerKind, check_loggers
+from dust_rl.runtime.loggers import LoggerKind, check_loggers, check_run_name
 
 DEFAULT_OUT = pathlib.Path("runs/train")  # dust-rl train's run folder when --out is not given
 
@@ -178,13 +178,18 @@ class LoggingSettings:
     """First seed of each periodic evaluation: validation seeds, so a step count chosen on these curves leaves the
     held-out seeds (from 10,000) unseen."""
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
-    """Where the scalars go, each through torchrl's `get_logger` into `out/logs` (experiment `train`);
+    """Where the scalars go, each through torchrl's `get_logger` into `out/logs/<run_name>`; TensorBoard also gets
+    the run's config (text and hparams) and, from each periodic evaluation, its success plot and a rollout video.
     `wandb` and `mlflow` need their package installed. `loss.png` is drawn from the CSV files."""
+    run_name: str = "train"
+    """The run's name in its loggers: its folder in `out/logs` (the run TensorBoard lists when several runs' logs
+    are side by side under one `--logdir`), and wandb's and mlflow's experiment."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "log_every", "checkpoint_every", "eval_episodes", "eval_workers")
         check_at_least(self, 0, "eval_every", "eval_seed")
         check_loggers(self.loggers)
+        check_run_name(self.run_name)
 
 
 GROUPS = {"optim": OptimSettings, "data": DataSettings, "readout": ReadoutSettings, "runtime": RuntimeSettings,
