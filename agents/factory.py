@@ -289,8 +289,11 @@ def check_fits_env(policy: DustPolicy, env: EnvBase, source: object = "policy") 
     absent = [cam for cam in policy.cameras if cam not in spec["cameras"]]
     if absent:
         problems.append(f"cameras: policy reads {absent}, env has {spec['cameras']}")
-    trained = policy.info.get(IMAGE_SIZE_INFO)
-    if trained is not None and spec.get(IMAGE_SIZE_INFO) is not None and list(trained) != spec[IMAGE_SIZE_INFO]:
-        problems.append(f"image size: policy was trained on {trained} px frames, env renders {spec[IMAGE_SIZE_INFO]}")
+    trained, rendered = policy.info.get(IMAGE_SIZE_INFO), spec.get(IMAGE_SIZE_INFO)
+    if rendered is not None and trained is None:  # unchecked, it would run on frames of any size
+        problems.append(f"image size: policy records no frame size it was trained on (info.{IMAGE_SIZE_INFO}: a file "
+                        "written before policies recorded it, or edited); train it again")
+    elif rendered is not None and list(trained) != rendered:
+        problems.append(f"image size: policy was trained on {trained} px frames, env renders {rendered}")
     if problems:
         raise CheckpointError(f"{source} does not fit the env:\n  " + "\n  ".join(problems))

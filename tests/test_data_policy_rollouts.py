@@ -48,7 +48,8 @@ def test_stored_rollouts_are_the_policys_evaluated_episodes(rollouts, policy_pat
 
 
 def test_a_resumed_collection_refuses_another_policy(rollouts, tmp_path, minilm):
-    other = tiny_policy_file(tmp_path / "other.pt", minilm, info={"env_id": "DustFranka-v0", "tasks": []})
+    other = tiny_policy_file(tmp_path / "other.pt", minilm,
+                             info={"env_id": "DustFranka-v0", "tasks": [], "image_size": [32, 32]})
     with pytest.raises(DatasetError, match="policy"):
         collect_demos(rollouts, tasks=["press_button"], episodes=1, env_kwargs=ENV_KWARGS, keep_failed=True,
                       policy=other, progress=False)

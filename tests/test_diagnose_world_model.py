@@ -12,7 +12,7 @@ from conftest import make_tiny_encoder
 from dust_rl.agents import DustConfig, DustModel, SamplerConfig, random_batch
 from dust_rl.agents.samplers import action_only_schedule, async_schedule, run_schedule
 from dust_rl.cli import main
-from dust_rl.data import DatasetError
+from dust_rl.data import DatasetError, collect_demos
 from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
 from dust_rl.errors import ConfigError
 from dust_rl.train.imitation import TrainConfig, train
@@ -179,6 +179,17 @@ def test_the_training_dataset_is_refused(trained, tmp_path):
     policies, data, _ = trained
     with pytest.raises(DatasetError, match="trained on"):
         diagnose(WorldModelDiagnosis(policy=policies["dust"], dataset=data, out=tmp_path, windows=8, progress=False))
+
+
+def test_a_dataset_of_other_frames_or_tasks_is_refused(trained, tmp_path):
+    policies, _, _ = trained
+    other = tmp_path / "other"
+    collect_demos(other, tasks=["close_drawer"], episodes=1, env_kwargs={"image_size": 48}, progress=False)
+    with pytest.raises(DatasetError, match=r"frames: \[48, 48\] px, the policy was trained on \[32, 32\]; tasks "
+                                           r"\['close_drawer'\], which the policy never trained on"):
+        diagnose(WorldModelDiagnosis(policy=policies["dust"], dataset=other, out=tmp_path / "d", windows=8,
+                                     progress=False))
+    assert not (tmp_path / "d").exists()
 
 
 def test_intervals_are_over_episodes_not_windows():

@@ -43,7 +43,8 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 IMAGE = 32
 SIZES = dict(horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=1, state_dim=17)
-INFO = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": IMAGE}, "tasks": ["press_button"]}
+INFO = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": IMAGE}, "tasks": ["press_button"],
+        "image_size": [IMAGE, IMAGE]}
 
 
 def tiny_policy_file(path: pathlib.Path, text_encoder, info: dict | None = None, **sizes) -> pathlib.Path:
@@ -199,6 +200,10 @@ def test_a_policy_for_other_frames_or_cameras_is_refused(tmp_path, minilm):
     save_checkpoint(payload, path, POLICY_KIND)
     with pytest.raises(CheckpointError, match=r"cameras: policy reads \['belly'\]"):
         evaluate(dataclasses.replace(config, policy=path))
+    unrecorded = tiny_policy_file(tmp_path / "unrecorded.pt", minilm,  # an older file, or one edited to run at 64 px
+                                  info={**INFO, "env_kwargs": {"image_size": 64}, "image_size": None})
+    with pytest.raises(CheckpointError, match="policy records no frame size it was trained on"):
+        evaluate(dataclasses.replace(config, policy=unrecorded))
     assert not (tmp_path / "eval").exists()
 
 

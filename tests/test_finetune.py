@@ -75,7 +75,8 @@ def policy_path(tmp_path_factory, minilm):
     with torch.no_grad():
         for p in policy.trainable_parameters():
             p.add_(0.1 * torch.randn(p.shape, generator=torch.Generator().manual_seed(0)))
-    policy.info = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": 32}, "tasks": ["press_button"]}
+    policy.info = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": 32}, "tasks": ["press_button"],
+                   "image_size": [32, 32]}
     return save_policy(policy, tmp_path_factory.mktemp("policy") / "policy.pt")
 
 

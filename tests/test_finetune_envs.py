@@ -298,7 +298,8 @@ RUNNER_STEPS = 6  # three chunks of execute_steps 2
 
 def runner_episodes(policy, tmp_path, actor, seeds: range) -> list[Episode]:
     """The episodes of ``actor`` (None: the policy itself) in dust-rl eval's runner."""
-    policy.info = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": IMAGE}, "tasks": ["press_button"]}
+    policy.info = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": IMAGE}, "tasks": ["press_button"],
+                   "image_size": [IMAGE, IMAGE]}
     config = EvalConfig(policy=save_policy(policy, tmp_path / "policy.pt"), episodes=len(seeds), seed=seeds.start,
                         workers=1, videos=0, max_steps=RUNNER_STEPS, device="cpu", progress=False)
     return evaluate_task(eval_setup(config, policy), "press_button", policy, config, actor)[0]

@@ -503,6 +503,11 @@ def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inpu
     elsewhere = dataclasses.replace(config, out=tmp_path / "other", init_policy=tmp_path / "missing.pt")
     with pytest.raises(CheckpointError, match="missing.pt"):
         train(elsewhere)
+    larger = tmp_path / "rollouts48"  # frames of another size would be mixed into every batch
+    collect_demos(larger, tasks=["press_button"], episodes=1, env_kwargs={"image_size": 48}, progress=False)
+    with pytest.raises(DatasetError, match=f"{larger} does not match the requested env"):
+        train(dataclasses.replace(config, out=tmp_path / "mixed", data=DataSettings(extra_dataset=larger)))
+    assert not (tmp_path / "mixed").exists()
 
 
 def _newest_state(out, component: str = "model"):

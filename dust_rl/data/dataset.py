@@ -17,6 +17,7 @@ import gymnasium as gym
 import torch
 from tensordict import NonTensorStack, TensorDict
 
+from dust_rl.agents.factory import IMAGE_SIZE_INFO, frame_size
 from dust_rl.errors import DatasetError
 from dust_rl.keys import INSTRUCTION_KEY
 from dust_rl.storage.memmap_io import load_memmap_checked
@@ -172,6 +173,20 @@ class DemoDataset:
         out = rows.clone(recurse=False)  # a shallow copy: the memmap rows stay read-only
         out.set(INSTRUCTION_KEY, NonTensorStack.from_list(texts) if rows.ndim else texts[0])
         return out
+
+    def check_fits_policy(self, info: dict, policy: object) -> None:
+        """Raise :class:`DatasetError` naming each way the dataset is not what the policy (``info``: its record of
+        its training, ``policy``: its name) was trained on: its frame size and tasks (a policy at another size, or on
+        a task it never saw, would be measured on inputs it was never meant for)."""
+        trained, size = info.get(IMAGE_SIZE_INFO), frame_size(self.meta["spec"]["image_shape"])
+        problems = []
+        if trained and list(trained) != size:
+            problems.append(f"frames: {size} px, the policy was trained on {trained}")
+        unseen = [task for task in self.tasks if info.get("tasks") and task not in info["tasks"]]
+        if unseen:
+            problems.append(f"tasks {unseen}, which the policy never trained on (it knows {info['tasks']})")
+        if problems:
+            raise DatasetError(f"{self.root} does not fit {policy}: " + "; ".join(problems))
 
     def check_env(self, env: gym.Env) -> None:
         """Raise :class:`DatasetError` naming each way the dataset's arrays do not fit ``env``."""

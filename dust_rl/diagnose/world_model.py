@@ -175,6 +175,7 @@ def draw_windows(config: WorldModelDiagnosis, policy: DustPolicy) -> Windows:
         DatasetError: the dataset's cameras or sizes do not fit the policy.
     """
     dataset = DemoDataset(config.dataset)
+    dataset.check_fits_policy(policy.info, config.policy)
     features = FeatureCache(dataset, policy, progress=config.progress, store=True)
     return windows_of(policy, features, config.windows, config.seed, config.batch_size)
 

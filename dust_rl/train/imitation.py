@@ -169,6 +169,8 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     env_id, env_kwargs = dataset.meta["env_id"], dataset.meta["env_kwargs"]
     probe = make_env(env_id, {**env_kwargs, "task": dataset.tasks[0]})
     dataset.check_env(probe)
+    if config.data.extra_dataset:  # its rows join every batch: the same cameras, frames and sizes
+        DemoDataset(config.data.extra_dataset, cache_dir=config.cache_dir).check_env(probe)
     torch.manual_seed(config.seed)
     try:
         policy = _build_policy(config, dataset, probe).to(rank_device(resolve_device(config.runtime.device), ranks))
