@@ -296,4 +296,4 @@ def check_fits_env(policy: DustPolicy, env: EnvBase, source: object = "policy") 
     elif rendered is not None and list(trained) != rendered:
         problems.append(f"image size: policy was trained on {trained} px frames, env renders {rendered}")
     if problems:
-        raise CheckpointError(f"{source} does not fit the env:\n  " + "\n  ".join(problems))
+        raise CheckpointError(f"{source} does not fit the env: " + "; ".join(problems))

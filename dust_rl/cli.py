@@ -88,7 +88,8 @@ def main(argv: list[str] | None = None) -> None:
             choices = Union[tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, (cls, _) in table.items())]  # noqa: UP007
             tyro.cli(choices, args=argv, prog="dust-rl", description=DESCRIPTION, config=GROUPS)
     except (UserError, CheckpointError, OSError) as err:
-        raise SystemExit(f"dust-rl: error: {err}") from err
+        # One line: an error re-raised from a worker process carries that process's traceback after its message.
+        raise SystemExit(f"dust-rl: error: {str(err).splitlines()[0] if str(err) else type(err).__name__}") from err
 
 
 def check_arguments(argv: list[str]) -> None:

@@ -224,14 +224,15 @@ def test_pretrain_encoder_does_not_overwrite_a_policy(demo_dir, tmp_path, minilm
     assert policy.read_bytes() == before
 
 
-def test_a_policy_that_acts_nan_ends_eval_in_one_line_naming_it(tmp_path, minilm):
+@pytest.mark.parametrize("workers", ["1", "2"])  # a worker process's error comes back with its traceback appended
+def test_a_policy_that_acts_nan_ends_eval_in_one_line_naming_it(workers, tmp_path, minilm):
     """Statistics near zero pass the load checks (they are > 0) and overflow into NaN actions, which the env would
     refuse with a traceback from inside the collector."""
     policy = load_policy(tiny_policy_file(tmp_path / "policy.pt", minilm))
     policy.normalizer.state_std.fill_(1e-30)
     path = save_policy(policy, tmp_path / "overflows.pt")
     message = error_of(["eval", "--policy", str(path), "--out", str(tmp_path / "eval"), "--episodes", "1",
-                        "--workers", "1", "--max-steps", "5", "--videos", "0", "--no-progress"])
+                        "--workers", workers, "--max-steps", "5", "--videos", "0", "--no-progress"])
     assert f"{path}: the policy's action holds NaN or infinity (at episode seed " in message
     assert not list((tmp_path / "eval").glob("report.*"))
 

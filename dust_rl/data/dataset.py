@@ -192,4 +192,4 @@ class DemoDataset:
         """Raise :class:`DatasetError` naming each way the dataset's arrays do not fit ``env``."""
         problems = spec_mismatches(self.meta["spec"], recorded_env_spec(env))
         if problems:
-            raise DatasetError(f"{self.root} does not match the requested env:\n  " + "\n  ".join(problems))
+            raise DatasetError(f"{self.root} does not match the requested env: " + "; ".join(problems))

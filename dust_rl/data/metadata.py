@@ -86,8 +86,8 @@ def open_meta(root: pathlib.Path, config: dict, tasks: list[str], episodes: int,
                     for key in FIXED_CONFIG if meta.get(key) != config[key]]
         problems += spec_mismatches(meta["spec"], spec)
         if problems:
-            raise DatasetError(f"{root} holds a different collection; use another --out or the same settings:\n  "
-                               + "\n  ".join(problems))
+            raise DatasetError(f"{root} holds a different collection; use another --out or the same settings: "
+                               + "; ".join(problems))
     else:
         meta = {"format_version": FORMAT_VERSION, **config, "spec": spec, "episodes_per_task": {}, "data": None}
     held = collections.Counter(e["task"] for e in meta.get("episodes", []) if e["success"])
