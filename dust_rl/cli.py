@@ -36,6 +36,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     from dust_rl.bench.gpu_check import GpuCheckConfig, gpu_check_command
     from dust_rl.bench.steer_speed import SteerSpeedConfig, steer_speed_command
     from dust_rl.bench.suite import SuiteConfig, suite_command
+    from dust_rl.bench.train_speed import TrainSpeedConfig, train_speed_command
     from dust_rl.data import commands as data
     from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose_world_model_command
     from dust_rl.evaluate.closed_loop import EvalConfig
@@ -60,6 +61,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "bench average": (AverageConfig, average_command),
         "bench gpu": (GpuCheckConfig, gpu_check_command),
         "bench steer-speed": (SteerSpeedConfig, steer_speed_command),
+        "bench train-speed": (TrainSpeedConfig, train_speed_command),
         "diagnose world-model": (WorldModelDiagnosis, diagnose_world_model_command),
     }
 

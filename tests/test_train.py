@@ -131,6 +131,12 @@ def test_tiny_run_writes_policy_logs_and_config(run_inputs, tmp_path):
     rows = (out / "logs" / "train" / "scalars" / "train" / "loss.csv").read_text().split()
     assert [int(r.split(",")[0]) for r in rows] == [3, 6, 9, 12]
     assert list((out / "logs" / "train").glob("events.out.tfevents.*"))
+    timing = json.loads((out / "timing.json").read_text())  # where the run's time went
+    assert timing["steps"] == 12 and "cores" in timing["machine"]
+    phases = timing["phases"]
+    assert {phases[f"step: {part}"]["count"] for part in ("data", "forward", "backward", "optimizer")} == {12}
+    assert phases["checkpoint"]["count"] == 3 and phases["periodic eval"]["count"] == 1
+    assert all(row["seconds"] > 0 for row in phases.values())
     # The periodic closed-loop evaluation ran on every training task and logged its success rates.
     evaluated = json.loads((out / "eval" / "step-0000012" / "report.json").read_text())
     assert [row["task"] for row in evaluated["tasks"]] == ["press_button", "open_drawer"]

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import json
 import math
 import os
 import pathlib
@@ -68,6 +69,9 @@ from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, UserError
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import log_config, log_image, log_scalars, log_video, make_loggers
+from dust_rl.runtime.machine import machine_line
+from dust_rl.runtime.phase_timer import PhaseTimer
+from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.checkpoint_dirs import run_out_of_space, save_checkpoint_dir
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run_folder, restore
@@ -87,6 +91,7 @@ from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings, g
 RESUMABLE_FIELDS = ("resume", "runtime.progress", "runtime.threads", "runtime.device", "runtime.compile",
                     "logging.eval_every", "logging.eval_episodes", "logging.eval_workers", "logging.eval_seed",
                     "logging.loggers", "logging.run_name", "cache_dir", "recipe")
+TIMING_FILE = "timing.json"  # where this sitting's time went, phase by phase (dust_rl.runtime.phase_timer)
 SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
 
 
@@ -194,7 +199,9 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
                    **{name: str(path) if path else None for name, path in (
                        ("video_dataset", config.data.video_dataset), ("extra_dataset", config.data.extra_dataset),
                        ("init_policy", config.init_policy))}}
-    features = _cached_features(config, dataset, policy, ranks)
+    timer = PhaseTimer(policy.weights_device)
+    with timer("encode dataset"):
+        features = _cached_features(config, dataset, policy, ranks)
     start_rows = {"start_rows": config.data.start_rows,
                   "start_fraction": config.data.start_fraction if config.data.start_rows else 0.0}
     n_video, n_extra = (_share(config.optim.batch_size, fraction) if path else 0 for path, fraction in
@@ -236,13 +243,13 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
         policy.readout_modules().requires_grad_(False)
     elif config.readout.warmup_steps:
         if not (config.resume and rotation.latest() is not None):
-            _warm_up_readout(config, dataset, policy,
+            _warm_up_readout(config, dataset, policy, timer,
                              (lambda: features.batch(windows.sample())) if config.readout.demos else None,
                              lambda scalars, step: log_scalars(loggers, scalars, step))
         policy.readout_modules().requires_grad_(False)
     elif config.readout.aux_frames:
         print(_readout_plan(config))
-        aux = _aux_frame_batches(config, dataset, policy)
+        aux = _aux_frame_batches(config, dataset, policy, timer)
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
     trained = policy.trainable_modules()
@@ -260,22 +267,27 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     tick, samples, losses = time.perf_counter(), 0, None
     began = tick
     for step in bar:
-        batch = features.batch(windows.sample())[ranks.shard.rows(config.optim.batch_size - n_video - n_extra)]
-        if extra is not None:
-            batch = torch.cat([batch, extra.sample()])
-        with autocast(policy.weights_device, config.runtime.precision):
-            losses = loss_of(batch if video is None else with_action_free(batch, video.sample()))
-        if aux is not None:
-            losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.optim.batch_size)))
-            losses.set("loss", losses.get("loss") + policy.config.lambda_aux * losses.get("loss_aux_frames"))
-        optimizer.zero_grad(set_to_none=True)
-        losses["loss"].backward()
-        grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.optim.grad_clip)
-        done = step + 1
-        _check_finite(losses["loss"], grad_norm, done, rotation)
-        optimizer.step()
-        schedule.step()
-        ema.update_parameters(trained)
+        with timer("step: data"):
+            batch = features.batch(windows.sample())[ranks.shard.rows(config.optim.batch_size - n_video - n_extra)]
+            if extra is not None:
+                batch = torch.cat([batch, extra.sample()])
+            if video is not None:
+                batch = with_action_free(batch, video.sample())
+        with timer("step: forward"), autocast(policy.weights_device, config.runtime.precision):
+            losses = loss_of(batch)
+            if aux is not None:
+                losses.set("loss_aux_frames", policy.readout_loss(aux.sample(config.optim.batch_size)))
+                losses.set("loss", losses.get("loss") + policy.config.lambda_aux * losses.get("loss_aux_frames"))
+        with timer("step: backward"):
+            optimizer.zero_grad(set_to_none=True)
+            losses["loss"].backward()
+        with timer("step: optimizer"):
+            grad_norm = nn.utils.clip_grad_norm_(trained.parameters(), config.optim.grad_clip)
+            done = step + 1
+            _check_finite(losses["loss"], grad_norm, done, rotation)
+            optimizer.step()
+            schedule.step()
+            ema.update_parameters(trained)
         samples += config.optim.batch_size
         if done % config.logging.log_every == 0 or done == config.optim.steps:
             speed = samples / (time.perf_counter() - tick)
@@ -286,10 +298,11 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
             bar.set_postfix(loss=f"{scalars['train/loss']:.4f}", samples_s=f"{speed:.0f}")
             tick, samples = time.perf_counter(), 0
         if ranks.is_main and (done % config.logging.checkpoint_every == 0 or done == config.optim.steps):
-            save_checkpoint_dir(checkpoint, rotation, done, {"step": done, "dataset": dataset.identity})
+            with timer("checkpoint"):
+                save_checkpoint_dir(checkpoint, rotation, done, {"step": done, "dataset": dataset.identity})
         if ranks.is_main and config.logging.eval_every and (done % config.logging.eval_every == 0
                                                             or done == config.optim.steps):
-            with averaged_weights(ema, trained):
+            with timer("periodic eval"), averaged_weights(ema, trained):
                 _periodic_eval(config, policy, done, skill_features, loggers)
     bar.close()
     seconds = time.perf_counter() - began
@@ -305,6 +318,8 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
         with averaged_weights(ema, trained):
             save_policy(policy, path)
         _plot_losses(out)
+        write_json_atomic(out / TIMING_FILE, {"machine": machine_line(), "steps": config.optim.steps - start,
+                                              "phases": timer.summary()})
     trained_steps = config.optim.steps - start
     return TrainResult(path, out, config.optim.steps, final, seconds,
                        trained_steps * config.optim.batch_size / seconds if seconds and trained_steps else 0.0)
@@ -319,6 +334,14 @@ def train_command(config: TrainConfig, command: str | None = None) -> None:
           f"final loss {result.final_loss:.4f}")
     print(f"policy: {result.policy}\nlogs: {result.out / 'logs'} ({', '.join(config.logging.loggers)}); "
           f"loss curve: {result.out / 'loss.png'}")
+    print(timing_line(json.loads((result.out / TIMING_FILE).read_text())))
+
+
+def timing_line(timing: dict) -> str:
+    """``timing.json`` in one line: each phase's seconds, and milliseconds per step for the step's parts."""
+    parts = [f"{phase.removeprefix('step: ')} {row['ms_each']:.0f} ms/step" if phase.startswith("step: ")
+             else f"{phase} {row['seconds']:.1f} s" for phase, row in timing["phases"].items()]
+    return f"time ({timing['machine']}): " + ", ".join(parts)
 
 
 def _join(config: TrainConfig) -> Ranks:
@@ -407,7 +430,7 @@ def _build_policy(config: TrainConfig, dataset: DemoDataset, env: gym.Env) -> Du
         raise ConfigError(f"invalid model settings: {err}") from err
 
 
-def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy,
+def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, timer: PhaseTimer,
                      demo_batch: Callable[[], TensorDictBase] | None,
                      log: Callable[[dict[str, float], int], None]) -> None:
     """Fit the read-out alone (:mod:`.readout.warmup`), or load the same fit cached in the dataset folder
@@ -418,12 +441,12 @@ def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPoli
 
     def warm_up(log_fit: Callable[[dict[str, float], int], None]) -> None:
         print(_readout_plan(config))
-        heldout = _aux_frame_batches(config, dataset, policy, min(HELDOUT_FRAMES, config.readout.aux_frames),
+        heldout = _aux_frame_batches(config, dataset, policy, timer, min(HELDOUT_FRAMES, config.readout.aux_frames),
                                      HELDOUT_FIRST_SEED)
-        warm_up_readout(policy, demo_batch, _aux_frame_batches(config, dataset, policy),
-                        config.readout.warmup_steps,
-                        config.readout.lr, log_fit, config.optim.batch_size, heldout=heldout,
-                        progress=config.runtime.progress)
+        frames = _aux_frame_batches(config, dataset, policy, timer)
+        with timer("read-out fit"):
+            warm_up_readout(policy, demo_batch, frames, config.readout.warmup_steps, config.readout.lr, log_fit,
+                            config.optim.batch_size, heldout=heldout, progress=config.runtime.progress)
 
     if warm_up_or_load(path, policy.readout_modules(), config.seed, warm_up, log):
         print(f"read-out warm-up: the fit cached by an earlier run of the same read-out settings ({path})")
@@ -441,16 +464,18 @@ def _readout_plan(config: TrainConfig) -> str:
             "(--readout.aux-frames and --readout.warmup-steps set them)")
 
 
-def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, count: int | None = None,
-                       first_seed: int = FIRST_SEED) -> AuxFrameBatches:
+def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPolicy, timer: PhaseTimer,
+                       count: int | None = None, first_seed: int = FIRST_SEED) -> AuxFrameBatches:
     """The run's aux frames (rendered from the dataset's env and tasks, seeded by the run's seed): ``aux_frames``
     of them to fit, or ``count`` from ``first_seed`` on (frames that only measure)."""
-    stored = cached_aux_frames(dataset.cache_root / "aux_frames", dataset.meta["env_id"], dataset.meta["env_kwargs"],
-                               dataset.tasks, policy.cameras, count or config.readout.aux_frames,
-                               env_state_width(dataset),
-                               seed=config.seed, first_seed=first_seed, progress=config.runtime.progress)
-    return AuxFrameBatches(stored.rows, stored.instructions, policy, EnvStateNorm.of_dataset(dataset),
-                           encode=lambda frames: cached_frame_tokens(stored.path, policy, frames))
+    with timer("read-out frames"):
+        stored = cached_aux_frames(dataset.cache_root / "aux_frames", dataset.meta["env_id"],
+                                   dataset.meta["env_kwargs"], dataset.tasks, policy.cameras,
+                                   count or config.readout.aux_frames, env_state_width(dataset),
+                                   seed=config.seed, first_seed=first_seed, progress=config.runtime.progress)
+    with timer("read-out frame tokens"):
+        return AuxFrameBatches(stored.rows, stored.instructions, policy, EnvStateNorm.of_dataset(dataset),
+                               encode=lambda frames: cached_frame_tokens(stored.path, policy, frames))
 
 
 def _future_change_rms(policy: DustPolicy, features: FeatureCache, windows: DemoWindows) -> float:
