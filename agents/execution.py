@@ -89,3 +89,15 @@ class ChunkExecutor(MultiStepActorWrapper):
             return super().forward(tensordict)
         return tensordict.update(super().forward(tensordict.unsqueeze(0)).squeeze(0))
 
+    def __getstate__(self) -> dict:
+        # A torch.Generator pickles its state as a fresh tensor, which torch's default ``file_descriptor`` sharing
+        # cannot rebuild in a collector's worker ("unable to resize file"): the state travels as plain bytes.
+        state = super().__getstate__()
+        state["generator"] = self.generator.get_state().numpy().tobytes()
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        generator = torch.Generator()
+        generator.set_state(torch.frombuffer(bytearray(state["generator"]), dtype=torch.uint8))
+        super().__setstate__({**state, "generator": generator})
+

@@ -10,6 +10,7 @@ shared (:func:`image_tokens`).
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -44,6 +45,12 @@ class ImageEncoder(nn.Module, ABC):
         A ``"path"`` entry means the weights are read from that file or folder; without one the
         policy checkpoint stores the weights itself.
         """
+
+
+def channels_first(shape: Sequence[int]) -> bool:
+    """Whether camera frames of ``shape`` are ``[..., 3, H, W]`` (torchrl's layout, ``ToTensorImage``'s) rather than
+    ``[..., H, W, 3]`` (gymnasium's): the layout a frame's shape, in the data or its spec, tells."""
+    return shape[-3] == 3
 
 
 def to_unit_float(images: Tensor, size: int) -> Tensor:

@@ -5,9 +5,10 @@
 ``language_instruction``) and writes ``("vla_action", "chunk")`` (env units)
 and ``action`` (the chunk's first step). It also reads the flat gymnasium
 names that a plain torchrl ``GymEnv`` keeps (``"observation.image.front"`` as
-``[H, W, 3]``, ``"observation.state"``). It is the one object users and the
-training, evaluation and RL code hold (``make_policy`` and ``load_policy``
-return it); a rollout that executes ``execute_steps`` of each chunk before
+``[H, W, 3]``, or ``[3, H, W]`` behind ``ToTensorImage``;
+``"observation.state"``). It is the one object users and the training,
+evaluation and RL code hold (``make_policy`` and ``load_policy`` return it);
+a rollout that executes ``execute_steps`` of each chunk before
 re-planning runs :meth:`DustPolicy.executor`, torchrl's
 :class:`~torchrl.modules.MultiStepActorWrapper` around it (see
 :mod:`.execution`). Run as it is, the policy re-plans at every step.
@@ -65,7 +66,7 @@ from .dust_model import DustModel
 from .execution import ChunkExecutor
 from .flow_matching import WHOLE_BATCH, Shard
 from .future_scorer import FutureScorer
-from .image_encoder import pool_tokens
+from .image_encoder import channels_first, pool_tokens
 from .normalizer import Normalizer
 from .precision import Precision, autocast
 from .samplers import schedule_for
@@ -222,8 +223,8 @@ class DustPolicy(VLAWrapperBase):
         """``td`` with the canonical keys this policy reads, taken from the flat gymnasium names where absent.
 
         The view nests ``"observation.state"`` and moves the channels of ``"observation.image.<cam>"``
-        first, as the env side's ``make_torchrl_env`` does, so a plain ``GymEnv`` rollout works as is.
-        ``td`` itself is not changed.
+        first, as the env side's ``make_torchrl_env`` does, unless they already are (behind torchrl's
+        ``ToTensorImage``), so a plain ``GymEnv`` rollout works as is. ``td`` itself is not changed.
         """
         images = [(*self.tensor_keys.image, cam) for cam in self.cameras]
         present = td.keys(include_nested=True)
@@ -233,7 +234,7 @@ class DustPolicy(VLAWrapperBase):
         view = td.copy()
         for key in missing:
             value = td.get(flat_name(key))
-            view.set(key, value.movedim(-1, -3) if key in images else value)
+            view.set(key, value if key not in images or channels_first(value.shape) else value.movedim(-1, -3))
         return view
 
     @property

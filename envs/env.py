@@ -13,6 +13,7 @@ libraries key torch modules by observation name and torch rejects dots there.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import string
 from collections.abc import Sequence
@@ -28,7 +29,7 @@ from dust_rl.keys import ENV_STATE_KEY, INSTRUCTION_KEY, STATE_KEY, flat_name
 from . import arguments
 from .controller import OperationalSpaceController
 from .experts import WaypointExpert
-from .instruction_space import InstructionText
+from .instruction_space import MAX_INSTRUCTION_LENGTH, InstructionText, encode_instruction, instruction_bytes_space
 from .rendering import RENDER_QUALITIES, CameraRenderer
 from .robot import RobotConfig
 from .robots import ROBOT_BUILDERS
@@ -38,8 +39,8 @@ from .tasks import make_task
 OBS_MODES = ("rgb", "state")
 CONTROL_MODES = ("delta", "absolute")
 REWARD_TYPES = ("sparse", "dense")
+TEXT_FORMATS = ("str", "utf8")
 INSTRUCTION_CHARSET = string.ascii_letters + string.digits + " ,.'-"
-MAX_INSTRUCTION_LENGTH = 256
 # Flat VLA names of the numeric observations (torchrl_env nests them at the dots).
 FLAT_STATE_KEY = flat_name(STATE_KEY)
 FLAT_ENV_STATE_KEY = flat_name(ENV_STATE_KEY)
@@ -103,6 +104,10 @@ class DustEnv(gym.Env):
         privileged_noise: standard deviation (m) of a Gaussian offset added to that appended state, drawn once
             per episode from its seed: the oracle of a perception that misplaces every object by about
             this much, consistently, to measure how precise a read-out must be. Needs ``privileged_state``.
+        text_format: ``"str"`` (default), or ``"utf8"``: every string the env gives (the instruction, in the
+            observation and in ``info``; ``info["task"]``, ``info["truncation_reason"]``) as zero-padded UTF-8
+            bytes, uint8 ``[1024]`` (:func:`~dust_rl.envs.instruction_space.decode_instruction` reads one back),
+            which torchrl's batched ``GymEnv(..., num_envs=N)`` can stack; strings it cannot.
 
     Raises:
         ValueError: an argument is out of its domain; the message names it and what is allowed.
@@ -114,6 +119,9 @@ class DustEnv(gym.Env):
     or wrongly shaped actions raise ``ValueError``. An infeasible IK problem or
     diverging physics ends the episode with ``truncated=True`` and
     ``info["truncation_reason"]`` set.
+
+    A pickle holds the constructor's arguments and the RNG, not the simulator (:meth:`__getstate__`);
+    ``copy.deepcopy`` copies the whole state (:meth:`__deepcopy__`).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
@@ -136,10 +144,16 @@ class DustEnv(gym.Env):
         ik_solver: str = "daqp",
         privileged_state: bool = False,
         privileged_noise: float = 0.0,
+        text_format: str = "str",
     ) -> None:
+        self._arguments = {name: value for name, value in locals().items() if name != "self"}  # for __getstate__
         arguments.check_choice("obs_mode", obs_mode, OBS_MODES)
         arguments.check_choice("control_mode", control_mode, CONTROL_MODES)
         arguments.check_choice("reward_type", reward_type, REWARD_TYPES)
+        arguments.check_choice("text_format", text_format, TEXT_FORMATS)
+        self._text = encode_instruction if text_format == "utf8" else str
+        self.instruction_space = (instruction_bytes_space() if text_format == "utf8" else
+                                  InstructionText(MAX_INSTRUCTION_LENGTH, min_length=1, charset=INSTRUCTION_CHARSET))
         self.shaping_discount = arguments.discount("shaping_discount", shaping_discount)
         arguments.check_choice("render_mode", render_mode, (None, *self.metadata["render_modes"]))
         arguments.check_choice("render_quality", render_quality, RENDER_QUALITIES)
@@ -226,7 +240,7 @@ class DustEnv(gym.Env):
         spaces[FLAT_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)
         spaces[FLAT_ENV_STATE_KEY] = gym.spaces.Box(-np.inf, np.inf, (self.task.environment_state_dim,), np.float32)
         if self.obs_mode == "rgb":
-            spaces[INSTRUCTION_KEY] = InstructionText(MAX_INSTRUCTION_LENGTH, min_length=1, charset=INSTRUCTION_CHARSET)
+            spaces[INSTRUCTION_KEY] = self.instruction_space
         return gym.spaces.Dict(self._mode_keys(spaces))
 
     # -- gymnasium API ---------------------------------------------------------------------------
@@ -381,7 +395,7 @@ class DustEnv(gym.Env):
         obs[FLAT_STATE_KEY] = state
         obs[FLAT_ENV_STATE_KEY] = env_state
         if self.obs_mode == "rgb":
-            obs[INSTRUCTION_KEY] = self._instruction
+            obs[INSTRUCTION_KEY] = self._text(self._instruction)
         return self._mode_keys(obs)
 
     def _mode_keys(self, entries: dict) -> dict:
@@ -418,9 +432,33 @@ class DustEnv(gym.Env):
         return self._renderer.render(self.data, camera)
 
     def _info(self, success: bool, reason: str) -> dict:
-        """Step info; the flag a numpy bool, which torchrl's ``default_info_dict_reader`` needs (a ``dtype``)."""
-        return {"is_success": np.bool_(success), "task": self.task.name, "truncation_reason": reason,
-                INSTRUCTION_KEY: self._instruction}
+        """Step info; the flag a 0-d bool array: torchrl's ``default_info_dict_reader`` needs a ``dtype``, and
+        gymnasium's vector envs stack arrays by their dtype (a ``np.bool_`` scalar into an object array)."""
+        return {"is_success": np.array(success), "task": self._text(self.task.name),
+                "truncation_reason": self._text(reason), INSTRUCTION_KEY: self._text(self._instruction)}
+
+    # -- copies ----------------------------------------------------------------------------------
+
+    def __getstate__(self) -> dict:
+        """The constructor's arguments, the RNG and the registry spec: the simulator (MjModel, MjData, the
+        controller's model: ~140 MB) is rebuilt on unpickling, so vector envs and worker processes ship no
+        megabytes. An unpickled env starts before its first reset, as a new one does."""
+        return {"arguments": self._arguments, "spec": self.spec,
+                "np_random": (self._np_random, self._np_random_seed)}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(**state["arguments"])
+        self.spec = state["spec"]
+        self._np_random, self._np_random_seed = state["np_random"]
+
+    def __deepcopy__(self, memo: dict) -> DustEnv:
+        """A copy in the same state, mid-episode included; its renderer (a GL context, which cannot be copied)
+        is made anew at its first frame."""
+        copied = object.__new__(type(self))
+        memo[id(self)] = copied
+        for name, value in self.__dict__.items():
+            setattr(copied, name, None if name == "_renderer" else copy.deepcopy(value, memo))
+        return copied
 
     # -- helpers for scripted experts ------------------------------------------------------------
 

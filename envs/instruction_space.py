@@ -7,6 +7,9 @@ instruction. :class:`InstructionText` reads the shared buffer when the observati
 the vector env deep-copies its observations before returning them (its default ``copy=True``), and
 that copy is a tuple of the current strings; with ``copy=False`` the sequence decodes on indexing.
 Everything else (sampling, ``contains``, sync vector envs, torchrl's spec conversion) is ``Text``'s.
+
+Where strings cannot go (torchrl's batched ``GymEnv``, collectors' shared buffers), the instruction travels as
+zero-padded UTF-8 bytes instead (:func:`encode_instruction`).
 """
 
 from __future__ import annotations
@@ -14,7 +17,30 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import gymnasium as gym
+import numpy as np
+import torch
 from gymnasium.vector.utils import read_from_shared_memory
+
+MAX_INSTRUCTION_LENGTH = 256  # characters
+INSTRUCTION_BYTES = 4 * MAX_INSTRUCTION_LENGTH  # UTF-8 takes at most 4 bytes a character
+
+
+def encode_instruction(text: str) -> np.ndarray:
+    """``text`` as zero-padded UTF-8 bytes (uint8 ``[INSTRUCTION_BYTES]``)."""
+    raw = text.encode()
+    if len(raw) > INSTRUCTION_BYTES:
+        raise ValueError(f"instruction of {len(raw)} UTF-8 bytes, more than {INSTRUCTION_BYTES}: {text[:60]!r}...")
+    return np.frombuffer(raw.ljust(INSTRUCTION_BYTES, b"\0"), dtype=np.uint8)
+
+
+def decode_instruction(data: np.ndarray | torch.Tensor) -> str:
+    """The string :func:`encode_instruction` encoded."""
+    return bytes(np.asarray(data, dtype=np.uint8)).rstrip(b"\0").decode()
+
+
+def instruction_bytes_space() -> gym.spaces.Box:
+    """The space of :func:`encode_instruction`'s arrays."""
+    return gym.spaces.Box(0, 255, (INSTRUCTION_BYTES,), np.uint8)
 
 
 class InstructionText(gym.spaces.Text):

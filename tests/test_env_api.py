@@ -11,12 +11,13 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
-from torchrl.envs import GymEnv
+from torchrl.data.vla import validate_vla_tensordict
+from torchrl.envs import GymEnv, SerialEnv
 from torchrl.envs.libs.gym import default_info_dict_reader
 from torchrl.envs.utils import check_env_specs
 
 from dust_rl.envs import DustEnv, list_tasks
-from dust_rl.envs.torchrl_env import make_torchrl_env
+from dust_rl.envs.torchrl_env import make_torchrl_env, success_spec
 
 
 def test_gymnasium_check_env_rgb(rgb_env):
@@ -53,6 +54,9 @@ def test_torchrl_state_mode_has_the_same_nested_keys():
     td = env.rollout(2)
     assert td["observation", "state"].shape == (2, 17) and td["observation", "environment_state"].shape == (2, 9)
     assert set(td.keys()).isdisjoint({"agent_pos", "environment_state"})
+    assert validate_vla_tensordict(td) == []  # the instruction, which state mode gives in info, included
+    _, info = DustEnv(task="pick_place", obs_mode="state").reset(seed=0)
+    assert env.reset(seed=0)["language_instruction"] == info["language_instruction"]
     env.close()
 
 
@@ -64,7 +68,7 @@ def test_spaces_and_observation_layout(rgb_env):
     assert obs["observation.state"].dtype == np.float32
     assert set(info) == {"is_success", "task", "truncation_reason", "language_instruction"}
     assert obs["language_instruction"] == info["language_instruction"]
-    assert info["task"] == "pick_place" and isinstance(info["is_success"], np.bool_) and not info["is_success"]
+    assert info["task"] == "pick_place" and info["is_success"].dtype == bool and not info["is_success"]
     assert rgb_env.render().shape == (64, 64, 3)
 
 
@@ -223,13 +227,30 @@ def test_every_vector_mode_returns_the_real_instruction_in_rgb_mode(mode, vector
     envs.close()
 
 
-def test_torchrls_info_reader_reads_is_success():
+def success_reading_env() -> GymEnv:
     env = GymEnv("DustFranka-v0", task="press_button", obs_mode="state")
-    env.set_info_dict_reader(default_info_dict_reader(["is_success"]))
+    return env.set_info_dict_reader(default_info_dict_reader(["is_success"], spec=[success_spec()]))
+
+
+def test_torchrls_info_reader_reads_is_success_as_a_bool():
+    env = success_reading_env()
+    check_env_specs(env, seed=0)
     rollout = env.rollout(3)
     assert rollout["next", "is_success"].shape == (3,)
     assert rollout["next", "is_success"].dtype == torch.bool and not rollout["next", "is_success"].any()
     env.close()
+    serial = SerialEnv(1, success_reading_env)
+    assert serial.rollout(2)["next", "is_success"].dtype == torch.bool  # its buffers follow the spec
+    serial.close()
+
+
+def test_a_vector_envs_success_flags_are_bools():
+    envs = gym.make_vec("DustFranka-v0", num_envs=2, vectorization_mode="sync", task="press_button", obs_mode="state")
+    _, info = envs.reset(seed=0)
+    assert info["is_success"].dtype == bool
+    _, _, _, _, info = envs.step(np.zeros((2, 7), np.float32))
+    assert info["is_success"].dtype == bool and not info["is_success"].any()
+    envs.close()
 
 
 def test_absolute_control_reaches_commanded_pose():

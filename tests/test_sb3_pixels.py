@@ -6,10 +6,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from stable_baselines3 import PPO, SAC
+from stable_baselines3 import A2C, PPO, SAC
 from stable_baselines3.common.env_checker import check_env
 
 from dust_rl.agents import pooled_text
+from dust_rl.agents.backbone import resolve_image_encoder
 from dust_rl.envs.factory import make_env
 from dust_rl.errors import ConfigError
 from dust_rl.rl.sb3 import FrozenBackboneExtractor, SB3Observations
@@ -56,3 +57,27 @@ def test_ppo_on_pixels_with_sb3s_own_cnn(minilm):
     agent.learn(total_timesteps=8)
     assert agent.num_timesteps == 8
     env.close()
+
+
+@pytest.mark.parametrize("algorithm", [PPO, A2C])
+@pytest.mark.parametrize("encoder", ["conv-ae", "efficientnet-lite0", "tiny"])
+def test_on_policy_agents_keep_the_frozen_encoder_as_it_is(minilm, tiny_encoder, algorithm, encoder, tmp_path):
+    """PPO and A2C's orthogonal init walks the extractor's modules: it must leave the pretrained encoder alone."""
+    spec = tiny_encoder if encoder == "tiny" else encoder
+    expected = resolve_image_encoder(spec).state_dict()
+    env = SB3Observations(make_env("DustFranka-v0", {"task": "press_button", "image_size": 32}), minilm)
+    batch = {"batch_size": 4} if algorithm is PPO else {}
+    agent = algorithm("MultiInputPolicy", env, n_steps=4, seed=0, device="cpu", **batch,
+                      policy_kwargs={"features_extractor_class": FrozenBackboneExtractor, "net_arch": [16],
+                                     "features_extractor_kwargs": {"image_encoder": spec}})
+    agent.learn(total_timesteps=4)
+    env.close()
+    extractor = agent.policy.features_extractor
+    assert all(torch.equal(v, expected[k]) for k, v in extractor.encoder.state_dict().items())
+    frozen = {id(p) for p in extractor.encoder.parameters()}
+    assert not frozen & {id(p) for group in agent.policy.optimizer.param_groups for p in group["params"]}
+    agent.save(tmp_path / "agent")
+    loaded = algorithm.load(tmp_path / "agent", device="cpu").policy.features_extractor.encoder
+    assert all(torch.equal(v, expected[k]) for k, v in loaded.state_dict().items())
+    agent.policy.to(torch.float64)  # the encoder moves with the policy
+    assert all(p.dtype == torch.float64 for p in extractor.encoder.parameters())

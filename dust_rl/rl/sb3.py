@@ -20,6 +20,7 @@ FrozenBackboneExtractor, "features_extractor_kwargs": {"image_encoder": "efficie
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 
 import gymnasium as gym
 import numpy as np
@@ -101,14 +102,15 @@ class FrozenBackboneExtractor(BaseFeaturesExtractor):
         others = sorted(k for k in observation_space.spaces if not k.startswith(IMAGE_PREFIX))
         flat = sum(int(np.prod(observation_space[k].shape)) for k in others)
         super().__init__(observation_space, features_dim=len(cameras) * encoder.dim + flat)
-        self.encoder = encoder.requires_grad_(False).eval()
+        # Not a submodule: PPO and A2C's orthogonal init runs ``apply`` over the extractor and would overwrite the
+        # pretrained weights, and SB3 hands ``parameters()`` to the optimizer. ``_apply`` still moves it with ``to``.
+        object.__setattr__(self, "encoder", encoder.requires_grad_(False).eval())
         self.cameras, self.others = cameras, others
         self.grid = encoder.native_grid()
 
-    def train(self, mode: bool = True) -> FrozenBackboneExtractor:
-        super().train(mode)
-        self.encoder.eval()  # frozen: no norm statistics or dropout change with the RL agent's mode
-        return self
+    def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> FrozenBackboneExtractor:
+        self.encoder._apply(fn, recurse)
+        return super()._apply(fn, recurse)
 
     def forward(self, observations: dict[str, Tensor]) -> Tensor:
         """Features [B, C * Dv + rest]; frames arrive as SB3 gives them, floats in [0, 1], channels first."""
