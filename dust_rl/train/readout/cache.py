@@ -99,6 +99,7 @@ def warm_up_or_load(path: pathlib.Path | None, modules: nn.Module, seed: int,
         torch.manual_seed(seed)
         warm_up(log_and_keep)
     if path is not None:
+        path.unlink(missing_ok=True)  # a cache that did not load (damaged, of other weights) is replaced
         save_checkpoint({"state_dict": modules.state_dict(), "logged": logged}, path, READOUT_KIND)
         record_cache(path)
     return False
