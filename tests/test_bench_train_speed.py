@@ -51,3 +51,4 @@ def test_train_speed_times_every_phase_of_the_recipe(tmp_path, capsys):
     first_encoded = [path.stat().st_mtime_ns for path in features]
     main(args)  # again: the data is reused, the run and its caches made anew (so encoding is timed again)
     assert [path.stat().st_mtime_ns for path in features] != first_encoded
+    assert "collection" not in {row["phase"] for row in json.loads((out / "train_speed.json").read_text())["rows"]}

@@ -7,8 +7,8 @@ frame and per step they cost what the full recipe's do), whose own phase timer (
 :mod:`dust_rl.runtime.phase_timer`) gives the training rows, and evaluates the policy for ``--eval-episodes``.
 Training starts anew each time (the run folder of an earlier benchmark is replaced; the collected data is kept
 and reused), its feature and read-out caches cleared first so that encoding and rendering are timed. To time the
-AVX2 kernels on an AVX-512 CPU, run it with ``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2
-LP_NATIVE_VECTOR_WIDTH=256`` (:mod:`dust_rl.runtime.machine`).
+AVX2 code paths on an AVX-512 CPU, run it with ``ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2
+ONEDNN_MAX_CPU_ISA=AVX2 LP_NATIVE_VECTOR_WIDTH=256`` (:mod:`dust_rl.runtime.machine`).
 
     dust-rl bench train-speed [--recipe vision-readout] [--task press_button] [--demos 10] [--steps 100]
 """
@@ -71,6 +71,7 @@ def train_speed(config: TrainSpeedConfig) -> dict:
     """Collect, train and evaluate at the configured scale; returns the table's rows (also written as files)."""
     data, run = config.out / "data", config.out / "train"
     with torch_threads(config.threads):
+        reused = (data / "meta.json").is_file()
         began = time.perf_counter()
         collect_demos(data, tasks=[config.task], episodes=config.demos, env_kwargs={"image_size": config.image_size},
                       progress=config.progress, wait_for_writer=True)
@@ -90,21 +91,23 @@ def train_speed(config: TrainSpeedConfig) -> dict:
                                      workers=1, videos=0, threads=config.threads, precision=config.precision,
                                      progress=config.progress))
     timing = json.loads((run / TIMING_FILE).read_text())
-    rows = speed_rows(timing["phases"], train_config, len(dataset), collection, report)
+    rows = speed_rows(timing["phases"], train_config, len(dataset), None if reused else collection, report)
     result = {"machine": machine_line(), "config": {**vars(config), "out": str(config.out)}, "rows": rows}
     write_json_atomic(config.out / "train_speed.json", result)
     write_text_atomic(config.out / "train_speed.md", markdown(result))
     return result
 
 
-def speed_rows(phases: dict[str, dict], config: TrainConfig, rows: int, collection_s: float,
+def speed_rows(phases: dict[str, dict], config: TrainConfig, rows: int, collection_s: float | None,
                report: dict) -> list[dict]:
-    """The table's rows: each phase's total seconds and its cost per unit of work (row, frame, step, env step)."""
+    """The table's rows: each phase's total seconds and its cost per unit of work (row, frame, step, env step);
+    collection only where it ran (None: the data of an earlier benchmark was reused)."""
     frames = config.readout.aux_frames + (min(config.readout.aux_frames, HELDOUT_FRAMES)
                                           if config.readout.warmup_steps else 0)
     per = {"encode dataset": (rows, "row"), "read-out frames": (frames, "frame"),
            "read-out frame tokens": (frames, "frame"), "read-out fit": (config.readout.warmup_steps, "step")}
-    table = [{"phase": "collection", "seconds": collection_s, "per": "row", "ms_each": 1000 * collection_s / rows}]
+    table = [] if collection_s is None else [{"phase": "collection", "seconds": collection_s, "per": "row",
+                                              "ms_each": 1000 * collection_s / rows}]
     for phase, row in phases.items():
         count, unit = per.get(phase, (row["count"], "step" if phase.startswith("step: ") else "call"))
         table.append({"phase": phase, "seconds": row["seconds"], "per": unit,

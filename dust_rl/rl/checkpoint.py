@@ -112,7 +112,7 @@ class SB3LearningState:
             raise ValueError("the saved replay buffer does not fit this agent's")
         pos, full = saved["pos"], saved["full"]  # checked against the fill the step counter gives
         rows = self.agent.num_timesteps // buffer.n_envs  # every step of the envs together adds one row
-        fill = (rows, rows == buffer.buffer_size, rows % buffer.buffer_size)
+        fill = (min(rows, buffer.buffer_size), rows >= buffer.buffer_size, rows % buffer.buffer_size)  # it wraps
         if self.agent.num_timesteps % buffer.n_envs or (size, full, pos) != fill:
             raise ValueError(f"the saved replay buffer (pos {pos!r}, full {full!r}, {size} rows) is not what "
                              f"{self.agent.num_timesteps} steps of {buffer.n_envs} env(s) fill in a buffer of "

@@ -1,10 +1,11 @@
 """What a speed figure was measured on: the CPU, the vector instructions torch's kernels use, torch's threads.
 
-The same run takes about twice as long on a 2-core AVX2 CPU as on a 2-core AVX-512 one (torch's and oneDNN's
-kernels, MuJoCo's software renderer), so every speed table names the machine with this line. torch picks its
-kernels by ``torch.backends.cpu.get_cpu_capability()``; ``ATEN_CPU_CAPABILITY=avx2`` (with
-``ONEDNN_MAX_CPU_ISA=AVX2`` for oneDNN's convolutions and ``LP_NATIVE_VECTOR_WIDTH=256`` for Mesa's llvmpipe)
-makes an AVX-512 machine run the AVX2 kernels, which is how an AVX2 figure is measured without one.
+AVX2 and AVX-512 CPUs differ in speed (MKL's matrix products, torch's own kernels, oneDNN's convolutions, MuJoCo's
+software renderer), so every speed table names the machine with this line. An AVX-512 machine runs the AVX2 code
+paths with ``ATEN_CPU_CAPABILITY=avx2`` (torch's kernels, ``torch.backends.cpu.get_cpu_capability()``),
+``MKL_ENABLE_INSTRUCTIONS=AVX2`` (MKL's: a batch-64 step's matrix products, 1.7x slower there),
+``ONEDNN_MAX_CPU_ISA=AVX2`` and ``LP_NATIVE_VECTOR_WIDTH=256`` (Mesa's llvmpipe): how an AVX2 figure is measured
+without an AVX2 machine (the line names the variables set).
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ import torch
 
 # CPU flags that change which kernels run, in /proc/cpuinfo's spelling.
 ISA_FLAGS = ("avx2", "avx512f", "avx512_bf16", "amx_tile")
-EMULATION_VARIABLES = ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "LP_NATIVE_VECTOR_WIDTH")
+EMULATION_VARIABLES = ("ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS", "ONEDNN_MAX_CPU_ISA",
+                       "LP_NATIVE_VECTOR_WIDTH")
 
 
 def _cpuinfo() -> list[str]:

@@ -78,7 +78,7 @@ from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run
 from dust_rl.train.action_free import ActionFreeBatches, with_action_free
 from dust_rl.train.dataset_batches import DatasetBatches
 from dust_rl.train.distributed import Ranks, data_parallel, join_process_group, leave_process_group, rank_device, spawn
-from dust_rl.train.optim import averaged_weights, warmup_cosine, weight_average
+from dust_rl.train.optim import adamw, averaged_weights, warmup_cosine, weight_average
 from dust_rl.train.readout.aux_frame_cache import cached_aux_frames, cached_frame_tokens
 from dust_rl.train.readout.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HELDOUT_FRAMES, AuxFrameBatches
 from dust_rl.train.readout.cache import readout_cache_path, warm_up_or_load
@@ -253,8 +253,8 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
 
     # Optimiser, schedule, EMA over the trainable modules only (the backbone is frozen).
     trained = policy.trainable_modules()
-    optimizer = torch.optim.AdamW([p for p in trained.parameters() if p.requires_grad], lr=config.optim.lr,
-                                  betas=config.optim.betas, weight_decay=config.optim.weight_decay)
+    optimizer = adamw([p for p in trained.parameters() if p.requires_grad], config.optim.lr,
+                      betas=config.optim.betas, weight_decay=config.optim.weight_decay)
     schedule = warmup_cosine(optimizer, config.optim.steps, config.optim.warmup)
     ema = weight_average(trained, config.optim.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=RunRNGState())

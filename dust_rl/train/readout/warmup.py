@@ -35,6 +35,7 @@ from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
+from dust_rl.train.optim import adamw
 from dust_rl.train.readout.aux_frames import AuxFrameBatches
 
 LOG_EVERY = 100
@@ -62,7 +63,7 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
     """
     modules = policy.readout_modules()
     modules.requires_grad_(True)
-    optimizer = torch.optim.AdamW(modules.parameters(), lr=lr)
+    optimizer = adamw(list(modules.parameters()), lr)
     best = (float("inf"), None)  # the lowest held-out error and the weights that reached it
     for step in tqdm(range(1, steps + 1), desc="read-out warm-up", disable=not progress):
         losses = {"warmup/loss_aux_frames": policy.readout_loss(aux.sample(batch_size))}
