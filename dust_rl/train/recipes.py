@@ -55,8 +55,9 @@ def vision_readout() -> TrainSettings:
     pooled to 8x8 for the trunk), text fused into them, a token read-out of the objects' state fitted first on
     8,000 rendered frames and fed to the trunk, three quarters of each batch from an episode's first 4 rows
     (docs/franka_results.md, "The token read-out"). 2,000 steps: 96% / 84% on 50 validation / held-out seeds and
-    14.3 minutes in all on 2 idle cores, where 3,000 steps gave 90% / 86% in 18.0 minutes (README). lr 3e-4, higher
-    than the paper's 1e-4: a small model trained for minutes."""
+    14.3 minutes in all on 2 idle cores (2026-11-25), where 3,000 steps gave 90% / 86% in 18.0 minutes; 98% held-out
+    in 17.8 minutes on a 2-core AVX-512 CPU (2026-12-01, docs/quickstart.md). lr 3e-4, higher than the paper's 1e-4:
+    a small model trained for minutes."""
     return replace(plain(), policy=replace(plain().policy, readout="tokens", readout_grid=(16, 16), lambda_aux=1.0,
                                            aux_state_input=True),
                    readout=ReadoutSettings(aux_frames=8000, warmup_steps=4000, demos=False))
