@@ -16,8 +16,8 @@ from conftest import DEMO_ENV_KWARGS
 from dust_rl.data import DatasetError, DemoDataset, collect_demos
 from dust_rl.data.episodes import scan_episodes
 from dust_rl.data.policy import ExpertPolicy
-from dust_rl.data.seeding import INSTRUCTION_BYTES, decode_instruction, encode_instruction
 from dust_rl.envs import DustEnv
+from dust_rl.envs.instruction_space import INSTRUCTION_BYTES, decode_instruction, encode_instruction
 
 
 def test_episodes_replay_the_scripted_expert(demo_dir):

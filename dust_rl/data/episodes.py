@@ -14,6 +14,7 @@ import pathlib
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from dust_rl.envs.instruction_space import decode_instruction
 from dust_rl.errors import DatasetError
 from dust_rl.keys import EXPERT_ACTION_KEY, INSTRUCTION_BYTES_KEY, SEED_KEY, STEP_KEY, SUCCESS_KEY
 from dust_rl.storage.disk_space import reserve_space
@@ -29,7 +30,6 @@ from .layout import (
     staging_dir,
     write_json_atomic,
 )
-from .seeding import decode_instruction
 
 # Per-row entries kept from a collected trajectory; the next observation is not stored
 # (it is the next row's observation), which halves the image storage.

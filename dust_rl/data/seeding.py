@@ -16,12 +16,7 @@ from collections.abc import Iterator
 import gymnasium as gym
 import numpy as np
 
-from dust_rl.envs.instruction_space import (  # noqa: F401  (re-exported for the data package)
-    INSTRUCTION_BYTES,
-    decode_instruction,
-    encode_instruction,
-    instruction_bytes_space,
-)
+from dust_rl.envs.instruction_space import encode_instruction, instruction_bytes_space
 from dust_rl.errors import ConfigError
 from dust_rl.keys import INSTRUCTION_BYTES_KEY, INSTRUCTION_KEY, SEED_KEY, SUCCESS_KEY
 
