@@ -55,6 +55,7 @@ from dust_rl.keys import (
     FUTURE_CHUNK_KEY,
     IMAGE_KEY,
     PREDICTED_FUTURE_KEY,
+    READOUT_ESTIMATE_KEY,
     SEED_KEY,
     flat_name,
 )
@@ -322,10 +323,12 @@ class DustPolicy(VLAWrapperBase):
         keypoints = self._keypoints(on_grid, features, augment, generator)
         cond, mask = self.condition(on_grid, text, text_mask, keypoints)
         batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
-        if self.config.aux_state_dim:  # the loss and the diagnostics read the estimate; the trunk only if fed
-            batch.set("env_state_estimate", self._readout(image, keypoints, text, text_mask))
+        # The loss and the diagnostics read the estimate, the trunk only if fed; a batch may bring the frozen
+        # read-out's estimate along (dust_rl.data.features.FeatureCache.store_readout_estimates).
+        if self.config.aux_state_dim and READOUT_ESTIMATE_KEY not in features.keys():
+            batch.set(READOUT_ESTIMATE_KEY, self._readout(image, keypoints, text, text_mask))
         if self.config.aux_state_input:
-            batch.set("state", torch.cat([batch.get("state"), batch.get("env_state_estimate")], dim=-1))
+            batch.set("state", torch.cat([batch.get("state"), batch.get(READOUT_ESTIMATE_KEY)], dim=-1))
         if "future_tokens" in features.keys():
             future = self.standardised_future(features.get("future_tokens"))
             if self.config.future_target == "change":
@@ -399,7 +402,7 @@ class DustPolicy(VLAWrapperBase):
         model_batch = self._model_batch(batch, augment=self.training, generator=generator)
         losses = self.model.compute_loss(model_batch, generator, shard)
         if self.config.aux_state_dim and "env_state" in batch.keys():
-            losses.set("loss_aux", _squared_error(model_batch.get("env_state_estimate"), batch.get("env_state")))
+            losses.set("loss_aux", _squared_error(model_batch.get(READOUT_ESTIMATE_KEY), batch.get("env_state")))
             losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))
         return losses
 

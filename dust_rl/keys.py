@@ -33,6 +33,7 @@ INSTRUCTION_BYTES_KEY = "instruction_utf8"
 SUCCESS_KEY = "is_success"
 STEP_KEY = "step_count"  # steps since the episode's reset
 TASK_INDEX_KEY = "task_index"  # a rendered aux frame's task, an index into its dataset's tasks
+READOUT_ESTIMATE_KEY = "env_state_estimate"  # a batch's read-out estimate of the normalised object state
 
 __all__ = ["ACTION_CHUNK_KEY", "ACTION_IS_PAD_KEY", "ACTION_KEY", "ACTION_NOISE_KEY", "ENV_STATE_KEY",
            "EXPERT_ACTION_KEY", "FUTURE_CHUNK_KEY", "FUTURE_KEY", "IMAGE_KEY", "INSTRUCTION_BYTES_KEY",

@@ -77,8 +77,9 @@ class OperationalSpaceController:
             self.limits.append(mink.CollisionAvoidanceLimit(model, pairs))
         self._tasks = [*self.frame_tasks, self.posture_task]
 
-    def step(self, q: np.ndarray, targets: Sequence[mink.SE3]) -> np.ndarray:
-        """From joint positions ``q``, move toward ``targets`` for one control period.
+    def step(self, q: np.ndarray, targets: Sequence[mink.SE3], dt: float | None = None) -> np.ndarray:
+        """From joint positions ``q``, move toward ``targets`` for one control period (or ``dt`` seconds: the
+        velocity limits then allow that much motion).
 
         Returns:
             Commanded joint positions (the kinematic model's full ``qpos``).
@@ -89,7 +90,7 @@ class OperationalSpaceController:
         self.configuration.update(q)
         for task, target in zip(self.frame_tasks, targets, strict=True):
             task.set_target(target)
-        velocity = mink.solve_ik(self.configuration, self._tasks, self.dt, self.solver, damping=1e-3,
-                                 limits=self.limits)
-        self.configuration.integrate_inplace(velocity, self.dt)
+        dt = self.dt if dt is None else dt
+        velocity = mink.solve_ik(self.configuration, self._tasks, dt, self.solver, damping=1e-3, limits=self.limits)
+        self.configuration.integrate_inplace(velocity, dt)
         return self.configuration.q

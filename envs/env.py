@@ -50,6 +50,11 @@ STATE_MODE_KEYS = {FLAT_STATE_KEY: "agent_pos", FLAT_ENV_STATE_KEY: "environment
 
 MAX_TRANSLATION = 0.02  # metres per control step at |action| = 1 (delta mode)
 MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
+# place_end_effectors: 10 IK steps of 4 control periods each reach 99% of targets 50 cm away within 0.1 mm (5 steps
+# leave 20 mm at the 90th percentile), then 2 control periods of physics (the fingers' command half reached).
+PLACEMENT_ITERATIONS = 10
+PLACEMENT_STEP_PERIODS = 4
+PLACEMENT_SETTLE_STEPS = 2
 ACTION_WIDTH = 7  # numbers per end effector: translation (3), rotation (3), closure (1)
 ACTION_PARTS = ("x", "y", "z", "rx", "ry", "rz", "closure")  # names of those ACTION_WIDTH numbers
 STATE_PARTS = ("x", "y", "z", "qw", "qx", "qy", "qz", "opening")  # per end effector, after the joints
@@ -246,6 +251,13 @@ class DustEnv(gym.Env):
     # -- gymnasium API ---------------------------------------------------------------------------
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        self.reset_unobserved(seed=seed, options=options)
+        return self.observe(), self._info(success=False, reason="")
+
+    def reset_unobserved(self, *, seed: int | None = None, options: dict | None = None) -> None:
+        """:meth:`reset` without its observation (nothing rendered), for callers that move the arm before they
+        look (``dust_rl.train.readout.aux_frames`` places it, then renders one frame): the two frames of a
+        reset are ~70% of its 4 ms on a 2-core x86 CPU."""
         super().reset(seed=seed)
         mujoco.mj_resetData(self.model, self.data)
         for adr, value in self._home_qpos.items():
@@ -263,7 +275,6 @@ class DustEnv(gym.Env):
         self._elapsed = 0
         if self.reward_type == "dense":
             self._progress = self.progress()
-        return self.observe(), self._info(success=False, reason="")
 
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
         """One control step. The dense reward is the sparse one plus potential-based shaping (Ng, Harada and
@@ -350,13 +361,12 @@ class DustEnv(gym.Env):
             if self.control_mode == "delta":
                 current = np.empty(4)
                 mujoco.mju_mat2Quat(current, self.data.site_xmat[site])
-                mujoco.mju_mulQuat(pose[:4], _axis_angle_to_quat(a[3:6] * MAX_ROTATION), current)
+                mujoco.mju_mulQuat(pose[:4], axis_angle_to_quat(a[3:6] * MAX_ROTATION), current)
                 pose[4:] = self.data.site_xpos[site] + a[:3] * MAX_TRANSLATION
             else:
-                pose[:4] = _axis_angle_to_quat(a[3:6] * np.pi)
+                pose[:4] = axis_angle_to_quat(a[3:6] * np.pi)
                 pose[4:] = self._workspace_low + (a[:3] + 1.0) / 2.0 * (self._workspace_high - self._workspace_low)
-            pose[4:] = np.minimum(np.maximum(pose[4:], self._workspace_low - _TARGET_BELOW_WORKSPACE),
-                                  self._workspace_high)
+            pose[4:] = self._clip_to_workspace(pose[4:])
             targets.append(mink.SE3(pose))
         q = self.data.qpos[self._sim_qadr]
         # Contacts can push joints marginally past their limits, which makes the QP infeasible.
@@ -369,6 +379,10 @@ class DustEnv(gym.Env):
         for i, (ee, ctrl) in enumerate(zip(self.robot.end_effectors, self._ee_ctrl)):
             self.data.ctrl[ctrl] = ee.closure_to_ctrl((action[ACTION_WIDTH * i + CLOSURE] + 1.0) / 2.0)
         return ""
+
+    def _clip_to_workspace(self, position: np.ndarray) -> np.ndarray:
+        """A commanded position inside the robot's workspace (a little below its floor allowed, to press)."""
+        return np.minimum(np.maximum(position, self._workspace_low - _TARGET_BELOW_WORKSPACE), self._workspace_high)
 
     def _simulate(self) -> str:
         """Step physics for one control period; returns 'physics_unstable' on divergence."""
@@ -471,13 +485,43 @@ class DustEnv(gym.Env):
         """Measured position and rotation matrix of every end effector, in action order."""
         return [self.end_effector_pose(i) for i in range(len(self._ee_sites))]
 
+    def place_end_effectors(self, targets: Sequence[mink.SE3], closures: Sequence[float],
+                            iterations: int = PLACEMENT_ITERATIONS, settle_steps: int = PLACEMENT_SETTLE_STEPS) -> None:
+        """Move the arm to ``targets`` without a motion: ``iterations`` IK steps of the controller from the
+        measured joints (so joint and collision limits hold), the joints set there at rest, then
+        ``settle_steps`` control periods of physics holding them while the fingers go to ``closures`` and
+        whatever the arm was put into is pushed aside. For frames that show the arm at chosen poses
+        (``dust_rl.train.readout.aux_frames``) at a fraction of a walk's cost: 10 IK steps take ~1 ms where
+        a 20-step walk takes 16 ms (each step an IK solve and 25 physics substeps; a 2-core x86 CPU). Targets
+        out of reach are approached as far as the limits let; positions are clipped to the workspace, as
+        actions' are."""
+        if len(targets) != len(self._ee_sites) or len(closures) != len(self._ee_sites):
+            raise ValueError(f"{len(targets)} targets and {len(closures)} closures for {len(self._ee_sites)} end "
+                             "effectors; give one of each per end effector")
+        targets = [mink.SE3.from_rotation_and_translation(target.rotation(), self._clip_to_workspace(
+            target.translation())) for target in targets]
+        q = np.minimum(np.maximum(self.data.qpos[self._sim_qadr], self._ik_low), self._ik_high)
+        for _ in range(iterations):
+            try:
+                q = self.controller.step(q, targets, PLACEMENT_STEP_PERIODS * self.control_dt).copy()
+            except mink.NoSolutionFound:
+                break  # the last feasible joints stand
+        self.data.qpos[self._sim_qadr] = q
+        self.data.qvel[:] = 0.0
+        self.data.ctrl[self._arm_ctrl] = q[self._ik_arm_qadr]
+        for ee, ctrl, closure in zip(self.robot.end_effectors, self._ee_ctrl, closures):
+            self.data.ctrl[ctrl] = ee.closure_to_ctrl(float(np.clip(closure, 0.0, 1.0)))
+        mujoco.mj_forward(self.model, self.data)
+        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps * settle_steps)
+
     def make_expert(self) -> WaypointExpert:
         """The task's scripted expert, bound to this env's state (call after reset; ``act()`` each step)."""
         return WaypointExpert(lambda: self.task.expert_plan(self.model, self.data), self.robot.end_effectors,
                               self.end_effector_poses, MAX_TRANSLATION, MAX_ROTATION)
 
 
-def _axis_angle_to_quat(axis_angle: np.ndarray) -> np.ndarray:
+def axis_angle_to_quat(axis_angle: np.ndarray) -> np.ndarray:
+    """The unit quaternion (wxyz) of a turn by ``|axis_angle|`` radians about its direction."""
     quat = np.array([1.0, 0.0, 0.0, 0.0])
     mujoco.mju_quatIntegrate(quat, axis_angle, 1.0)
     return quat

@@ -38,6 +38,8 @@ def test_stored_frames_are_the_rendered_ones_and_keyed_by_their_settings(tmp_pat
     assert list(tmp_path.glob("*.npz")) == [stored]
     other = cached_aux_frames(tmp_path, *ARGS, seed=2, progress=False).rows
     assert len(list(tmp_path.glob("*.npz"))) == 2 and not (other == first).all()
+    close_ups = cached_aux_frames(tmp_path, *ARGS, seed=1, close_up_fraction=1.0, progress=False).rows
+    assert len(list(tmp_path.glob("*.npz"))) == 3 and not (close_ups == first).all()
 
 
 def test_a_damaged_store_is_named(tmp_path):

@@ -1,7 +1,8 @@
-"""Aux frames: random resets and arm motions whose object state trains the read-out beside the demonstrations."""
+"""Aux frames: random resets and arm placements whose object state trains the read-out beside the demonstrations."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from conftest import DEMO_ENV_KWARGS
@@ -13,7 +14,13 @@ from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.envs.factory import make_env
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
-from dust_rl.train.readout.aux_frames import FIRST_SEED, AuxFrameBatches, render_aux_frames
+from dust_rl.train.readout.aux_frames import (
+    FIRST_SEED,
+    AuxFrameBatches,
+    _close_up_targets,
+    _walk_targets,
+    render_aux_frames,
+)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 ENV_ID = "DustFranka-v0"
@@ -108,3 +115,20 @@ def test_a_finer_readout_grid_feeds_the_readout_more_tokens_and_the_trunk_the_sa
         DustConfig(readout_grid=(8, 8))
     with pytest.raises(ValueError, match=r"readout_grid \(6, 6\) must be a multiple of cond_grid \(4, 4\)"):
         DustConfig(readout="tokens", cond_grid=(4, 4), readout_grid=(6, 6))
+
+
+def test_close_ups_put_the_gripper_over_what_the_task_is_about():
+    """Half of pick_place's expert plan is over the cube or the plate (hover, grasp, place, retreat), the rest
+    lifts and carries between them; a walk from home seldom ends within 3 cm of either."""
+    env = make_env(ENV_ID, {**DEMO_ENV_KWARGS, "task": "pick_place"})
+    sim, near = env.unwrapped, {}
+    for kind, targets in (("walk", _walk_targets), ("close-up", _close_up_targets)):
+        distances = []
+        for seed in range(16):
+            sim.reset_unobserved(seed=FIRST_SEED + seed)
+            sim.place_end_effectors(*targets(sim, np.random.default_rng(seed)))
+            cube_and_plate = sim.task.environment_state(sim.data).reshape(-1, 3)[[0, 2], :2]
+            distances.append(np.linalg.norm(cube_and_plate - sim.end_effector_pose()[0][:2], axis=1).min())
+        near[kind] = np.mean(np.array(distances) < 0.03)
+    env.close()
+    assert near["close-up"] >= 0.4 and near["walk"] <= 0.2, near

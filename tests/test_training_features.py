@@ -15,7 +15,7 @@ from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_image_encode
 from dust_rl.agents.backbone import DEFAULT_IMAGE_ENCODER_FILE
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset, DemoWindows
-from dust_rl.data.features import FeatureCache, dataset_policy_kwargs
+from dust_rl.data.features import FeatureCache, dataset_policy_kwargs, env_state_width
 from dust_rl.storage.cache_files import record_cache, record_path, signing_key
 from dust_rl.storage.checkpoint_dirs import file_sha256
 from dust_rl.train.pretrain_encoder import FramePool, pretrain_encoder
@@ -195,6 +195,28 @@ def test_feature_cache_keeps_augmented_views(dataset, tiny_encoder, minilm):
     torch.testing.assert_close(batch["future_tokens"], plain.batch(windows)["future_tokens"])
     from_view0 = (batch["image_tokens"] == plain.image_tokens[windows["index"]].float()).flatten(1).all(1)
     assert 0 < from_view0.sum() < len(from_view0)
+
+
+def test_stored_readout_estimates_are_the_live_ones_of_the_unaugmented_frames(dataset, tiny_encoder, minilm):
+    policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                         horizon=8, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                         aux_state_dim=env_state_width(dataset), lambda_aux=1.0, aux_state_input=True)
+    policy.readout_modules().requires_grad_(False)
+    features = FeatureCache(dataset, policy, batch_size=32, progress=False, views=3)
+    windows = DemoWindows(dataset, horizon=8, batch_size=64).sample()
+    live = features.batch(windows)
+    features.store_readout_estimates(chunk=37)  # chunks that do not divide the rows
+    stored = features.batch(windows)
+    on_frames = live.clone().set("image_tokens", features.image_tokens[windows["index"]].float())
+    torch.manual_seed(0)
+    expected = policy.compute_loss(on_frames)
+    torch.manual_seed(0)
+    got = policy.compute_loss(stored)  # the trunk reads the stored estimate, not the augmented view's
+    # Tolerance: float32 rounding of the read-out at another batch size, carried through the trunk.
+    tolerance = rounding_tolerance(torch.float32, policy.config.d_model, depth=policy.config.n_mmdit + 1)
+    torch.testing.assert_close(got["loss_aux"], expected["loss_aux"], rtol=tolerance, atol=tolerance)
+    torch.testing.assert_close(got["loss"], expected["loss"], rtol=tolerance, atol=tolerance)
+    assert not torch.allclose(policy.compute_loss(live)["loss_aux"], got["loss_aux"])  # an augmented view differs
 
 
 def test_augment_frames_shifts_and_jitters_within_bounds():

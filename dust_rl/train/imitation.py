@@ -238,15 +238,17 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     # A warmed-up read-out is frozen before the optimiser and EMA see the weights (a resumed run loads it, so
     # its aux frames are not rendered again), as is a fine-tuned policy's; otherwise the aux frames join every
     # step's loss.
-    aux = None
+    aux, readout_frozen = None, False
     if config.init_policy is not None and policy.config.aux_state_dim and policy.reads_frames_for_readout:
         policy.readout_modules().requires_grad_(False)
+        readout_frozen = True
     elif config.readout.warmup_steps:
         if not (config.resume and rotation.latest() is not None):
             _warm_up_readout(config, dataset, policy, timer,
                              (lambda: features.batch(windows.sample())) if config.readout.demos else None,
                              lambda scalars, step: log_scalars(loggers, scalars, step))
         policy.readout_modules().requires_grad_(False)
+        readout_frozen = True
     elif config.readout.aux_frames:
         print(_readout_plan(config))
         aux = _aux_frame_batches(config, dataset, policy, timer)
@@ -259,6 +261,10 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     ema = weight_average(trained, config.optim.ema_decay)
     checkpoint = Checkpoint(model=trained, ema=ema, optimizer=optimizer, schedule=schedule, rng=RunRNGState())
     start = _resumed_step(restore(checkpoint, rotation), dataset) if config.resume else 0
+    if readout_frozen and policy.config.readout == "tokens":  # its weights final (a resume restored them)
+        with timer("read-out estimates"):
+            for cache in (features, *(batches.features for batches in (video, extra) if batches is not None)):
+                cache.store_readout_estimates()
     loss_of = data_parallel(_ShardLoss(policy, ranks.shard), ranks)
 
     # The loop.
@@ -472,7 +478,9 @@ def _aux_frame_batches(config: TrainConfig, dataset: DemoDataset, policy: DustPo
         stored = cached_aux_frames(dataset.cache_root / "aux_frames", dataset.meta["env_id"],
                                    dataset.meta["env_kwargs"], dataset.tasks, policy.cameras,
                                    count or config.readout.aux_frames, env_state_width(dataset),
-                                   seed=config.seed, first_seed=first_seed, progress=config.runtime.progress)
+                                   seed=config.seed, first_seed=first_seed,
+                                   close_up_fraction=config.readout.close_up_fraction,
+                                   progress=config.runtime.progress)
     with timer("read-out frame tokens"):
         return AuxFrameBatches(stored.rows, stored.instructions, policy, EnvStateNorm.of_dataset(dataset),
                                encode=lambda frames: cached_frame_tokens(stored.path, policy, frames))

@@ -107,11 +107,15 @@ class ReadoutSettings:
     """How the object-state read-out learns from rendered frames (`--readout.*`)."""
 
     aux_frames: int = 0
-    """Frames of random resets and random arm motions (objects independent of the arm,
+    """Frames of random resets with the arm placed at random (objects independent of the arm,
     `dust_rl.train.readout.aux_frames`) rendered once at the start (and kept in `<dataset>/aux_frames/` for
     any run that asks for the same, `dust_rl.train.readout.aux_frame_cache`); every step adds the read-out's
     error on a batch of them to the loss (weight `lambda_aux`), so the read-out cannot settle for "the target is
     where the gripper is". Needs `lambda_aux` and `readout tokens` or `keypoint_source pixels`; 0: off."""
+    close_up_fraction: float = 0.0
+    """The share of aux frames with the gripper placed at a step of the task's expert plan (hover, grasp, carry)
+    instead of a random walk's end: frames where tasks are decided, for read-outs that can use them (a share of
+    close-ups made the read-out of 2026-11 worse, docs/franka_results.md)."""
     warmup_steps: int = 0
     """Steps that fit the read-out (and its pixel keypoints) alone (on aux frames and demonstration rows) before
     the policy trains; they are then frozen (`dust_rl.train.readout.warmup`). Needs `aux_frames`; 0: off."""
@@ -123,6 +127,7 @@ class ReadoutSettings:
     def __post_init__(self) -> None:
         check_at_least(self, 0, "aux_frames", "warmup_steps")
         check_finite(self, "lr", positive=True)
+        check_fraction(self, "close_up_fraction")
         if self.warmup_steps and not self.aux_frames:
             raise ConfigError("--readout.warmup-steps needs --readout.aux-frames > 0: without them the read-out "
                               "learns 'the target is where the gripper is' (dust_rl.train.readout.aux_frames)")

@@ -57,12 +57,8 @@ from dust_rl.storage.atomic_files import atomic_write
 from dust_rl.storage.cache_files import cached, record_cache
 from dust_rl.train.readout.aux_frames import encode_frames, render_aux_frames
 
-FORMAT = 1  # raise when what render_aux_frames draws changes, so older files are not read as current
+FORMAT = 2  # raise when what render_aux_frames draws changes, so older files are not read as current (2: placed)
 TOKEN_FORMAT = 1  # raise when how an image encoder turns frames into tokens changes
-# Frame settings of earlier versions, at the value every frame now has (random motions only): kept in the key so
-# the frames those versions stored are still found.
-RETIRED_SETTINGS = {"expert_fraction": 0.0, "approach_fraction": 0.0, "approach_displacement": 0.0,
-                    "expert_displacement": 0.0}
 
 
 class StoredFrames(NamedTuple):
@@ -87,7 +83,7 @@ def cached_aux_frames(folder: pathlib.Path, env_id: str, env_kwargs: dict, tasks
         DatasetError: a stored file that does not hold what its name promises (delete it to render again).
     """
     key = {"format": FORMAT, "env_id": env_id, "env_kwargs": env_kwargs, "tasks": tasks, "cameras": cameras,
-           "count": count, "env_state_width": env_state_width, **RETIRED_SETTINGS, **settings}
+           "count": count, "env_state_width": env_state_width, **settings}
     path = folder / f"{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.npz"
     if cached(path):
         return StoredFrames(*_read(path, cameras, count, env_state_width), path)

@@ -6,18 +6,25 @@ learns "the target is where the gripper is": on 40 validation episodes it
 is 15 cm from the target cube at step 0 (where the gripper is 17 cm away),
 no better than guessing, with pixel keypoints and frozen features alike
 (``experiments/readout_error.py``, docs/franka_results.md). These frames break that shortcut:
-each is a random reset of a training task followed by 0..39 uniformly random
-actions, so the cubes lie anywhere relative to the arm. ``--readout.aux-frames N``
-renders N of them once at the start of training and adds their read-out
-error to every step's loss beside the demonstrations'.
+each is a random reset of a training task with the arm placed where a walk of 0..39 uniformly random actions
+from home would have commanded it, so the cubes lie anywhere relative to the arm. ``--readout.aux-frames N``
+renders N of them once at the start of training and adds their read-out error to every step's loss beside the
+demonstrations'.
+
+The arm is placed, not walked (:meth:`~dust_rl.envs.env.DustEnv.place_end_effectors`: ten IK steps, the joints
+set, three control periods of physics for the fingers): a walked frame cost 19.5 ms on a 2-core x86 CPU (a reset
+that rendered two frames nobody used, then ~20 control steps of an IK solve and 25 physics substeps each), a
+placed one ~6 ms, nearly all of it the one rendered frame of two cameras. What a placement leaves out is the walk's
+pushes: a walk rarely reached an object from home.
 
 Random motions never lift a cube, so a read-out trained on them alone is
 3 cm off before the grasp but 12-15 cm off once the cube is carried
 (docs/franka_results.md). Frames taken along the scripted expert's episode,
 close-ups where it is about to grasp, and either with the loose objects moved
 away from the gripper were each measured against random motions only and did
-worse (docs/franka_results.md); more random frames and a finer read-out are
-what helped, so random motions are the only kind.
+worse with the read-out of that time (docs/franka_results.md); ``close_up_fraction`` places that share of the
+frames at a step of the task's expert plan (hover, grasp, lift, carry, place) with 1 cm of jitter, for read-outs
+that may use them, and is off by default.
 
 Seeds start at :data:`FIRST_SEED`, away from the demonstration (0..),
 validation (5000..) and held-out (10000..) seeds, so the frames never show a
@@ -28,6 +35,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import mink
+import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDict
@@ -35,20 +44,22 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
 from dust_rl.data.env_state_norm import EnvStateNorm
-from dust_rl.envs.env import DustEnv
+from dust_rl.envs.env import ACTION_WIDTH, CLOSURE, MAX_ROTATION, MAX_TRANSLATION, DustEnv, axis_angle_to_quat
+from dust_rl.envs.experts import Waypoint
 from dust_rl.envs.factory import make_env
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, TASK_INDEX_KEY, flat_name
 
 FIRST_SEED = 1_000_000
 HELDOUT_FIRST_SEED = 2_000_000  # frames that only measure the read-out (never fitted)
 HELDOUT_FRAMES = 256
-MAX_RANDOM_STEPS = 40
+MAX_RANDOM_STEPS = 40  # a placed frame's arm is where a walk of up to this many random actions would command it
+CLOSE_UP_JITTER = 0.01  # metres (standard deviation per axis) around a close-up's expert waypoint
 
 
 def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: list[str], count: int,
                       env_state_width: int, seed: int = 0, first_seed: int = FIRST_SEED,
-                      progress: bool = True) -> tuple[TensorDict, list[str]]:
-    """``count`` frames of random resets and random arm motions, tasks in turn.
+                      close_up_fraction: float = 0.0, progress: bool = True) -> tuple[TensorDict, list[str]]:
+    """``count`` frames of random resets with the arm placed at random, tasks in turn.
 
     Args:
         env_id, env_kwargs: the env the training data came from.
@@ -58,6 +69,8 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
         env_state_width: the dataset's (padded) width of the object state; shorter states are zero-padded.
         seed: offsets the frames' seeds (first_seed + seed * count + i), so runs can differ.
         first_seed: :data:`FIRST_SEED` for frames to fit, :data:`HELDOUT_FIRST_SEED` for frames that measure.
+        close_up_fraction: the share of frames placed at a step of the expert's plan rather than at a random
+            walk's end (each frame draws which from its own seed).
         progress: show a progress bar.
 
     Returns:
@@ -70,11 +83,11 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
     try:
         for i in tqdm(range(count), desc="aux frames", disable=not progress):
             frame_seed = first_seed + seed * count + i
-            env = envs[tasks[i % len(tasks)]]  # frame i shows task i % len(tasks): its task_index
+            sim = envs[tasks[i % len(tasks)]].unwrapped  # frame i shows task i % len(tasks): its task_index
             rng = np.random.default_rng(frame_seed)
-            env.reset(seed=frame_seed)
-            sim = env.unwrapped  # steps without rendering; only the frame at the end is drawn
-            _random_steps(sim, rng, int(rng.integers(0, MAX_RANDOM_STEPS)))
+            sim.reset_unobserved(seed=frame_seed)
+            close_up = rng.uniform() < close_up_fraction
+            sim.place_end_effectors(*(_close_up_targets if close_up else _walk_targets)(sim, rng))
             obs = sim.observe()
             for cam in cameras:
                 frames[cam].append(torch.from_numpy(obs[f"{flat_name(IMAGE_KEY)}.{cam}"]).permute(2, 0, 1))
@@ -89,11 +102,36 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
     return rows, instructions
 
 
-def _random_steps(sim: DustEnv, rng: np.random.Generator, steps: int) -> None:
-    """``steps`` uniformly random actions, or fewer if the episode ends (a time limit, an unstable simulation)."""
-    for _ in range(steps):
-        if sim.advance(rng.uniform(-1.0, 1.0, sim.action_space.shape).astype(np.float32))[1]:
-            break
+Targets = tuple[list[mink.SE3], list[float]]  # a pose and a closure per end effector
+
+
+def _walk_targets(sim: DustEnv, rng: np.random.Generator) -> Targets:
+    """Where 0..MAX_RANDOM_STEPS - 1 uniformly random delta actions would have commanded each end effector from
+    where it is, tracked perfectly: their translations summed, their turns composed, the last one's closure (open
+    after none)."""
+    actions = rng.uniform(-1.0, 1.0, (int(rng.integers(0, MAX_RANDOM_STEPS)), *sim.action_space.shape))
+    targets, closures = [], []
+    for index, (position, rotation) in enumerate(sim.end_effector_poses()):
+        own = actions[:, ACTION_WIDTH * index: ACTION_WIDTH * (index + 1)]
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, rotation.ravel())
+        for turn in own[:, 3:6]:
+            mujoco.mju_mulQuat(quat, axis_angle_to_quat(turn * MAX_ROTATION), quat.copy())
+        targets.append(mink.SE3(np.r_[quat, position + own[:, :3].sum(axis=0) * MAX_TRANSLATION]))
+        closures.append((own[-1, CLOSURE] + 1.0) / 2.0 if len(own) else 0.0)
+    return targets, closures
+
+
+def _close_up_targets(sim: DustEnv, rng: np.random.Generator) -> Targets:
+    """A random step of the task's expert plan from this layout, its positions jittered by
+    :data:`CLOSE_UP_JITTER`: the gripper hovering over, at, or carrying-height above what the task is about."""
+    plan = sim.task.expert_plan(sim.model, sim.data)
+    step = plan[int(rng.integers(0, len(plan)))]
+    waypoints = [step] if isinstance(step, Waypoint) else list(step)
+    targets = [mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(ee.grasp_frame(waypoint.yaw)),
+                                                      waypoint.target() + rng.normal(0.0, CLOSE_UP_JITTER, 3))
+               for ee, waypoint in zip(sim.robot.end_effectors, waypoints, strict=True)]
+    return targets, [waypoint.closure for waypoint in waypoints]
 
 
 class AuxFrameBatches:

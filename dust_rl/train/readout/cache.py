@@ -32,12 +32,13 @@ from dust_rl.agents import DustPolicy
 from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.data.features import hash_weights
 from dust_rl.storage.cache_files import cached, record_cache
+from dust_rl.train.readout.aux_frame_cache import FORMAT as AUX_FRAMES_FORMAT
 from dust_rl.train.settings import RETIRED_FIELDS, setting
 
 READOUT_KIND = "dust-rl/readout-warmup"
 # What the warm-up reads from the training settings (dust_rl.train.settings.TrainSettings, by the top-level names
 # they had before the settings were grouped, so fits cached then are still found) and the policy config.
-WARMUP_SETTINGS = ("seed", "batch_size", "aux_frames", "readout_warmup", "readout_lr")
+WARMUP_SETTINGS = ("seed", "batch_size", "aux_frames", "readout.close_up_fraction", "readout_warmup", "readout_lr")
 READOUT_POLICY_SETTINGS = ("readout", "readout_grid", "readout_heads", "keypoints", "keypoint_source")
 
 Logged = list[tuple[int, dict[str, float]]]  # (step, scalars) as the warm-up logged them
@@ -55,7 +56,7 @@ def readout_cache_path(folder: pathlib.Path, policy: DustPolicy, settings: objec
                  "features": features,
                  "policy": {k: getattr(policy.config, k) for k in READOUT_POLICY_SETTINGS}
                  | {rest: value for (group, rest), value in retired.items() if group == "policy"},
-                 "cameras": policy.cameras, "device": policy.weights_device.type, "torch": torch.__version__}
+                 "frames": AUX_FRAMES_FORMAT, "cameras": policy.cameras, "device": policy.weights_device.type, "torch": torch.__version__}
     digest.update(json.dumps(described, sort_keys=True, default=str).encode())
     hash_weights(digest, policy.readout_modules())
     # The world-model target's statistics: the read-out never reads them, and fits cached before they existed
