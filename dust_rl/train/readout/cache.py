@@ -56,7 +56,8 @@ def readout_cache_path(folder: pathlib.Path, policy: DustPolicy, settings: objec
                  "features": features,
                  "policy": {k: getattr(policy.config, k) for k in READOUT_POLICY_SETTINGS}
                  | {rest: value for (group, rest), value in retired.items() if group == "policy"},
-                 "frames": AUX_FRAMES_FORMAT, "cameras": policy.cameras, "device": policy.weights_device.type, "torch": torch.__version__}
+                 "frames": AUX_FRAMES_FORMAT, "cameras": policy.cameras, "device": policy.weights_device.type,
+                 "torch": torch.__version__}
     digest.update(json.dumps(described, sort_keys=True, default=str).encode())
     hash_weights(digest, policy.readout_modules())
     # The world-model target's statistics: the read-out never reads them, and fits cached before they existed
