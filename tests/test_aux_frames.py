@@ -42,7 +42,7 @@ def test_frames_are_seeded_padded_and_show_the_reset_objects():
     env.close()
     reset_state = torch.from_numpy(obs["observation.environment_state"])
     plate = slice(6, 9)  # the plate is a mocap body: random actions never move it
-    assert torch.equal(state[0, plate], reset_state[plate]) and not state[0, 9:].any()  # zero padding
+    assert torch.equal(state[0, plate], reset_state[plate]) and not state[0, 13:].any()  # zero padding
 
 
 def test_readout_loss_trains_the_pixel_keypoints(demo_dir, tiny_encoder, minilm):

@@ -52,7 +52,7 @@ def test_torchrl_state_mode_has_the_same_nested_keys():
     env = make_torchrl_env(task="pick_place", obs_mode="state")
     check_env_specs(env, seed=0)
     td = env.rollout(2)
-    assert td["observation", "state"].shape == (2, 17) and td["observation", "environment_state"].shape == (2, 9)
+    assert td["observation", "state"].shape == (2, 17) and td["observation", "environment_state"].shape == (2, 13)
     assert set(td.keys()).isdisjoint({"agent_pos", "environment_state"})
     assert validate_vla_tensordict(td) == []  # the instruction, which state mode gives in info, included
     _, info = DustEnv(task="pick_place", obs_mode="state").reset(seed=0)
@@ -175,10 +175,10 @@ def test_privileged_noise_misplaces_each_object_by_one_offset_per_episode():
     offsets = []
     for seed in (0, 0, 1):
         obs, _ = env.reset(seed=seed)
-        seen = [obs["agent_pos"][-9:] - obs["environment_state"]]
+        seen = [obs["agent_pos"][-obs["environment_state"].size:] - obs["environment_state"]]
         for _ in range(3):
             obs, *_ = env.step(np.zeros(7, np.float32))
-            seen.append(obs["agent_pos"][-9:] - obs["environment_state"])
+            seen.append(obs["agent_pos"][-obs["environment_state"].size:] - obs["environment_state"])
         assert all(np.allclose(s, seen[0], atol=1e-6) for s in seen)  # the same offset all episode (float32 sums)
         offsets.append(seen[0])
     assert np.allclose(offsets[0], offsets[1], atol=1e-6) and not np.allclose(offsets[0], offsets[2], atol=1e-3)
@@ -264,3 +264,26 @@ def test_absolute_control_reaches_commanded_pose():
     for _ in range(60):
         env.step(action)
     assert np.linalg.norm(env.end_effector_pose()[0] - target) < 0.01
+
+
+def test_object_state_gives_square_objects_yaws_that_their_quarter_turns_share():
+    import mujoco
+
+    from dust_rl.envs.tasks.base import set_free_body_pose
+
+    env = DustEnv(task="stack", obs_mode="state")
+    env.reset(seed=0)
+    sim = env.unwrapped
+
+    def top_cube_yaw(yaw: float) -> np.ndarray:  # the top cube's (sin, cos) after the three positions
+        set_free_body_pose(sim.data, "top_cube", sim.data.body("top_cube").xpos.copy(), yaw)
+        mujoco.mj_forward(sim.model, sim.data)
+        return sim.observe()["environment_state"][9:11].astype(np.float64)
+
+    base = top_cube_yaw(0.1)
+    tolerance = 8 * np.finfo(np.float32).eps  # float32 state of a float64 sine
+    np.testing.assert_allclose(top_cube_yaw(0.1 + np.pi / 2), base, atol=tolerance)  # a quarter turn: the same
+    np.testing.assert_allclose(top_cube_yaw(0.1 - np.pi / 2), base, atol=tolerance)
+    np.testing.assert_allclose(top_cube_yaw(0.1 + np.pi / 4), -base, atol=tolerance)  # an eighth: opposite
+    np.testing.assert_allclose(base, [np.sin(0.4), np.cos(0.4)], atol=tolerance)
+    env.close()

@@ -86,6 +86,16 @@ def body_yaw(data: mujoco.MjData, body: str) -> float:
     return float(np.arctan2(xmat[1, 0], xmat[0, 0]))
 
 
+QUARTER_TURN = np.pi / 2  # a square's symmetry: turns by it look the same
+
+
+def yaw_features(data: mujoco.MjData, body: str, period: float = QUARTER_TURN) -> np.ndarray:
+    """A body's yaw as (sin, cos) of ``2 pi / period`` times it: the same numbers for yaws its symmetry cannot tell
+    apart (a cube's or a square hole's quarter turns), and no jump where an angle would wrap."""
+    turn = 2 * np.pi / period * body_yaw(data, body)
+    return np.array([np.sin(turn), np.cos(turn)])
+
+
 def sample_separated(rng: np.random.Generator, count: int, low: np.ndarray, high: np.ndarray,
                      min_distance: float, fixed: tuple[np.ndarray, ...] = ()) -> list[np.ndarray]:
     """``count`` xy positions in a box, pairwise (and from ``fixed``) at least ``min_distance`` apart."""

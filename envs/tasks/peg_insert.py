@@ -8,7 +8,7 @@ import numpy as np
 from ..experts import Waypoint, equivalent_yaw
 from ..robot import RobotConfig
 from ..scene import add_free_box
-from .base import COLORS, Task, body_yaw, sample_separated, set_free_body_pose
+from .base import COLORS, Task, body_yaw, sample_separated, set_free_body_pose, yaw_features
 from .fixtures import add_walled_square, local_xyz, set_mocap_pose
 from .grasping import grasp_yaw, pick_and_place
 
@@ -30,7 +30,7 @@ class PegInsert(Task):
     name = "peg_insert"
     category = "other"
     max_episode_steps = 200
-    environment_state_dim = 6  # peg xyz, fixture xyz
+    environment_state_dim = 10  # peg xyz, fixture xyz, then their yaws (sin, cos of 4 x yaw: both are square)
 
     def build(self, spec: mujoco.MjSpec) -> None:
         add_free_box(spec, "peg", PEG_HALF, mass=0.05)
@@ -68,7 +68,8 @@ class PegInsert(Task):
         return float(0.2 * reach + 0.2 * lifted + 0.3 * align * (lifted or insert > 0) + 0.25 * insert)
 
     def environment_state(self, data: mujoco.MjData) -> np.ndarray:
-        return np.concatenate([data.body("peg").xpos, data.body("fixture").xpos])
+        bodies = ("peg", "fixture")
+        return np.concatenate([*(data.body(b).xpos for b in bodies), *(yaw_features(data, b) for b in bodies)])
 
     def expert_plan(self, model: mujoco.MjModel, data: mujoco.MjData) -> list[Waypoint]:
         yaw = grasp_yaw(data, "peg")

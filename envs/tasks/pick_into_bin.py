@@ -8,7 +8,7 @@ import numpy as np
 from ..experts import Waypoint
 from ..robot import RobotConfig
 from ..scene import GEOM, add_free_box, add_free_cylinder
-from .base import COLORS, Task, geoms_touch, sample_separated, set_free_body_pose
+from .base import COLORS, Task, geoms_touch, sample_separated, set_free_body_pose, yaw_features
 from .fixtures import add_walled_square, local_xyz, set_mocap_pose
 from .grasping import grasp_yaw, gripper_geoms, pick_and_place
 
@@ -34,7 +34,8 @@ class PickIntoBin(Task):
     name = "pick_into_bin"
     category = "pick_and_place"
     max_episode_steps = 200
-    environment_state_dim = 12  # target xyz, two distractors xyz, bin xyz
+    # target xyz, two distractors xyz, bin xyz, then the yaws of those four (sin, cos of 4 x yaw; a cylinder's 0, 0)
+    environment_state_dim = 20
 
     def build(self, spec: mujoco.MjSpec) -> None:
         for body, shape in OBJECTS:
@@ -95,7 +96,9 @@ class PickIntoBin(Task):
         return float(0.25 * reach + 0.25 * lifted + 0.45 * place * (lifted or self._in_bin(data)))
 
     def environment_state(self, data: mujoco.MjData) -> np.ndarray:
-        return np.concatenate([data.body(b).xpos for b in (*self._objects, "bin")])
+        bodies, shape = (*self._objects, "bin"), dict(OBJECTS)
+        return np.concatenate([*(data.body(b).xpos for b in bodies),
+                               *(np.zeros(2) if shape.get(b) == "cylinder" else yaw_features(data, b) for b in bodies)])
 
     def expert_plan(self, model: mujoco.MjModel, data: mujoco.MjData) -> list[Waypoint]:
         target = self._objects[0]

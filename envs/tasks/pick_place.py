@@ -8,7 +8,7 @@ import numpy as np
 from ..experts import Waypoint
 from ..robot import RobotConfig
 from ..scene import GEOM, add_free_box
-from .base import COLORS, Task, geoms_touch, sample_separated, set_free_body_pose
+from .base import COLORS, Task, geoms_touch, sample_separated, set_free_body_pose, yaw_features
 from .grasping import grasp_yaw, gripper_geoms, pick_and_place
 
 CUBE_HALF = 0.02
@@ -26,7 +26,7 @@ class PickPlace(Task):
     name = "pick_place"
     category = "pick_and_place"
     max_episode_steps = 200
-    environment_state_dim = 9  # target cube xyz, distractor xyz, plate xyz
+    environment_state_dim = 13  # target cube xyz, distractor xyz, plate xyz, then the cubes' yaws (sin, cos of 4 x yaw)
 
     def build(self, spec: mujoco.MjSpec) -> None:
         add_free_box(spec, "target_cube", (CUBE_HALF,) * 3)
@@ -67,7 +67,9 @@ class PickPlace(Task):
         return float(0.25 * reach + 0.25 * lifted + 0.45 * place * (lifted or self._on_plate(data)))
 
     def environment_state(self, data: mujoco.MjData) -> np.ndarray:
-        return np.concatenate([data.body(b).xpos for b in ("target_cube", "distractor_cube", "plate")])
+        cubes = ("target_cube", "distractor_cube")
+        return np.concatenate([*(data.body(b).xpos for b in (*cubes, "plate")),
+                               *(yaw_features(data, b) for b in cubes)])
 
     def expert_plan(self, model: mujoco.MjModel, data: mujoco.MjData) -> list[Waypoint]:
         def on_plate() -> np.ndarray:

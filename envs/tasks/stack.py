@@ -8,7 +8,7 @@ import numpy as np
 from ..experts import Waypoint, equivalent_yaw
 from ..robot import RobotConfig
 from ..scene import add_free_box
-from .base import COLORS, Task, body_yaw, geoms_touch, sample_separated, set_free_body_pose
+from .base import COLORS, Task, body_yaw, geoms_touch, sample_separated, set_free_body_pose, yaw_features
 from .grasping import grasp_yaw, gripper_geoms, pick_and_place
 
 CUBE_HALF = 0.02
@@ -26,7 +26,7 @@ class Stack(Task):
     name = "stack"
     category = "other"
     max_episode_steps = 200
-    environment_state_dim = 9  # top, bottom and distractor cube xyz
+    environment_state_dim = 15  # top, bottom and distractor cube xyz, then their yaws (sin, cos of 4 x yaw)
 
     def build(self, spec: mujoco.MjSpec) -> None:
         for cube in CUBES:
@@ -60,7 +60,8 @@ class Stack(Task):
         return float(0.25 * reach + 0.25 * lifted + 0.45 * align * lifted)
 
     def environment_state(self, data: mujoco.MjData) -> np.ndarray:
-        return np.concatenate([data.body(cube).xpos for cube in CUBES])
+        return np.concatenate([*(data.body(cube).xpos for cube in CUBES),
+                               *(yaw_features(data, cube) for cube in CUBES)])
 
     def expert_plan(self, model: mujoco.MjModel, data: mujoco.MjData) -> list[Waypoint]:
         yaw = grasp_yaw(data, "top_cube")
