@@ -3,7 +3,6 @@
 from .autoencoder import AutoencoderConfig, ConvAutoencoder
 from .backbone import FrozenBackbone, load_image_encoder, save_image_encoder
 from .batch import random_batch
-from .checkpoint_io import CheckpointError
 from .config import VARIANTS, DustConfig, ModelConfig, PolicyConfig, SamplerConfig
 from .dust_model import ChunkContext, DustModel
 from .execution import ChunkExecutor
@@ -18,7 +17,6 @@ from .text_encoder import TextEncoder, TransformersTextEncoder, pooled_text
 __all__ = [
     "VARIANTS",
     "AutoencoderConfig",
-    "CheckpointError",
     "ChunkContext",
     "ChunkExecutor",
     "ConvAutoencoder",

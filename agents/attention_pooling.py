@@ -32,18 +32,20 @@ class AttentionProbe(nn.Module):
             vector (False: the pooling cannot depend on which object is named).
         heads: softmax poolings side by side, their vectors concatenated: one attends to one place, so a
             prediction about several objects needs several.
+        condition_at_head: the final MLP also reads the embedded condition beside the pooled vectors (for a
+            condition the answer is computed from, such as the pose of the camera that saw the object).
     """
 
     def __init__(self, tokens: int, dim: int, condition: Callable[[], nn.Module], outputs: int,
-                 early: bool = True, heads: int = 1) -> None:
+                 early: bool = True, heads: int = 1, condition_at_head: bool = False) -> None:
         super().__init__()
-        self.early = early
+        self.early, self.condition_at_head = early, condition_at_head
         self.position = nn.Parameter(0.02 * torch.randn(tokens, WIDTH))
         self.condition = condition()
         self.project = nn.Linear(dim, WIDTH)
         self.mlp = nn.Sequential(nn.Linear(WIDTH, 2 * WIDTH), nn.GELU(), nn.Linear(2 * WIDTH, WIDTH))
         self.attend = nn.Linear(WIDTH, heads)
-        self.head = nn.Sequential(nn.Linear(heads * WIDTH, 2 * WIDTH), nn.GELU(),
+        self.head = nn.Sequential(nn.Linear((heads + condition_at_head) * WIDTH, 2 * WIDTH), nn.GELU(),
                                   nn.Linear(2 * WIDTH, outputs))
 
     def forward(self, tokens: Tensor, condition: Tensor) -> Tensor:
@@ -52,7 +54,8 @@ class AttentionProbe(nn.Module):
         h = h + self.mlp(h)
         logits = self.attend(h)  # [B, N, heads]
         pooled = torch.einsum("bnk,bnw->bkw", logits.softmax(1), h)  # [B, heads, WIDTH]
-        return self.head((pooled if self.early else pooled + named).flatten(1))
+        pooled = pooled if self.early else pooled + named
+        return self.head(torch.cat([pooled, named], 1).flatten(1) if self.condition_at_head else pooled.flatten(1))
 
 
 def standardise(train: Tensor, *others: Tensor) -> tuple[Tensor, ...]:

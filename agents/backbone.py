@@ -14,8 +14,10 @@ import pathlib
 import torch
 from torch import Tensor, nn
 
+from dust_rl.errors import CheckpointError
+from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
+
 from .autoencoder import AutoencoderConfig, ConvAutoencoder
-from .checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from .config import MAX_CONV_WIDTH, MAX_GRID_SIDE, MAX_IMAGE_SIZE, MAX_WIDTH, check_size
 from .efficientnet_lite import EfficientNetLite
 from .hf_vision import TransformersImageEncoder

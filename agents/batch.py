@@ -8,6 +8,8 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
+from dust_rl.keys import BATCH_ACTION_CHUNK_KEY, BATCH_STATE_KEY, COND_TOKENS_KEY, FUTURE_TOKENS_KEY
+
 from .config import DustConfig
 
 
@@ -31,10 +33,10 @@ def random_batch(
 
     return TensorDict(
         {
-            "cond_tokens": randn(n_cond_tokens, config.cond_dim),
-            "state": randn(config.trunk_state_dim),
-            "action_chunk": randn(config.horizon, config.action_dim),
-            "future_tokens": randn(config.n_vision_tokens, config.vision_dim),
+            COND_TOKENS_KEY: randn(n_cond_tokens, config.cond_dim),
+            BATCH_STATE_KEY: randn(config.trunk_state_dim),
+            BATCH_ACTION_CHUNK_KEY: randn(config.horizon, config.action_dim),
+            FUTURE_TOKENS_KEY: randn(config.n_vision_tokens, config.vision_dim),
         },
         batch_size=[batch_size],
     )

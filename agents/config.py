@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Literal, get_args
 
@@ -32,11 +31,13 @@ Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 SamplerName = Literal["async", "sync", "action_only"]
 KeypointSource = Literal["features", "pixels"]
 ReadoutInput = Literal["keypoints", "tokens"]
+ReadoutText = Literal["mean", "attention"]
 FutureTarget = Literal["frame", "change"]
 
 VARIANTS: tuple[str, ...] = get_args(Variant)
 KEYPOINT_SOURCES: tuple[str, ...] = get_args(KeypointSource)
 READOUT_INPUTS: tuple[str, ...] = get_args(ReadoutInput)
+READOUT_TEXTS: tuple[str, ...] = get_args(ReadoutText)
 FUTURE_TARGETS: tuple[str, ...] = get_args(FutureTarget)
 SAMPLERS: tuple[str, ...] = get_args(SamplerName)
 
@@ -63,27 +64,6 @@ TIME_FREQ_DIM = 256  # sinusoidal features of the timestep embedding
 RETIRED_SETTINGS: dict[str, object] = {"readout_coords": False}
 """Model settings earlier versions had, each at the one value this version builds (what every model now is): a
 stored config holding one at that value loads, one holding another value is refused (it describes another model)."""
-
-
-def without_retired(stored: Mapping, retired: Mapping[str, object]) -> dict:
-    """``stored`` (a config as JSON values, nested configs as dicts) without the ``retired`` settings it holds
-    (dotted names reach into nested configs: ``policy.readout_coords``).
-
-    Raises:
-        ValueError: a retired setting stored at another value than its retired one (the message names it).
-    """
-    kept = dict(stored)
-    for name, value in retired.items():
-        head, _, rest = name.partition(".")
-        if rest and isinstance(kept.get(head), Mapping):
-            try:
-                kept[head] = without_retired(kept[head], {rest: value})
-            except ValueError as err:
-                raise ValueError(f"{head}.{err}") from None
-        elif not rest and head in kept and kept.pop(head) != value:
-            raise ValueError(f"{name} = {stored[head]!r}: a setting this version removed (only {value!r} is "
-                             "still built)")
-    return kept
 
 
 def check_size(name: str, value: object, maximum: int, minimum: int = 1) -> None:
@@ -174,6 +154,12 @@ class ModelConfig:
     grid and pooled to `cond_grid` for the trunk. At Lite0 stride 8, (16, 16) reads the named button 2.8 cm off
     where the pooled 8x8 grid is 5.1 cm off (held-out aux frames, `experiments/token_readout_probe.py`). None:
     `cond_grid`."""
+    readout_proprio: bool = False
+    """The token read-out also reads the robot's state (joints, end-effector pose, opening): what lets it turn where
+    the wrist camera, which moves with the hand, sees an object into where the object is."""
+    readout_text: ReadoutText = "mean"
+    """How the token read-out reads the instruction: `mean` (its tokens' mean) or `attention` (a learnt attention
+    over its tokens, so a colour or shape word can outweigh the template's words)."""
     text_fusion: bool = False
     """Condition every image token on the instruction before the trunk (`.condition`): the pooled instruction
     is added to each token, which then passes a residual MLP, so "is this the named object?" is answered per token,
@@ -242,8 +228,11 @@ class ModelConfig:
                              f"{tuple(self.vision_grid)}")
         if self.readout not in READOUT_INPUTS:
             raise ValueError(f"unknown readout {self.readout!r}; expected one of {READOUT_INPUTS}")
-        if self.readout_grid is not None and self.readout != "tokens":
-            raise ValueError("readout_grid belongs to the token read-out: it needs readout 'tokens'")
+        for name, default in (("readout_grid", None), ("readout_proprio", False), ("readout_text", "mean")):
+            if getattr(self, name) != default and self.readout != "tokens":
+                raise ValueError(f"{name} belongs to the token read-out: it needs readout 'tokens'")
+        if self.readout_text not in READOUT_TEXTS:
+            raise ValueError(f"unknown readout_text {self.readout_text!r}; expected one of {READOUT_TEXTS}")
         if self.future_target not in FUTURE_TARGETS:
             raise ValueError(f"unknown future_target {self.future_target!r}; expected one of {FUTURE_TARGETS}")
         if self.keypoint_source not in KEYPOINT_SOURCES:

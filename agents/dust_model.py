@@ -47,7 +47,12 @@ key                    shape / dtype        meaning
 ``action_is_pad`` entries and action-free samples are left out of the action
 loss, and clamped futures out of the vision loss: the last stored row is the
 observation before the final action, not the frame H steps on, and a padded
-chunk's repeated actions are no more real than that frame.
+chunk's repeated actions are no more real than that frame. A clamped future
+is also not shown to the action stream: its vision tokens are pure noise (at
+tau_o = 0 in the decoupled variants), as an action-free sample's action
+tokens are. Fed noised, it taught the actions from a hindsight goal frame the
+world model was never taught to predict (on press_button a quarter to a third
+of the training windows).
 
 An action-free sample also gets pure-noise action tokens (tau_A = 0 in
 the decoupled variants, as UWM does), so the vision stream learns the future
@@ -64,6 +69,19 @@ import torch
 import torch.nn.functional as F
 from tensordict import TensorDict
 from torch import Tensor, nn
+
+from dust_rl.keys import (
+    ACTION_IS_PAD_KEY,
+    BATCH_ACTION_CHUNK_KEY,
+    BATCH_ACTION_NOISE_KEY,
+    BATCH_STATE_KEY,
+    COND_MASK_KEY,
+    COND_TOKENS_KEY,
+    FUTURE_IS_CLAMPED_KEY,
+    FUTURE_TOKENS_KEY,
+    HAS_ACTION_KEY,
+    VISION_NOISE_KEY,
+)
 
 from .adaln import Modulation
 from .config import DustConfig
@@ -293,11 +311,11 @@ class DustModel(nn.Module):
             TensorDict with scalar ``loss`` (to minimise), ``loss_action`` and ``loss_vision``.
         """
         cfg = self.config
-        action = batch["action_chunk"]
+        action = batch[BATCH_ACTION_CHUNK_KEY]
         b, device = action.shape[0], action.device
-        has_action = batch.get("has_action", None)
-        valid = action_validity(b, cfg.horizon, has_action, batch.get("action_is_pad", None), device)
-        ctx = self.encode_context(batch["state"], batch["cond_tokens"], batch.get("cond_mask", None))
+        has_action = batch.get(HAS_ACTION_KEY, None)
+        valid = action_validity(b, cfg.horizon, has_action, batch.get(ACTION_IS_PAD_KEY, None), device)
+        ctx = self.encode_context(batch[BATCH_STATE_KEY], batch[COND_TOKENS_KEY], batch.get(COND_MASK_KEY, None))
 
         tau_a = sample_tau(b, s=cfg.tau_s, alpha=cfg.tau_alpha, generator=generator, device=device, shard=shard)
         tau_o = sample_tau(b, s=cfg.tau_s, alpha=cfg.tau_alpha, generator=generator, device=device, shard=shard)
@@ -312,13 +330,17 @@ class DustModel(nn.Module):
                 tau_a = torch.where(has_action, tau_a, 0.0)
 
         noisy_vision = target_vision = None
+        clamped = batch.get(FUTURE_IS_CLAMPED_KEY, None)
         if cfg.has_vision:
-            future = batch["future_tokens"]
+            future = batch[FUTURE_TOKENS_KEY]
             eps_o = cpu_drawn(torch.randn, *future.shape, generator=generator, device=device, shard=shard)
             noisy_vision = interpolate(future, eps_o, tau_o)
             target_vision = velocity_target(future, eps_o)
+            if clamped is not None:  # no future to interpolate towards: pure noise, as an action-free sample's actions
+                noisy_vision = torch.where(clamped.view(-1, 1, 1), eps_o, noisy_vision)
+                if cfg.decoupled:
+                    tau_o = torch.where(clamped, 0.0, tau_o)
         v_a, v_o = self(ctx, noisy_action, noisy_vision, tau_a, tau_o if cfg.has_vision else None)
-        clamped = batch.get("future_is_clamped", None)
         losses = decoupled_loss(v_a, velocity_target(action, eps_a), valid, v_o, target_vision, cfg.lambda_wm,
                                 None if clamped is None else ~clamped)
         return TensorDict(losses, batch_size=[])
@@ -350,10 +372,10 @@ class DustModel(nn.Module):
             TensorDict [B] with ``action_chunk`` [B, H, Da] and, unless action_only,
             ``future_tokens`` [B, N_o, Dv].
         """
-        ctx = self.encode_context(obs["state"], obs["cond_tokens"], obs.get("cond_mask", None))
-        action, vision = run_schedule(self, ctx, schedule, generator, callback, obs.get("action_noise", None),
-                                      noise_scale, vision_source, obs.get("vision_noise", None))
-        out = {"action_chunk": action}
+        ctx = self.encode_context(obs[BATCH_STATE_KEY], obs[COND_TOKENS_KEY], obs.get(COND_MASK_KEY, None))
+        action, vision = run_schedule(self, ctx, schedule, generator, callback, obs.get(BATCH_ACTION_NOISE_KEY, None),
+                                      noise_scale, vision_source, obs.get(VISION_NOISE_KEY, None))
+        out = {BATCH_ACTION_CHUNK_KEY: action}
         if vision is not None:
-            out["future_tokens"] = vision
+            out[FUTURE_TOKENS_KEY] = vision
         return TensorDict(out, batch_size=[ctx.batch_size])

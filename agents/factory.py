@@ -9,7 +9,7 @@ A saved policy holds the config, the trainable weights with the
 normalisation statistics (buffers), and the backbone reference: the image
 encoder's recipe and, unless it comes from a local path, its weights; the
 text encoder by package or path. It is one ``.pt`` file or a folder of
-``config.json`` and ``model.safetensors`` (:mod:`.checkpoint_io`): the same
+``config.json`` and ``model.safetensors`` (:mod:`dust_rl.storage.checkpoint_files`): the same
 entries, the tensors (weights named as in the policy's ``state_dict``, the
 stored image encoder's under ``backbone.image.``) in the safetensors file and
 the rest in the JSON.
@@ -24,19 +24,19 @@ from collections.abc import Mapping, Sequence
 import torch
 from torchrl.envs import EnvBase
 
+from dust_rl.errors import CheckpointError, one_line
 from dust_rl.keys import IMAGE_KEY, STATE_KEY, flat_name
-
-from .backbone import FrozenBackbone, resolve_image_encoder, stores_image_weights
-from .checkpoint_io import (
-    CheckpointError,
+from dust_rl.storage.checkpoint_files import (
     check_tensor_values,
     load_checkpoint,
     load_folder,
-    one_line,
     save_checkpoint,
     save_folder,
 )
-from .config import MAX_CAMERAS, MAX_IMAGE_SIZE, RETIRED_SETTINGS, DustConfig, check_size, without_retired
+from dust_rl.storage.config_json import without_retired
+
+from .backbone import FrozenBackbone, resolve_image_encoder, stores_image_weights
+from .config import MAX_CAMERAS, MAX_IMAGE_SIZE, RETIRED_SETTINGS, DustConfig, check_size
 from .image_encoder import ImageEncoder, channels_first
 from .normalizer import Normalizer
 from .policy import DustPolicy

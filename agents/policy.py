@@ -52,11 +52,24 @@ from torchrl.modules.vla import VLAWrapperBase
 from dust_rl.keys import (
     ACTION_KEY,
     ACTION_NOISE_KEY,
+    BATCH_ACTION_CHUNK_KEY,
+    BATCH_ACTION_NOISE_KEY,
+    BATCH_ENV_STATE_KEY,
+    BATCH_STATE_KEY,
+    COND_MASK_KEY,
+    COND_TOKENS_KEY,
     FUTURE_CHUNK_KEY,
+    FUTURE_IS_CLAMPED_KEY,
+    FUTURE_TOKENS_KEY,
     IMAGE_KEY,
+    IMAGE_TOKENS_KEY,
+    PIXELS_KEY,
     PREDICTED_FUTURE_KEY,
     READOUT_ESTIMATE_KEY,
     SEED_KEY,
+    TEXT_MASK_KEY,
+    TEXT_TOKENS_KEY,
+    VISION_NOISE_KEY,
     flat_name,
 )
 
@@ -74,7 +87,7 @@ from .samplers import schedule_for
 from .state_readout import StateReadout
 from .token_readout import TokenReadout
 
-FEATURE_KEYS = ("image_tokens", "text_tokens", "text_mask", "pixels")
+FEATURE_KEYS = (IMAGE_TOKENS_KEY, TEXT_TOKENS_KEY, TEXT_MASK_KEY, PIXELS_KEY)
 
 
 def instruction_list(value: object, n: int) -> list[str]:
@@ -137,7 +150,9 @@ class DustPolicy(VLAWrapperBase):
         # seed then warm up the same read-out (dust_rl.train.readout.cache).
         if config.aux_state_dim and config.readout == "tokens":
             self.state_readout = TokenReadout(len(cameras), config.token_grid, backbone.image_dim, backbone.text_dim,
-                                              config.aux_state_dim, config.readout_heads)
+                                              config.aux_state_dim, config.readout_heads,
+                                              config.state_dim if config.readout_proprio else 0,
+                                              config.readout_text == "attention")
         elif config.aux_state_dim:
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
                                               config.aux_state_dim)
@@ -302,14 +317,15 @@ class DustPolicy(VLAWrapperBase):
             future_image_tokens: [B, C, N, Dv] tokens at t+H (training; pooled to the world-model target here).
             labels: entries stored as they are (``action_is_pad``, ``future_is_clamped``, ``env_state``).
         """
-        batch = TensorDict({"image_tokens": image_tokens, "text_tokens": text_tokens, "text_mask": text_mask,
-                            "state": self.normalizer.normalize_state(state.float())}, batch_size=state.shape[:1])
+        batch = TensorDict({IMAGE_TOKENS_KEY: image_tokens, TEXT_TOKENS_KEY: text_tokens, TEXT_MASK_KEY: text_mask,
+                            BATCH_STATE_KEY: self.normalizer.normalize_state(state.float())},
+                           batch_size=state.shape[:1])
         if self.reads_pixels:
-            batch.set("pixels", frames)
+            batch.set(PIXELS_KEY, frames)
         if action_chunk is not None:
-            batch.set("action_chunk", self.normalizer.normalize_action(action_chunk))
+            batch.set(BATCH_ACTION_CHUNK_KEY, self.normalizer.normalize_action(action_chunk))
         if future_image_tokens is not None:
-            batch.set("future_tokens", self.future_targets(future_image_tokens))
+            batch.set(FUTURE_TOKENS_KEY, self.future_targets(future_image_tokens))
         for key, value in (labels or {}).items():
             batch.set(key, value)
         return batch
@@ -317,23 +333,24 @@ class DustPolicy(VLAWrapperBase):
     def _model_batch(self, features: TensorDictBase, augment: bool = False,
                      generator: torch.Generator | None = None) -> TensorDictBase:
         """The trunk's batch; ``augment`` shifts the frames of pixel keypoints at random (training only)."""
-        image = self.normalizer.normalize_vision(features.get("image_tokens"))  # on the token grid
+        image = self.normalizer.normalize_vision(features.get(IMAGE_TOKENS_KEY))  # on the token grid
         on_grid = self._pooled(image, self.config.condition_grid)  # what the trunk and keypoints read
-        text, text_mask = features.get("text_tokens"), features.get("text_mask")
+        text, text_mask = features.get(TEXT_TOKENS_KEY), features.get(TEXT_MASK_KEY)
         keypoints = self._keypoints(on_grid, features, augment, generator)
         cond, mask = self.condition(on_grid, text, text_mask, keypoints)
-        batch = features.exclude(*FEATURE_KEYS).set("cond_tokens", cond).set("cond_mask", mask)
+        batch = features.exclude(*FEATURE_KEYS).set(COND_TOKENS_KEY, cond).set(COND_MASK_KEY, mask)
         # The loss and the diagnostics read the estimate, the trunk only if fed; a batch may bring the frozen
         # read-out's estimate along (dust_rl.data.features.FeatureCache.store_readout_estimates).
         if self.config.aux_state_dim and READOUT_ESTIMATE_KEY not in features.keys():
-            batch.set(READOUT_ESTIMATE_KEY, self._readout(image, keypoints, text, text_mask))
+            batch.set(READOUT_ESTIMATE_KEY, self._readout(image, keypoints, text, text_mask,
+                                                          features.get(BATCH_STATE_KEY)))
         if self.config.aux_state_input:
-            batch.set("state", torch.cat([batch.get("state"), batch.get(READOUT_ESTIMATE_KEY)], dim=-1))
-        if "future_tokens" in features.keys():
-            future = self.standardised_future(features.get("future_tokens"))
+            batch.set(BATCH_STATE_KEY, torch.cat([batch.get(BATCH_STATE_KEY), batch.get(READOUT_ESTIMATE_KEY)], dim=-1))
+        if FUTURE_TOKENS_KEY in features.keys():
+            future = self.standardised_future(features.get(FUTURE_TOKENS_KEY))
             if self.config.future_target == "change":
                 future = (future - self._present_target(image)) / self.normalizer.future_change_scale
-            batch.set("future_tokens", future)
+            batch.set(FUTURE_TOKENS_KEY, future)
         return batch
 
     def standardised_future(self, future_tokens: Tensor) -> Tensor:
@@ -345,7 +362,7 @@ class DustPolicy(VLAWrapperBase):
 
     def present_target(self, features: TensorDictBase) -> Tensor:
         """The present frame of a feature batch as a world-model frame [B, N_o, Dv]: "nothing moves"."""
-        return self._present_target(self.normalizer.normalize_vision(features.get("image_tokens")))
+        return self._present_target(self.normalizer.normalize_vision(features.get(IMAGE_TOKENS_KEY)))
 
     def _present_target(self, image: Tensor) -> Tensor:
         """:meth:`present_target` of standardised tokens [B, C, N, Dv] on the token grid."""
@@ -354,8 +371,8 @@ class DustPolicy(VLAWrapperBase):
     def future_changes(self, features: TensorDictBase) -> Tensor:
         """Standardised changes [B', N_o, Dv] from the present frame to t+H of a training feature batch, the
         clamped futures (t+H past the episode's end) left out: what sets a change target's unit."""
-        change = self.standardised_future(features.get("future_tokens")) - self.present_target(features)
-        return change[~features.get("future_is_clamped")] if "future_is_clamped" in features.keys() else change
+        change = self.standardised_future(features.get(FUTURE_TOKENS_KEY)) - self.present_target(features)
+        return change[~features.get(FUTURE_IS_CLAMPED_KEY)] if FUTURE_IS_CLAMPED_KEY in features.keys() else change
 
     def _predicted_frame(self, future: Tensor, features: TensorDictBase) -> Tensor:
         """The trunk's future [B, N_o, Dv] as a standardised frame (a change target adds the present frame)."""
@@ -372,20 +389,25 @@ class DustPolicy(VLAWrapperBase):
         """
         if not self.config.aux_state_dim:
             raise ValueError("this policy has no state read-out (trained without --policy.lambda-aux)")
-        image = self.normalizer.normalize_vision(features.get("image_tokens"))  # the read-out alone, no trunk input
+        image = self.normalizer.normalize_vision(features.get(IMAGE_TOKENS_KEY))  # the read-out alone, no trunk input
         keypoints = self._keypoints(self._pooled(image, self.config.condition_grid), features)
-        return self._readout(image, keypoints, features.get("text_tokens"), features.get("text_mask"))
+        return self._readout(image, keypoints, features.get(TEXT_TOKENS_KEY), features.get(TEXT_MASK_KEY),
+                             features.get(BATCH_STATE_KEY))
 
     def _keypoints(self, on_grid: Tensor, features: TensorDictBase, augment: bool = False,
                    generator: torch.Generator | None = None) -> Tensor | None:
         """The keypoint features of a feature batch (None without keypoints)."""
         if not self.config.keypoints:
             return None
-        return self.condition.keypoint_features(on_grid, features.get("pixels", None), augment, generator)
+        return self.condition.keypoint_features(on_grid, features.get(PIXELS_KEY, None), augment, generator)
 
-    def _readout(self, image: Tensor, keypoints: Tensor | None, text: Tensor, text_mask: Tensor) -> Tensor:
-        """The read-out's estimate [B, S] from the standardised image tokens or the keypoints, whichever it reads."""
-        return self.state_readout(image if self.config.readout == "tokens" else keypoints, text, text_mask)
+    def _readout(self, image: Tensor, keypoints: Tensor | None, text: Tensor, text_mask: Tensor,
+                 state: Tensor) -> Tensor:
+        """The read-out's estimate [B, S] from the standardised image tokens or the keypoints, whichever it reads
+        (and the normalised robot state [B, Ds], where it reads that too)."""
+        if self.config.readout != "tokens":
+            return self.state_readout(keypoints, text, text_mask)
+        return self.state_readout(image, text, text_mask, state if self.config.readout_proprio else None)
 
     # -- training and inference ---------------------------------------------
     def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None,
@@ -401,8 +423,9 @@ class DustPolicy(VLAWrapperBase):
         """
         model_batch = self._model_batch(batch, augment=self.training, generator=generator)
         losses = self.model.compute_loss(model_batch, generator, shard)
-        if self.config.aux_state_dim and "env_state" in batch.keys():
-            losses.set("loss_aux", _squared_error(model_batch.get(READOUT_ESTIMATE_KEY), batch.get("env_state")))
+        if self.config.aux_state_dim and BATCH_ENV_STATE_KEY in batch.keys():
+            losses.set("loss_aux", _squared_error(model_batch.get(READOUT_ESTIMATE_KEY),
+                                                  batch.get(BATCH_ENV_STATE_KEY)))
             losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))
         return losses
 
@@ -411,20 +434,21 @@ class DustPolicy(VLAWrapperBase):
 
         Args:
             frames: ``image_tokens`` [B, C, N, Dv] (token read-out) or ``pixels`` [B, C, 3, H, W] uint8 (pixel
-                keypoints; shifted at random in training mode), ``text_tokens``, ``text_mask`` and ``env_state``
-                (:class:`~dust_rl.train.readout.aux_frames.AuxFrameBatches`).
+                keypoints; shifted at random in training mode), ``text_tokens``, ``text_mask``, ``env_state`` and the
+                normalised robot ``state`` (:class:`~dust_rl.train.readout.aux_frames.AuxFrameBatches`).
 
         Raises:
             ValueError: the policy has no read-out that frames alone can train.
         """
         self._check_frame_readout()
         if self.config.readout == "tokens":
-            image, keypoints = self.normalizer.normalize_vision(frames.get("image_tokens")), None
+            image, keypoints = self.normalizer.normalize_vision(frames.get(IMAGE_TOKENS_KEY)), None
         else:
-            image, keypoints = None, self.condition.keypoint_features(None, frames.get("pixels"), self.training,
+            image, keypoints = None, self.condition.keypoint_features(None, frames.get(PIXELS_KEY), self.training,
                                                                       generator)
-        estimate = self._readout(image, keypoints, frames.get("text_tokens"), frames.get("text_mask"))
-        return _squared_error(estimate, frames.get("env_state"))
+        estimate = self._readout(image, keypoints, frames.get(TEXT_TOKENS_KEY), frames.get(TEXT_MASK_KEY),
+                                 frames.get(BATCH_STATE_KEY))
+        return _squared_error(estimate, frames.get(BATCH_ENV_STATE_KEY))
 
     @torch.no_grad()
     def plan(self, td: TensorDictBase, generator: torch.Generator | None = None,
@@ -454,7 +478,7 @@ class DustPolicy(VLAWrapperBase):
         the initial vision noise instead of the drawn one; with ``action_noise`` too, nothing is drawn and the
         chunk is a deterministic function of the two (:func:`~.samplers.run_schedule`)."""
         batch = self._model_batch(features)
-        for key, noise in (("action_noise", action_noise), ("vision_noise", vision_noise)):
+        for key, noise in ((BATCH_ACTION_NOISE_KEY, action_noise), (VISION_NOISE_KEY, vision_noise)):
             if noise is not None:
                 batch.set(key, noise.reshape(batch.batch_size[0], *noise.shape[-2:]))
         # K joint samples from the same fixed noises would be one sample K times: nothing to choose among
@@ -466,16 +490,16 @@ class DustPolicy(VLAWrapperBase):
             out = self.model.predict_action(batch, schedule_for(self.config), generator,
                                             noise_scale=self.config.noise_scale)
         out = out.apply(lambda tensor: tensor.float() if tensor.is_floating_point() else tensor)
-        if "future_tokens" in out.keys():
-            out.set("future_tokens", self._predicted_frame(out.get("future_tokens"), features))
+        if FUTURE_TOKENS_KEY in out.keys():
+            out.set(FUTURE_TOKENS_KEY, self._predicted_frame(out.get(FUTURE_TOKENS_KEY), features))
         if candidates > 1:  # keep, per observation, the sample whose predicted future scores best
-            scores = self.future_scores(out.get("future_tokens")).view(-1, candidates)
+            scores = self.future_scores(out.get(FUTURE_TOKENS_KEY)).view(-1, candidates)
             out = out.view(-1, candidates)[torch.arange(scores.shape[0], device=scores.device), scores.argmax(-1)]
-        chunk = self.normalizer.denormalize_action(out.get("action_chunk"))
-        out.set("action_chunk", chunk.clamp(self.action_low, self.action_high))
-        if "future_tokens" in out.keys():
-            out.set("future_tokens", self.normalizer.denormalize_vision(
-                self.normalizer.unstandardise_future(out.get("future_tokens"))))
+        chunk = self.normalizer.denormalize_action(out.get(BATCH_ACTION_CHUNK_KEY))
+        out.set(BATCH_ACTION_CHUNK_KEY, chunk.clamp(self.action_low, self.action_high))
+        if FUTURE_TOKENS_KEY in out.keys():
+            out.set(FUTURE_TOKENS_KEY, self.normalizer.denormalize_vision(
+                self.normalizer.unstandardise_future(out.get(FUTURE_TOKENS_KEY))))
         return out
 
     def future_scores(self, future_tokens: Tensor) -> Tensor:
@@ -507,11 +531,11 @@ class DustPolicy(VLAWrapperBase):
                    tensordict_out: TensorDictBase | None = None) -> TensorDictBase:
         """What :meth:`forward` writes of ``planned`` (:meth:`plan`'s output for ``tensordict``), for a caller that
         plans from features it reads too (a steering agent's policy, :class:`~dust_rl.rl.steering.SteeredPolicy`)."""
-        chunk = planned.get("action_chunk")
+        chunk = planned.get(BATCH_ACTION_CHUNK_KEY)
         out = TensorDict({ACTION_KEY: chunk[..., 0, :]}, batch_size=chunk.shape[:-2], device=chunk.device)
         self._set_action(out, chunk=chunk)
         if self.writes_future:
-            future = planned.get("future_tokens")
+            future = planned.get(FUTURE_TOKENS_KEY)
             out.set(PREDICTED_FUTURE_KEY, future)
             out.set(FUTURE_CHUNK_KEY, future.unsqueeze(-3).expand(*chunk.shape[:-1], *future.shape[-2:]))
         return self._output_tensordict(tensordict, out, tensordict_out)

@@ -14,7 +14,8 @@ from abc import ABC, abstractmethod
 
 from torch import Tensor, nn
 
-from .checkpoint_io import one_line
+from dust_rl.errors import one_line
+
 from .config import MAX_TEXT_TOKENS, check_size
 
 

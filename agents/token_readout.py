@@ -12,20 +12,26 @@ demonstrations' few layouts.
 
 It is :class:`~.attention_pooling.AttentionProbe` over every camera's
 condition tokens (one position embedding per camera and cell), with the
-pooled instruction added to each token before the attention, so which object
-is named decides where it looks.
+instruction added to each token before the attention, so which object
+is named decides where it looks. The instruction is its tokens' mean, or
+(``readout_text="attention"``) a learnt attention over them. With
+``proprio_dim`` the robot state joins the instruction in that condition and is read again by the final MLP:
+the wrist camera moves with the hand, so where it sees an object says where the object is only given where the
+hand is.
 
 ==============  ==================  =====================================
 tensor          shape               meaning
 ==============  ==================  =====================================
 image_tokens    [B, C, N, Dv]       standardised condition tokens per camera
 text_tokens     [B, L, Dt]          instruction tokens (mask [B, L])
+state           [B, P]              normalised robot state (``proprio_dim`` P > 0 only)
 estimate        [B, S]              normalised environment state
 ==============  ==================  =====================================
 """
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor, nn
 
 from .attention_pooling import WIDTH, AttentionProbe
@@ -33,7 +39,7 @@ from .text_encoder import pooled_text
 
 
 class TokenReadout(nn.Module):
-    """Image tokens and instruction to a normalised environment state [B, S].
+    """Image tokens, instruction (and robot state) to a normalised environment state [B, S].
 
     Args:
         cameras: C.
@@ -42,13 +48,25 @@ class TokenReadout(nn.Module):
         text_dim: Dt.
         state_dim: S.
         heads: attention poolings side by side.
+        proprio_dim: P, the robot state's size; 0: the read-out does not read it.
+        text_attention: read the instruction by a learnt attention over its tokens rather than their mean.
     """
 
     def __init__(self, cameras: int, grid: tuple[int, int], image_dim: int, text_dim: int, state_dim: int,
-                 heads: int = 1) -> None:
+                 heads: int = 1, proprio_dim: int = 0, text_attention: bool = False) -> None:
         super().__init__()
-        self.pool = AttentionProbe(cameras * grid[0] * grid[1], image_dim, lambda: nn.Linear(text_dim, WIDTH),
-                                   outputs=state_dim, heads=heads)
+        self.proprio_dim = proprio_dim
+        self.text_attend = nn.Linear(text_dim, 1) if text_attention else None
+        self.pool = AttentionProbe(cameras * grid[0] * grid[1], image_dim,
+                                   lambda: nn.Linear(text_dim + proprio_dim, WIDTH), outputs=state_dim, heads=heads,
+                                   condition_at_head=proprio_dim > 0)
 
-    def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor) -> Tensor:
-        return self.pool(image_tokens.flatten(1, 2), pooled_text(text_tokens, text_mask))
+    def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor,
+                state: Tensor | None = None) -> Tensor:
+        if self.text_attend is None:
+            text = pooled_text(text_tokens, text_mask)
+        else:  # masked softmax over the instruction's tokens
+            logits = self.text_attend(text_tokens).squeeze(-1).masked_fill(~text_mask, float("-inf"))
+            text = torch.einsum("bl,bld->bd", logits.softmax(-1), text_tokens)
+        condition = torch.cat([text, state], -1) if self.proprio_dim else text
+        return self.pool(image_tokens.flatten(1, 2), condition)

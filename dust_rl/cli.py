@@ -18,11 +18,14 @@ import os
 import shlex
 import sys
 from collections.abc import Callable
-from typing import Annotated, Union
+from typing import TYPE_CHECKING, Annotated, Union
 
 import tyro
 
-from dust_rl.errors import ConfigError, UserError
+from dust_rl.errors import CheckpointError, ConfigError, UserError
+
+if TYPE_CHECKING:
+    from dust_rl.evaluate.closed_loop import EvalConfig
 
 GROUPS = (tyro.conf.OmitSubcommandPrefixes,)  # "dust-rl dataset info", not "dust-rl dataset action:info"
 DESCRIPTION = ("DUST (dual-stream diffusion) for torchrl and gymnasium: collect demonstrations, train, evaluate, "
@@ -41,7 +44,6 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose_world_model_command
     from dust_rl.evaluate.closed_loop import EvalConfig
     from dust_rl.quickstart import QuickstartConfig, quickstart
-    from dust_rl.rl.fine_tuned_policy import evaluate_any_command
     from dust_rl.rl.finetune import FinetuneCommand, finetune_command
     from dust_rl.train import encoder_commands as encoders
     from dust_rl.train.imitation import TrainConfig, train_command
@@ -55,7 +57,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "pretrain-encoder": (encoders.PretrainEncoderCommand, encoders.run_pretrain_encoder),
         "encoder": (encoders.EncoderCommand, encoders.run_encoder),
         "train": (TrainConfig, train_command),
-        "eval": (EvalConfig, evaluate_any_command),
+        "eval": (EvalConfig, eval_command),
         "finetune": (FinetuneCommand, finetune_command),
         "bench suite": (SuiteConfig, suite_command),
         "bench average": (AverageConfig, average_command),
@@ -66,9 +68,19 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     }
 
 
-def main(argv: list[str] | None = None) -> None:
-    from dust_rl.agents.checkpoint_io import CheckpointError
+def eval_command(config: EvalConfig, command: str) -> dict:
+    """``dust-rl eval``: a fine-tuned RL agent's ``rl_agent.pt`` through :mod:`dust_rl.rl.fine_tuned_policy`, any
+    other policy file through :mod:`dust_rl.evaluate` alone."""
+    from dust_rl.evaluate.closed_loop import evaluate_command
+    from dust_rl.rl.config import RL_AGENT_KIND
+    from dust_rl.rl.fine_tuned_policy import evaluate_agent_command
+    from dust_rl.storage.checkpoint_files import checkpoint_kind
 
+    runner = evaluate_agent_command if checkpoint_kind(config.policy) == RL_AGENT_KIND else evaluate_command
+    return runner(config, command)
+
+
+def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--version"]:
         from dust_rl import __version__

@@ -1,8 +1,9 @@
 """Errors a user can fix, and the range checks that raise them.
 
 The ``dust-rl`` command prints a :class:`UserError` (and a few library errors of the same
-kind: corrupt checkpoints, file system errors) as one line, ``dust-rl: error: <message>``;
-any other exception is a bug and keeps its traceback.
+kind: an unusable checkpoint's :class:`CheckpointError`, file system errors) as one line,
+``dust-rl: error: <message>``; any other exception is a bug and keeps its traceback. Nothing
+here imports torch or another layer of the package, so every layer raises these.
 """
 
 from __future__ import annotations
@@ -59,6 +60,15 @@ def check_fraction(config: object, *names: str) -> None:
         value = getattr(config, name)
         if not 0 <= value < 1:
             raise ConfigError(f"{name} must be in [0, 1), got {value}")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, unreadable, of another kind, or does not fit what it is loaded into."""
+
+
+def one_line(err: BaseException) -> str:
+    """``err`` as ``Type: message`` on one line (library messages may span several)."""
+    return f"{type(err).__name__}: {' '.join(str(err).split())}"
 
 
 class NoSpaceError(UserError):

@@ -13,7 +13,8 @@ from collections.abc import Sequence
 import torch
 
 from dust_rl.agents import DustPolicy, execution
-from dust_rl.evaluate.closed_loop import Episode, EvalConfig, EvalSetup, prepare, summary_row
+from dust_rl.evaluate.closed_loop import EvalConfig, EvalSetup, prepare, summary_row
+from dust_rl.evaluate.records import Episode
 
 NOISE_OFFSET = 1_000_003  # added to the episode seed per further draw: far from every seed schedule
 

@@ -43,7 +43,7 @@ from dust_rl.agents import DustPolicy, load_policy
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.envs.env import MAX_TRANSLATION
 from dust_rl.envs.factory import make_env
-from dust_rl.evaluate.closed_loop import mcnemar, wilson_interval
+from dust_rl.evaluate.records import mcnemar, wilson_interval
 from dust_rl.rl.frozen_policy_env import observe_batch
 from dust_rl.rl.steering import NoiseSteeringEnv
 
@@ -298,7 +298,7 @@ def main() -> None:
         wins = sum(results.values())
         low, high = wilson_interval(wins, len(results))
         base = outcomes.get("base", results)
-        test = mcnemar(sum(results[s] and not base[s] for s in seeds), sum(base[s] and not results[s] for s in seeds))
+        test = mcnemar(results, base)
         summary["closed_loop"][arm] = {"successes": wins, "episodes": len(results), **test}
         lines.append(f"| {arm} | {wins / len(results):.0%} ({wins}/{len(results)}) | {low:.0%}-{high:.0%} | "
                      f"{test['gained']} / {test['lost']} | {test['p_value']:.3f} |")

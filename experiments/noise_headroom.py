@@ -34,7 +34,8 @@ from in_process_eval import NOISE_OFFSET, PlanHook, add_eval_arguments, prepare_
 
 from dust_rl.agents import DustPolicy
 from dust_rl.envs.env import MAX_TRANSLATION
-from dust_rl.evaluate.closed_loop import evaluate_task, wilson_interval
+from dust_rl.evaluate.closed_loop import evaluate_task
+from dust_rl.evaluate.records import wilson_interval
 
 
 class BranchingNoise(PlanHook):

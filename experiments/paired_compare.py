@@ -2,7 +2,7 @@
 
 Why: a fine-tuned policy and its base, evaluated on the same 50 seeds, often differ by a few points, inside both
 Wilson intervals. The episodes one wins and the other loses carry the whole difference; the exact McNemar test on
-them (:func:`dust_rl.evaluate.closed_loop.paired_comparison`, also in every ``dust-rl finetune`` report) says
+them (:func:`dust_rl.evaluate.records.paired_comparison`, also in every ``dust-rl finetune`` report) says
 whether it is more
 than noise.
 
@@ -18,7 +18,7 @@ import argparse
 import json
 import pathlib
 
-from dust_rl.evaluate.closed_loop import Episode, paired_comparison
+from dust_rl.evaluate.records import Episode, paired_comparison
 
 
 def episodes(reports: str) -> dict[str, list[Episode]]:
@@ -26,7 +26,7 @@ def episodes(reports: str) -> dict[str, list[Episode]]:
     pooled: dict[str, list[Episode]] = {}
     for report in reports.split(","):
         for row in json.loads(pathlib.Path(report).read_text())["tasks"]:
-            pooled.setdefault(row["task"], []).extend(Episode(*e) for e in row["per_episode"])
+            pooled.setdefault(row["task"], []).extend(map(Episode.from_json, row["per_episode"]))
     return pooled
 
 

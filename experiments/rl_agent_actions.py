@@ -18,9 +18,9 @@ import torch
 from stable_baselines3 import SAC
 
 from dust_rl.agents import load_policy
-from dust_rl.agents.checkpoint_io import load_checkpoint
 from dust_rl.rl.config import rl_config_from_json
 from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune_env_factory
+from dust_rl.storage.checkpoint_files import load_checkpoint
 
 
 def main() -> None:

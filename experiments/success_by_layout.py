@@ -25,7 +25,7 @@ import numpy as np
 
 import dust_rl  # noqa: F401 (registers the environments)
 from dust_rl.envs.tasks.grasping import grasp_yaw
-from dust_rl.evaluate.closed_loop import wilson_interval
+from dust_rl.evaluate.records import wilson_interval
 
 BINS = 3
 

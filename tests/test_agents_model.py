@@ -259,22 +259,24 @@ def test_padded_action_entries_are_excluded():
     assert (v_action.grad[:, :-2] != 0).all()
 
 
-def test_clamped_futures_are_left_out_of_the_vision_loss():
-    config = tiny("dust")
-    agent = DustModel(config)
-    randomised(agent)
+@pytest.mark.parametrize(("variant", "loss"), [("dust", "loss_vision"),
+                                             *((v, "loss_action") for v in VARIANTS if v != "action_only")])
+def test_a_clamped_future_is_no_vision_target_and_reaches_the_actions_as_pure_noise(variant, loss):
+    """The actions are not trained on a hindsight frame the world model is never taught (module doc)."""
+    config = tiny(variant)
+    agent = randomised(DustModel(config))
     batch = random_batch(config, 3, n_cond_tokens=4, generator=torch.Generator().manual_seed(5))
     batch["future_is_clamped"] = torch.tensor([True, False, False])
 
-    def vision_loss(future_tokens):
+    def loss_with(future_tokens):
         return agent.compute_loss(batch.clone().set("future_tokens", future_tokens),
-                                  torch.Generator().manual_seed(0))["loss_vision"]
+                                  torch.Generator().manual_seed(0))[loss]
 
     changed = batch["future_tokens"].clone()
-    changed[0] = float("nan")  # the clamped sample's target may be anything, NaN included
-    assert torch.equal(vision_loss(changed), vision_loss(batch["future_tokens"]))
+    changed[0] = float("nan")  # the clamped sample's future may be anything, NaN included
+    assert torch.equal(loss_with(changed), loss_with(batch["future_tokens"]))
     changed[0], changed[1] = batch["future_tokens"][0], batch["future_tokens"][1] + 1.0
-    assert not torch.equal(vision_loss(changed), vision_loss(batch["future_tokens"]))
+    assert not torch.equal(loss_with(changed), loss_with(batch["future_tokens"]))
 
 
 def test_invalid_configs_are_rejected():

@@ -10,7 +10,6 @@ from torchrl.envs import GymEnv, InitTracker, TransformedEnv
 
 from dust_rl.agents import (
     VARIANTS,
-    CheckpointError,
     DustPolicy,
     SamplerConfig,
     env_spec,
@@ -18,12 +17,12 @@ from dust_rl.agents import (
     make_policy,
     save_policy,
 )
-from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.factory import POLICY_KIND
 from dust_rl.envs.torchrl_env import make_torchrl_env
-from dust_rl.errors import UserError
+from dust_rl.errors import CheckpointError, UserError
 from dust_rl.keys import ACTION_NOISE_KEY, PREDICTED_FUTURE_KEY
 from dust_rl.rl.wm_select import with_scorer
+from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

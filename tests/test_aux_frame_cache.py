@@ -19,7 +19,7 @@ from dust_rl.train.readout.aux_frame_cache import cached_aux_frames, cached_fram
 from dust_rl.train.readout.aux_frames import encode_frames, render_aux_frames
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-ARGS = ("DustFranka-v0", DEMO_ENV_KWARGS, ["pick_place", "push"], ["front", "wrist"], 3, 9)
+ARGS = ("DustFranka-v0", DEMO_ENV_KWARGS, ["pick_place", "push"], ["front", "wrist"], 3, 13)
 
 
 def test_stored_frames_are_the_rendered_ones_and_keyed_by_their_settings(tmp_path, monkeypatch):

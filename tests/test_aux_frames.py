@@ -13,7 +13,7 @@ from dust_rl.data import DemoDataset
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.envs.factory import make_env
-from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, STATE_KEY
 from dust_rl.train.readout.aux_frames import (
     FIRST_SEED,
     AuxFrameBatches,
@@ -127,8 +127,38 @@ def test_close_ups_put_the_gripper_over_what_the_task_is_about():
         for seed in range(16):
             sim.reset_unobserved(seed=FIRST_SEED + seed)
             sim.place_end_effectors(*targets(sim, np.random.default_rng(seed)))
-            cube_and_plate = sim.task.environment_state(sim.data).reshape(-1, 3)[[0, 2], :2]
+            cube_and_plate = sim.task.environment_state(sim.data)[:9].reshape(3, 3)[[0, 2], :2]  # xyz first
             distances.append(np.linalg.norm(cube_and_plate - sim.end_effector_pose()[0][:2], axis=1).min())
         near[kind] = np.mean(np.array(distances) < 0.03)
     env.close()
     assert near["close-up"] >= 0.4 and near["walk"] <= 0.2, near
+
+
+def test_the_token_readout_can_read_the_robot_state_and_attend_over_the_instruction(demo_dir, tiny_encoder, minilm):
+    dataset = DemoDataset(demo_dir)
+    width = env_state_width(dataset)
+    policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
+                         horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
+                         aux_state_dim=width, lambda_aux=1.0, readout_proprio=True, readout_text="attention")
+    rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
+                                           width, progress=False)
+    batches = AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
+    frames = batches.rows(torch.arange(3))
+    torch.testing.assert_close(frames.get("state"), policy.normalizer.normalize_state(rows.get(STATE_KEY)))
+    policy.readout_loss(frames).backward()
+    readout = policy.state_readout
+    assert readout.text_attend.weight.grad.abs().sum() > 0
+    assert readout.pool.condition.in_features == policy.backbone.text_dim + policy.config.state_dim
+    with torch.no_grad():
+        estimate = readout(frames.get("image_tokens"), frames.get("text_tokens"), frames.get("text_mask"),
+                           frames.get("state"))
+        moved = readout(frames.get("image_tokens"), frames.get("text_tokens"), frames.get("text_mask"),
+                        frames.get("state") + 1.0)
+        padded = frames.get("text_tokens").masked_fill(~frames.get("text_mask")[..., None], 1e3)
+        same = readout(frames.get("image_tokens"), padded, frames.get("text_mask"), frames.get("state"))
+    assert not torch.allclose(estimate, moved)  # where the hand is changes where the objects are read
+    torch.testing.assert_close(same, estimate)  # padding tokens carry no weight
+    with pytest.raises(ValueError, match="readout_proprio belongs to the token read-out"):
+        DustConfig(readout_proprio=True)
+    with pytest.raises(ValueError, match="unknown readout_text 'max'"):
+        DustConfig(readout="tokens", readout_text="max")

@@ -27,9 +27,6 @@ from dust_rl.bench.suite import (
     plan,
     rows_of,
     run_suite,
-    t_bounds,
-    t_critical,
-    t_interval,
     train_cell,
     trunk_parameters,
 )
@@ -37,6 +34,7 @@ from dust_rl.cli import with_preset
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
 from dust_rl.errors import ConfigError
+from dust_rl.evaluate.records import t_bounds, t_critical, t_interval
 from dust_rl.storage.lock import folder_lock
 from dust_rl.train.imitation import TrainSettings
 from dust_rl.train.recipes import RECIPES, plain, vision_readout

@@ -40,7 +40,8 @@ def test_train_speed_times_every_phase_of_the_recipe(tmp_path, capsys):
     main(args)
     result = json.loads((out / "train_speed.json").read_text())
     phases = {row["phase"]: row for row in result["rows"]}
-    assert {"collection", "encode dataset", "read-out frames", "read-out frame tokens", "read-out fit", "step: data",
+    assert {"collection", "encode dataset", "read-out frames", "read-out frame tokens", "read-out fit",
+            "read-out estimates", "step: data",
             "step: forward", "step: backward", "step: optimizer", "checkpoint", "step: all parts",
             "closed-loop evaluation"} == set(phases)
     assert all(row["ms_each"] > 0 for row in phases.values())

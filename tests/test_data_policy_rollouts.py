@@ -6,12 +6,12 @@ import pytest
 import torch
 from test_evaluate import tiny_policy_file
 
-from dust_rl.agents import CheckpointError, load_policy
+from dust_rl.agents import load_policy
 from dust_rl.data import DatasetError, collect_demos
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import load_episode_rows, scan_episodes
 from dust_rl.data.seeding import SeedSchedule
-from dust_rl.errors import ConfigError
+from dust_rl.errors import CheckpointError, ConfigError
 from dust_rl.evaluate.closed_loop import make_eval_env
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -22,7 +22,6 @@ from crafted import CRAFTS, edit_json
 
 from dust_rl.agents import (
     VARIANTS,
-    CheckpointError,
     DustConfig,
     DustModel,
     PolicyConfig,
@@ -35,6 +34,7 @@ from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, collect_demos
 from dust_rl.data.lerobot_export import EPISODES_FILE
 from dust_rl.data.video import write_mp4
+from dust_rl.errors import CheckpointError
 from dust_rl.storage.memmap_io import check_memmap_dir
 from dust_rl.train.imitation import TrainConfig, train
 from dust_rl.train.settings import OptimSettings, RuntimeSettings

@@ -137,6 +137,11 @@ def test_report_of_a_dust_policy(trained, tmp_path, capsys):
                for task in per_task.values())
     assert "| windows with t+H inside | present-frame error | joint-sample error | skill |" in (
         out / "report.md").read_text()
+    # Clamped windows (whose "true" future is the episode's last frame) read apart from the others.
+    by_window = report["oracle_future"]["by_window"]
+    assert by_window["t+H inside the episode"]["windows"] == buckets[0]["windows"]
+    assert sum(row["windows"] for row in by_window.values()) == overall["own"]["action_error"]["windows"]
+    assert by_window["clamped"]["windows"] > 0 and "| clamped |" in (out / "report.md").read_text()
 
 
 def test_resample_scores_the_policy_with_another_sampler(trained, tmp_path):

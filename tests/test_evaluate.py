@@ -12,32 +12,23 @@ from tqdm import tqdm
 
 from dust_rl.agents import (
     AutoencoderConfig,
-    CheckpointError,
     ConvAutoencoder,
     SamplerConfig,
     load_policy,
     make_policy,
     save_policy,
 )
-from dust_rl.agents.checkpoint_io import load_checkpoint, save_checkpoint
 from dust_rl.agents.execution import replans
 from dust_rl.agents.factory import POLICY_KIND
 from dust_rl.data.video import read_mp4, write_mp4
-from dust_rl.errors import ConfigError
-from dust_rl.evaluate.closed_loop import (
-    Episode,
-    EvalConfig,
-    eval_collector,
-    evaluate,
-    paired_comparison,
-    prepare,
-    run_task,
-    wilson_interval,
-)
+from dust_rl.errors import CheckpointError, ConfigError
+from dust_rl.evaluate.closed_loop import EvalConfig, eval_collector, evaluate, prepare, run_task
+from dust_rl.evaluate.records import Episode, paired_comparison, wilson_interval
 from dust_rl.evaluate.report import plot_loss_curves, read_scalar_csv
 from dust_rl.evaluate.resampling import describe_sampler
 from dust_rl.evaluate.video import LABEL_HEIGHT, future_decoder
 from dust_rl.keys import ACTION_CHUNK_KEY
+from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -112,13 +103,14 @@ def test_report_rows_count_each_seed_once(report, eval_config):
     (row,) = report["tasks"]
     seeds = [eval_config.seed, eval_config.seed + 1]
     assert row["task"] == "press_button" and row["episodes"] == 2 and row["seeds"] == seeds
-    assert [e[0] for e in row["per_episode"]] == seeds
-    assert all(1 <= e[2] <= 10 for e in row["per_episode"])  # max_steps
-    assert row["successes"] == sum(e[1] for e in row["per_episode"])
+    episodes = [Episode.from_json(e) for e in row["per_episode"]]
+    assert [e.seed for e in episodes] == seeds
+    assert all(1 <= e.length <= 10 for e in episodes)  # max_steps
+    assert row["successes"] == sum(e.success for e in episodes)
     assert (row["ci95_low"], row["ci95_high"]) == wilson_interval(row["successes"], 2)
-    assert row["mean_length"] == sum(e[2] for e in row["per_episode"]) / 2
+    assert row["mean_length"] == sum(e.length for e in episodes) / 2
     assert report["overall"]["episodes"] == 2 and report["overall"]["successes"] == row["successes"]
-    assert report["env_steps"] == sum(e[2] for e in row["per_episode"]) and report["env_steps_per_s"] > 0
+    assert report["env_steps"] == sum(e.length for e in episodes) and report["env_steps_per_s"] > 0
     assert report["sampler"] == {"name": "async", "n_action_steps": 4, "vision_steps": 4, "candidates": 1,
                                  "noise_scale": 1.0}
     assert report["variant"] == "dust" and report["env_id"] == "DustFranka-v0"
@@ -143,7 +135,7 @@ def test_video_is_the_evaluated_episode_with_its_predicted_future(report, eval_c
     (video,) = row["videos"]
     assert video["seed"] == eval_config.seed
     # Same seed, same re-planning and sampling noise: the recorded episode is the evaluated one, bit for bit.
-    assert [video["seed"], video["success"], video["length"], video["digest"]] == row["per_episode"][0]
+    assert {key: video[key] for key in ("seed", "success", "length", "digest")} == row["per_episode"][0]
     frames = list(read_mp4(pathlib.Path(video["path"])))
     assert len(frames) == video["length"] + 1  # every observation, the last one included
     assert frames[0].shape == (LABEL_HEIGHT + IMAGE, 4 * IMAGE, 3)  # front | wrist | prediction | real future

@@ -18,10 +18,9 @@ from tensordict import TensorDict
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy
-from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.data.collect import MAX_SEEDS_PER_EPISODE, SuccessesOutOfReachError
 from dust_rl.data.episodes import scan_episodes
-from dust_rl.errors import ConfigError, NoSpaceError
+from dust_rl.errors import CheckpointError, ConfigError, NoSpaceError
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 from dust_rl.evaluate.report import loss_csvs
 from dust_rl.rl.checkpoint import SB3LearningState
@@ -46,6 +45,7 @@ from dust_rl.rl.critic_warmup import CriticWarmup
 from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune, finetune_env_factory
 from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
 from dust_rl.rl.vector import SB3SteeringVecEnv
+from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import RunRNGState, restore
@@ -102,7 +102,7 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
     # The base row is the policy's own evaluation, episode for episode (same seeds, same noise, same actions).
     evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", episodes=2, workers=1, videos=0,
                                     max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
-    assert report["per_episode"]["base policy"] == [list(e) for e in evaluated["tasks"][0]["per_episode"]]
+    assert report["per_episode"]["base policy"] == evaluated["tasks"][0]["per_episode"]
     agent = load_checkpoint(tmp_path / "ft" / "rl_agent.pt", RL_AGENT_KIND)
     assert agent["config"]["method"] == method and all(torch.isfinite(v).all() for v in agent["state_dict"].values())
     assert rl_config_from_json(agent["config"]) == config  # the saved config rebuilds the run's
@@ -201,7 +201,7 @@ def test_wm_select_writes_a_policy_eval_loads_and_compares_on_the_same_seeds(pol
     assert report["rollout_env_steps"] == 5 * EPISODE_STEPS and report["scorer"]["validation_rows"] > 0
     evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", episodes=2, workers=1, videos=0,
                                     max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
-    assert report["per_episode"]["base policy"] == [list(e) for e in evaluated["tasks"][0]["per_episode"]]
+    assert report["per_episode"]["base policy"] == evaluated["tasks"][0]["per_episode"]
     # The written policy is the base one plus a scorer, acting with K = 2; dust-rl eval reads it as any policy.
     selected = load_policy(tmp_path / "ft" / "policy.pt")
     assert selected.config.candidates == 2 and selected.info["wm_select"]["base_policy"] == str(policy_path)

@@ -14,7 +14,8 @@ from stable_baselines3.common.env_checker import check_env
 from dust_rl.agents import make_policy, save_policy
 from dust_rl.agents.execution import episode_generator
 from dust_rl.envs.factory import make_env
-from dust_rl.evaluate.closed_loop import Episode, EvalConfig, eval_collector, eval_setup, evaluate_task
+from dust_rl.evaluate.closed_loop import EvalConfig, eval_collector, eval_setup, evaluate_task
+from dust_rl.evaluate.records import Episode
 from dust_rl.rl.asymmetric import AsymmetricSACPolicy
 from dust_rl.rl.critic_limits import LayerNormReLU
 from dust_rl.rl.frozen_policy_env import FrozenPolicyEnv, observation_td

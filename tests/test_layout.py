@@ -13,13 +13,19 @@ import pytest
 
 ROOT = pathlib.Path(__file__).parents[1]
 SOURCES = {"dust_rl": "dust_rl", "envs": "dust_rl.envs", "agents": "dust_rl.agents"}  # folder -> package
-# Packages (second name level) that a package may not import: the layers above it.
+LAYERS = {"dust_rl.storage", "dust_rl.runtime", "dust_rl.agents", "dust_rl.envs", "dust_rl.data", "dust_rl.evaluate",
+          "dust_rl.train", "dust_rl.rl", "dust_rl.bench", "dust_rl.diagnose"}
+# Packages (second name level) that a package may not import: the layers above it. The keys and the typed errors
+# are below every layer; storage (files on disk, checkpoints among them) is below the agents and the envs.
 FORBIDDEN = {
+    "dust_rl.keys": LAYERS,
+    "dust_rl.errors": LAYERS,
     "dust_rl.agents": {"dust_rl.envs", "dust_rl.data", "dust_rl.train", "dust_rl.evaluate", "dust_rl.rl",
-                       "dust_rl.bench", "dust_rl.diagnose", "dust_rl.storage", "dust_rl.runtime"},
+                       "dust_rl.bench", "dust_rl.diagnose", "dust_rl.runtime"},
     "dust_rl.envs": {"dust_rl.agents", "dust_rl.data", "dust_rl.train", "dust_rl.evaluate", "dust_rl.rl",
                      "dust_rl.bench", "dust_rl.diagnose"},
-    "dust_rl.storage": {"dust_rl.data", "dust_rl.train", "dust_rl.evaluate", "dust_rl.rl", "dust_rl.bench"},
+    "dust_rl.storage": {"dust_rl.agents", "dust_rl.envs", "dust_rl.data", "dust_rl.train", "dust_rl.evaluate",
+                        "dust_rl.rl", "dust_rl.bench", "dust_rl.diagnose"},
     "dust_rl.data": {"dust_rl.train", "dust_rl.evaluate", "dust_rl.rl", "dust_rl.bench", "dust_rl.diagnose"},
     "dust_rl.evaluate": {"dust_rl.train", "dust_rl.rl", "dust_rl.bench"},
     "dust_rl.train": {"dust_rl.rl", "dust_rl.bench"},

@@ -22,7 +22,7 @@ def test_sac_from_scratch_curve_heldout_and_determinism(tmp_path):
     assert (tmp_path / "a" / "learning_curve.png").stat().st_size > 0
     assert json.loads((tmp_path / "a" / "results.json").read_text()) == json.loads(json.dumps(results))
     heldout = results["heldout"]
-    assert [episode[0] for episode in heldout["per_episode"]] == [HELDOUT_SEED, HELDOUT_SEED + 1]
+    assert [episode["seed"] for episode in heldout["per_episode"]] == [HELDOUT_SEED, HELDOUT_SEED + 1]
     assert heldout["episodes"] == 2 and results["env_steps"] == 300
     # The same seed trains the same agent: the same held-out episodes, digest for digest.
     again = train_from_scratch(out=tmp_path / "b", **run)

@@ -13,8 +13,9 @@ from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, save_image_encoder
 from dust_rl.bench.average import AverageConfig, average, average_command
-from dust_rl.bench.suite import AS_TRAINED, SuiteConfig, run_suite, t_interval
+from dust_rl.bench.suite import AS_TRAINED, SuiteConfig, run_suite
 from dust_rl.errors import ConfigError
+from dust_rl.evaluate.records import t_interval
 from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TrainSettings
 from dust_rl.train.recipes import plain

@@ -23,7 +23,6 @@ from PIL import Image
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 
 from dust_rl.agents import PolicyConfig, load_policy, save_image_encoder
-from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows, collect_demos
 from dust_rl.data.dataset import cache_root, writable
@@ -33,18 +32,19 @@ from dust_rl.data.features import FeatureCache
 from dust_rl.data.seeding import VALIDATION_SEED
 from dust_rl.data.tools import dataset_summary
 from dust_rl.diagnose.world_model import vision_skill, windows_of
-from dust_rl.errors import ConfigError, NoSpaceError
+from dust_rl.errors import CheckpointError, ConfigError, NoSpaceError
 from dust_rl.keys import ACTION_IS_PAD_KEY
 from dust_rl.storage.cache_files import CACHE_FOLDERS, cache_files
 from dust_rl.storage.checkpoint_dirs import DIGESTS, file_sha256
+from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
 from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import locked_run_folder, restore
 from dust_rl.train.action_free import ActionFreeBatches, with_action_free
 from dust_rl.train.dataset_batches import DatasetBatches
-from dust_rl.train.imitation import RESUMABLE_FIELDS, SKILL_WINDOWS, TrainConfig, train
+from dust_rl.train.imitation import RESUMABLE_FIELDS, SKILL_WINDOWS, TrainConfig, _keep_best, train
 from dust_rl.train.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.train.readout.cache import READOUT_KIND
-from dust_rl.train.settings import GROUPS, DataSettings, OptimSettings, RuntimeSettings
+from dust_rl.train.settings import GROUPS, DataSettings, LoggingSettings, OptimSettings, RuntimeSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -781,3 +781,17 @@ def test_a_policy_file_with_a_retired_setting_loads_at_its_value_only(run_inputs
                 load_policy(policy)
         else:
             assert load_policy(policy).config.readout == "tokens"
+
+
+def test_keep_best_makes_policy_pt_the_evaluated_policy_of_the_highest_validation_success(tmp_path, capsys):
+    for step, success in ((2, 0.5), (4, 0.25), (6, 0.5), (8, 0.0)):
+        folder = tmp_path / "eval" / f"step-{step:07d}"
+        folder.mkdir(parents=True)
+        (folder / "report.json").write_text(json.dumps({"overall": {"success_rate": success}}))
+        (folder / "policy.pt").write_bytes(f"policy of step {step}".encode())
+    (tmp_path / "policy.pt").write_bytes(b"policy of step 8")
+    _keep_best(tmp_path)
+    assert (tmp_path / "policy.pt").read_bytes() == b"policy of step 6"  # the latest of the two best
+    assert "step 6" in capsys.readouterr().out
+    with pytest.raises(ConfigError, match="give --logging.eval-every N"):
+        LoggingSettings(keep_best=True)

@@ -28,19 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.figure import Figure
 
-from dust_rl.bench.suite import (
-    AS_TRAINED,
-    ArmName,
-    arm_lines,
-    comparison_table,
-    interval,
-    outcomes,
-    paired,
-    pairs,
-    t_interval,
-)
+from dust_rl.bench.suite import AS_TRAINED, ArmName, arm_lines, comparison_table, interval, outcomes, pairs
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate.closed_loop import wilson_interval
+from dust_rl.evaluate.records import paired, t_interval, wilson_interval
 from dust_rl.evaluate.report import percent, save_png
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.paths import SAFE_NAME

@@ -28,7 +28,8 @@ from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.envs.env import FLAT_STATE_KEY, STATE_MODE_KEYS
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate.closed_loop import Episode, episode_digest, summary_row
+from dust_rl.evaluate.closed_loop import summary_row
+from dust_rl.evaluate.records import Episode
 from dust_rl.evaluate.report import plot_learning_curve
 from dust_rl.runtime.episode_collector import torch_threads
 from dust_rl.storage.atomic_files import write_json_atomic
@@ -54,9 +55,8 @@ def run_episodes(agent: BaseAlgorithm, make: Callable[[], gym.Env], seeds: range
             actions.append(action)
             obs, _, terminated, truncated, info = env.step(action)
             done = terminated or truncated
-        final_state = torch.from_numpy(obs[STATE_MODE_KEYS[FLAT_STATE_KEY]])
-        digest = episode_digest(torch.from_numpy(np.stack(actions)), final_state)
-        episodes.append(Episode(seed, bool(info.get("is_success", False)), len(actions), digest))
+        episodes.append(Episode.of(seed, info.get("is_success", False), torch.from_numpy(np.stack(actions)),
+                                   torch.from_numpy(obs[STATE_MODE_KEYS[FLAT_STATE_KEY]])))
     env.close()
     return episodes
 
@@ -95,7 +95,7 @@ def train_from_scratch(task: str, algorithm: str, steps: int, out: pathlib.Path,
     results = {"task": task, "algorithm": algorithm, "reward": reward, "env_steps": agent.num_timesteps,
                "train_seconds": trained_s, "seed": seed, "curve": curve,
                "heldout": {**summary_row(f"{algorithm} from scratch", heldout),
-                           "per_episode": [list(e) for e in heldout]}}
+                           "per_episode": [e.to_json() for e in heldout]}}
     write_json_atomic(out / "results.json", results, indent=2)
     return results
 

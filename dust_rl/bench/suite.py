@@ -50,9 +50,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import math
 import pathlib
-import statistics
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -74,7 +72,8 @@ from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.envs.factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
-from dust_rl.evaluate.closed_loop import EvalConfig, evaluate, mcnemar, wilson_interval
+from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.evaluate.records import Episode, paired, t_interval, wilson_interval
 from dust_rl.evaluate.report import percent, save_png
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
@@ -581,7 +580,7 @@ def rows_of(jobs: list[tuple[Cell, str]], reports: dict, eval_seeds: list[int]) 
         row["per_seed"].append(overall["success_rate"])
         row["per_seed_successes"].append(overall["successes"])
         for task in report["tasks"]:
-            success = {seed: bool(ok) for seed, ok, *_ in task["per_episode"]}
+            success = {e.seed: e.success for e in map(Episode.from_json, task["per_episode"])}
             row["outcomes"].setdefault(task["task"], {})[str(cell.seed)] = "".join(
                 "1" if success[seed] else "0" for seed in range(eval_seeds[0], eval_seeds[1] + 1))
     for row in rows.values():
@@ -589,43 +588,6 @@ def rows_of(jobs: list[tuple[Cell, str]], reports: dict, eval_seeds: list[int]) 
         row["ci95_low"], row["ci95_high"] = wilson_interval(row["successes"], row["episodes"])
         row["seed_ci95"] = t_interval(row["per_seed"])
     return list(rows.values())
-
-
-def t_bounds(values: Sequence[float], level: float = 0.95) -> list[float] | None:
-    """Student's t interval of the mean of ``values``, one per training seed (the seed is the unit a claim about
-    training generalises over); None for fewer than two."""
-    if len(values) < 2:
-        return None
-    mean = statistics.fmean(values)
-    half = t_critical(len(values) - 1, level) * statistics.stdev(values) / math.sqrt(len(values))
-    return [mean - half, mean + half]
-
-
-def t_interval(rates: Sequence[float], level: float = 0.95) -> list[float] | None:
-    """:func:`t_bounds` of success rates, clipped to [0, 1]."""
-    bounds = t_bounds(rates, level)
-    return None if bounds is None else [max(0.0, bounds[0]), min(1.0, bounds[1])]
-
-
-def t_critical(df: int, level: float = 0.95) -> float:
-    """The two-sided critical value of Student's t with ``df`` degrees of freedom (12.71 at 1, 4.30 at 2, towards
-    1.96 as ``df`` grows, for 95%): bisection on the exact central probability of whole ``df``."""
-    low, high = 0.0, 1e6
-    while high - low > 1e-9 * high:
-        mid = (low + high) / 2
-        low, high = (mid, high) if _t_central(mid, df) < level else (low, mid)
-    return high
-
-
-def _t_central(t: float, df: int) -> float:
-    """P(|T| < t) for Student's t with whole ``df`` degrees of freedom (Abramowitz & Stegun 26.7.3, 26.7.4)."""
-    theta = math.atan(t / math.sqrt(df))
-    c2, odd = math.cos(theta) ** 2, df % 2
-    term, total = math.cos(theta) if odd else 1.0, 0.0
-    for k in range((df - 1) // 2 if odd else df // 2):
-        total += term
-        term *= c2 * (2 * k + 1 + odd) / (2 * k + 2 + odd)
-    return 2 / math.pi * (theta + math.sin(theta) * total) if odd else math.sin(theta) * total
 
 
 def pairs(arms: Sequence[str], reference: str | None = None) -> list[tuple[str, str]]:
@@ -641,21 +603,6 @@ def outcomes(row: dict, seeds: Sequence[int] | None = None) -> dict[tuple[str, i
     """A row's episodes by (task, training seed, evaluation seed's place), of ``seeds`` only if given."""
     return {(task, int(seed), i): flag == "1" for task, by_seed in row["outcomes"].items()
             for seed, flags in by_seed.items() if seeds is None or int(seed) in seeds for i, flag in enumerate(flags)}
-
-
-def paired(arm: Mapping[tuple, bool], reference: Mapping[tuple, bool]) -> dict:
-    """``arm`` against ``reference`` over the episodes both have (keyed as by :func:`outcomes`): ``gained``, the
-    episodes the arm wins and the reference loses, ``lost`` the reverse, the exact McNemar ``p_value``, how many
-    ``episodes`` were paired, and each training seed's success difference (``seed_differences``) with the t-interval
-    of their mean (``difference_ci95``): McNemar's p counts episodes, this interval counts training runs."""
-    keys = arm.keys() & reference.keys()
-    by_seed: dict[int, list[int]] = {}
-    for task, seed, place in keys:
-        by_seed.setdefault(seed, []).append(int(arm[task, seed, place]) - int(reference[task, seed, place]))
-    differences = {str(seed): statistics.fmean(by_seed[seed]) for seed in sorted(by_seed)}
-    return {"episodes": len(keys), **mcnemar(sum(arm[k] and not reference[k] for k in keys),
-                                              sum(reference[k] and not arm[k] for k in keys)),
-            "seed_differences": differences, "difference_ci95": t_bounds(list(differences.values()))}
 
 
 def compare(rows: list[dict], reference: str | None) -> list[dict]:

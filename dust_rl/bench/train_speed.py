@@ -105,7 +105,8 @@ def speed_rows(phases: dict[str, dict], config: TrainConfig, rows: int, collecti
     frames = config.readout.aux_frames + (min(config.readout.aux_frames, HELDOUT_FRAMES)
                                           if config.readout.warmup_steps else 0)
     per = {"encode dataset": (rows, "row"), "read-out frames": (frames, "frame"),
-           "read-out frame tokens": (frames, "frame"), "read-out fit": (config.readout.warmup_steps, "step")}
+           "read-out frame tokens": (frames, "frame"), "read-out fit": (config.readout.warmup_steps, "step"),
+           "read-out estimates": (rows, "row")}
     table = [] if collection_s is None else [{"phase": "collection", "seconds": collection_s, "per": "row",
                                               "ms_each": 1000 * collection_s / rows}]
     for phase, row in phases.items():

@@ -35,8 +35,10 @@ from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.keys import (
     ACTION_CHUNK_KEY,
     ACTION_IS_PAD_KEY,
+    BATCH_ENV_STATE_KEY,
     ENV_STATE_KEY,
     EXPERT_ACTION_KEY,
+    FUTURE_IS_CLAMPED_KEY,
     FUTURE_KEY,
     IMAGE_KEY,
     READOUT_ESTIMATE_KEY,
@@ -105,17 +107,16 @@ class FeatureCache:
 
     def store_readout_estimates(self, chunk: int = 1024) -> None:
         """The frozen token read-out's estimate of every row, made once from its frames as they are (view 0), for
-        :meth:`batch` to hand out: a training step then runs no read-out (its forward pass was ~15 ms of a
-        ~130 ms step at batch 64 on a 2-core x86 CPU), and an augmented view of the frames no longer moves what
-        the trunk is told about the objects. Call after the read-out's weights are frozen."""
+        :meth:`batch` to hand out: a training step then runs no read-out, and an augmented view of the frames no
+        longer moves what the trunk is told about the objects. Call after the read-out's weights are frozen."""
         instruction = self.dataset.data.get("instruction_index").reshape(-1)
         device, estimates = self.policy.weights_device, []
         for start in range(0, len(self.dataset), chunk):
             rows = slice(start, start + chunk)
             text = instruction[rows]
-            features = TensorDict({"image_tokens": self.image_tokens[rows].to(device).float(),
-                                   "text_tokens": self.text_tokens[text], "text_mask": self.text_mask[text]},
-                                  batch_size=[text.shape[0]], device=device)
+            state = self.dataset.data.get(STATE_KEY)[rows].to(device)
+            features = self.policy.feature_batch(self.image_tokens[rows].to(device).float(), self.text_tokens[text],
+                                                 self.text_mask[text], state)
             estimates.append(self.policy.estimate_env_state(features))
         self.readout_estimates = torch.cat(estimates)
 
@@ -155,10 +156,10 @@ class FeatureCache:
         views = self.views.shape[0]  # one cached view per window
         view = torch.randint(0, views, rows.shape) if views > 1 else torch.zeros_like(rows)
         labels = {ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY),
-                  "future_is_clamped": windows.get((FUTURE_KEY, "is_clamped"))}
+                  FUTURE_IS_CLAMPED_KEY: windows.get((FUTURE_KEY, "is_clamped"))}
         if self.env_state_norm is not None:
-            labels["env_state"] = self.env_state_norm.normalize(windows.get(ENV_STATE_KEY).float(),
-                                                                self.dataset.row_task_index[rows])
+            labels[BATCH_ENV_STATE_KEY] = self.env_state_norm.normalize(windows.get(ENV_STATE_KEY).float(),
+                                                                        self.dataset.row_task_index[rows])
         if self.readout_estimates is not None:
             labels[READOUT_ESTIMATE_KEY] = self.readout_estimates[rows]
         frames = None

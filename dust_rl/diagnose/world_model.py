@@ -50,6 +50,7 @@ from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.features import FeatureCache
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate.resampling import Resampling, apply_sampling, describe_sampler, resolved_sampler
+from dust_rl.keys import FUTURE_IS_CLAMPED_KEY
 from dust_rl.runtime.device import resolve_device
 from dust_rl.storage.atomic_files import atomic_write, write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
@@ -355,6 +356,11 @@ def oracle_future(policy: DustPolicy, windows: Windows, seed: int, batch_size: i
                 for name, (a, b) in PAIRS.items() if name in names and a in errors and b in errors}
 
     report = {"conditions": results, "skipped": skipped, "paired_action_error": pairs(tuple(PAIRS))}
+    if FUTURE_IS_CLAMPED_KEY in batch.keys():  # a clamped window's "true" future is its episode's last frame
+        clamped = batch.get(FUTURE_IS_CLAMPED_KEY).cpu()
+        report["by_window"] = {kind: {"windows": int(mask.sum()), "paired_action_error": pairs(READINGS, mask)}
+                               for kind, mask in (("t+H inside the episode", ~clamped), ("clamped", clamped))
+                               if mask.any()}
     if masks := windows.task_masks():
         report["per_task"] = {name: {"action_error": {condition: mean_interval(error[mask], windows.episode[mask])
                                                       for condition, error in errors.items()},
@@ -426,6 +432,15 @@ def markdown(report: dict) -> str:
         lines += ["", "| action error, paired | difference (95% CI) | p |", "|---|---|---|"]
         for name, row in oracle["paired_action_error"].items():
             lines.append(f"| {name} | {_interval(row)} | {row['p']:.3g} |")
+    if oracle.get("by_window"):
+        lines += ["", "Windows whose t+H lies inside the episode apart from the clamped ones (whose true future is "
+                  "the episode's last frame):", "", "| windows | count | " + " | ".join(READINGS) + " |",
+                  "|---|---|" + "---|" * len(READINGS)]
+        for kind, row in oracle["by_window"].items():
+            pairs = row["paired_action_error"]
+            lines.append(f"| {kind} | {row['windows']} | " + " | ".join(
+                f"{pairs[name]['mean']:+.4f} (p {pairs[name]['p']:.3g})" if name in pairs else "-"
+                for name in READINGS) + " |")
     lines += [""] * bool(oracle["skipped"]) + [f"Condition '{name}' not run: {why}."
                                                for name, why in oracle["skipped"].items()]
     return "\n".join(lines + _per_task_lines(report)) + "\n"

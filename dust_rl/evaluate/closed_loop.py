@@ -27,13 +27,10 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import hashlib
-import math
 import pathlib
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import torch
 from tensordict import TensorDictBase
@@ -49,6 +46,7 @@ from dust_rl.data.seeding import HELDOUT_SEED, EpisodeSeedWrapper, SeedSchedule,
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, UserError, check_at_least
+from dust_rl.evaluate.records import Episode, wilson_interval
 from dust_rl.evaluate.report import plot_loss_curves, write_report
 from dust_rl.evaluate.resampling import Resampling, apply_sampling, describe_sampler, resolved_sampler
 from dust_rl.evaluate.video import write_episode_video
@@ -134,69 +132,6 @@ class EvalSetup:
     device: str  # where each worker's policy runs (resolved, e.g. "cuda:0")
     precision: Precision = "fp32"
     compile: bool = False
-
-
-def episode_digest(actions: torch.Tensor, final_state: torch.Tensor) -> str:
-    """A fingerprint of an episode (its executed actions [T, Da] and last state): equal digests, same episode."""
-    data = actions.detach().cpu().contiguous().numpy().tobytes() + final_state.detach().cpu().numpy().tobytes()
-    return hashlib.sha256(data).hexdigest()[:16]
-
-
-class Episode(NamedTuple):
-    """One evaluated episode; equal ``digest`` (:func:`episode_digest`): same episode."""
-
-    seed: int
-    success: bool
-    length: int
-    digest: str
-
-    @classmethod
-    def of(cls, seed: int, success: bool, actions: torch.Tensor, final_state: torch.Tensor) -> Episode:
-        """The record of an episode reset from ``seed`` that executed ``actions`` [T, Da] and ended in
-        ``final_state``: its length counts env steps, however they were run (a torchrl rollout here, an RL agent's
-        env in :mod:`dust_rl.rl.finetune`), so equal records mean the same episode."""
-        return cls(int(seed), bool(success), len(actions), episode_digest(actions, final_state))
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval of a success rate (z = 1.96: 95%); (0, 1) when n = 0.
-
-    Unlike the normal approximation it stays inside [0, 1] and is not empty at 0/n or n/n,
-    which matters for the small episode counts of robot evaluations.
-    """
-    if n == 0:
-        return 0.0, 1.0
-    p, z2 = successes / n, z * z
-    center = (p + z2 / (2 * n)) / (1 + z2 / n)
-    half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
-    return max(0.0, min(p, center - half)), min(1.0, max(p, center + half))  # rounding keeps 100 of 100 below 1
-
-
-BASE_ROW = "base policy"  # the row a fine-tuning report compares every other row with, on the same seeds
-
-
-def paired_comparison(base: Sequence[Episode], other: Sequence[Episode]) -> dict:
-    """How ``other`` differs from ``base`` on the same seeds: the episodes it wins that ``base`` loses (``gained``),
-    the reverse (``lost``), and the exact two-sided McNemar p-value of that split.
-
-    Why: two policies run on the same seeds share each layout's difficulty, so the discordant episodes alone carry
-    the difference; the test on them tells a gain from noise where two overlapping Wilson intervals cannot.
-
-    Raises:
-        ValueError: the two runs were not on the same seeds.
-    """
-    outcome = {e.seed: e.success for e in base}
-    if sorted(outcome) != sorted(e.seed for e in other):
-        raise ValueError("a paired comparison needs both runs on the same seeds")
-    return mcnemar(sum(e.success and not outcome[e.seed] for e in other),
-                   sum(outcome[e.seed] and not e.success for e in other))
-
-
-def mcnemar(gained: int, lost: int) -> dict:
-    """``gained``, ``lost`` and the exact two-sided McNemar p-value of that split of the discordant episodes."""
-    n = gained + lost
-    tail = sum(math.comb(n, k) for k in range(min(gained, lost) + 1)) / 2 ** n
-    return {"gained": gained, "lost": lost, "p_value": min(1.0, 2 * tail)}
 
 
 def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule, count_steps: bool = False) -> TransformedEnv:
@@ -289,8 +224,8 @@ def eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: Wor
     """A collector yielding one whole episode of ``task`` at a time, seeds from ``seed`` on (a context).
 
     One local worker runs in this process with ``policy.executor(seeded=True)``, or with ``actor``, a torchrl
-    policy built here around ``policy`` (a fine-tuned RL agent's, :mod:`dust_rl.rl.finetune`; its env counts its
-    steps when it reads ``step_count``); other workers build theirs from the checkpoint.
+    policy built here around ``policy`` (its env counts its steps when it reads ``step_count``); other workers build
+    theirs from the checkpoint.
 
     Raises:
         ValueError: an ``actor`` with workers other than one local one (it lives in this process).
@@ -350,9 +285,9 @@ def summary_row(name: str, episodes: Sequence[Episode]) -> dict:
 
 
 def task_row(task: str, episodes: Sequence[Episode], videos: list[dict]) -> dict:
-    """:func:`summary_row` plus the seeds, each episode as ``[seed, success, length, digest]``, and the videos."""
+    """:func:`summary_row` plus the seeds, each episode (:meth:`Episode.to_json`), and the videos."""
     return {**summary_row(task, episodes), "seeds": [e.seed for e in episodes],
-            "per_episode": [list(e) for e in episodes], "videos": videos}
+            "per_episode": [e.to_json() for e in episodes], "videos": videos}
 
 
 def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy, config: EvalConfig,
@@ -380,21 +315,11 @@ def task_videos(task: str, episodes: Sequence[Episode], trajectories: dict[int, 
         if episode.seed in trajectories:
             path = config.out / "videos" / f"{task}_seed{episode.seed}.mp4"
             write_episode_video(trajectories[episode.seed], policy, path, fps)
-            rows.append({**episode._asdict(), "path": str(path), "fps": fps})
+            rows.append({**episode.to_json(), "path": str(path), "fps": fps})
     return rows
 
 
 NOISE_SEEDING = "the policy's sampling noise restarts from the episode seed at every reset"
-
-
-class PolicyWithActor(NamedTuple):
-    """A policy loaded with a torchrl actor built around it in this process (a fine-tuned RL agent's,
-    :mod:`dust_rl.rl.fine_tuned_policy`), and what the report records of the actor (its ``noise_seeding``: how the
-    actor's plans draw their noise)."""
-
-    policy: DustPolicy
-    actor: TensorDictModuleBase
-    about: dict
 
 
 @contextlib.contextmanager
@@ -418,14 +343,17 @@ def eval_folder(out: pathlib.Path) -> Iterator[None]:
         yield
 
 
-def evaluate(config: EvalConfig, command: str | None = None, with_actor: PolicyWithActor | None = None) -> dict:
+def evaluate(config: EvalConfig, command: str | None = None, policy: DustPolicy | None = None,
+             actor: TensorDictModuleBase | None = None, about: dict | None = None) -> dict:
     """Evaluate a policy in closed loop and write the report, plots and videos to ``config.out``.
 
     Args:
         config: what to evaluate and how.
         command: the command line that produced this run, quoted in the markdown report.
-        with_actor: the policy and the actor that runs it, already loaded from ``config.policy`` (one local
-            worker); default: the policy file's policy, as trained.
+        policy: the policy, already loaded from ``config.policy``; default: loaded from it, as trained.
+        actor: a torchrl actor built around ``policy`` in this process that acts instead of its executor (one local
+            worker, :func:`eval_collector`).
+        about: report entries on what acts (its ``noise_seeding``), laid over the policy's own.
 
     Returns:
         The report (also ``config.out / "report.json"``). ``env_steps_per_s`` counts the time spent
@@ -436,43 +364,38 @@ def evaluate(config: EvalConfig, command: str | None = None, with_actor: PolicyW
         ConfigError: bad settings (see :func:`prepare`).
     """
     start = time.perf_counter()
-    rows, startup, running = [], 0.0, 0.0
+    rows, everything, startup, running = [], [], 0.0, 0.0
     with torch_threads(config.threads), ray_runtime(config.worker_pool()):
-        if with_actor is None:
-            (policy, setup), actor = prepare(config), None
-        else:
-            policy, actor = with_actor.policy, with_actor.actor
-            setup = eval_setup(config, policy)
+        policy, setup = prepare(config) if policy is None else (policy, eval_setup(config, policy))
         with eval_folder(config.out):
             for task in setup.tasks:
                 episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config, actor)
                 videos = task_videos(task, episodes, kept, policy, config, setup.fps)
                 rows.append(task_row(task, episodes, videos))
+                everything += episodes
                 startup, running = startup + task_startup, running + task_running
-            steps = sum(e[2] for row in rows for e in row["per_episode"])
+            steps = sum(e.length for e in everything)
             loss_plot = plot_loss_curves(config.train_dir or config.policy.parent, config.out / "loss.png")
             report = {
                 "policy": str(config.policy), "variant": policy.config.variant,
                 "trainable_parameters": sum(p.numel() for p in policy.trainable_modules().parameters()),
                 "env_id": setup.env_id,
-                "env_kwargs": setup.env_kwargs, "sampler": describe_sampler(setup.sampler),
-                "rl_agent": None if with_actor is None else with_actor.about,
+                "env_kwargs": setup.env_kwargs, "sampler": describe_sampler(setup.sampler), "rl_agent": None,
                 "execute_steps": setup.execute_steps, "command": command,
                 "config": config_json(config), "seeds": [config.seed, config.seed + config.episodes - 1],
-                "noise_seeding": NOISE_SEEDING if with_actor is None else with_actor.about["noise_seeding"],
-                "tasks": rows,
-                "overall": summary_row("overall", [Episode(*e) for row in rows for e in row["per_episode"]]),
+                "noise_seeding": NOISE_SEEDING, "tasks": rows, "overall": summary_row("overall", everything),
                 "env_steps": steps, "startup_s": startup, "episodes_time_s": running,
                 "env_steps_per_s": steps / running,
                 "wall_time_s": time.perf_counter() - start, "loss_plot": str(loss_plot) if loss_plot else None,
-            }
+            } | (about or {})
             write_report(report, config.out)
     return report
 
 
-def evaluate_command(config: EvalConfig, command: str | None = None, with_actor: PolicyWithActor | None = None) -> dict:
+def evaluate_command(config: EvalConfig, command: str | None = None, policy: DustPolicy | None = None,
+                     actor: TensorDictModuleBase | None = None, about: dict | None = None) -> dict:
     """``dust-rl eval``: evaluate (:func:`evaluate`), print the success table, say where the report is."""
-    report = evaluate(config, command, with_actor)
+    report = evaluate(config, command, policy, actor, about)
     for row in [*report["tasks"], report["overall"]]:
         print(f"{row['task']}: {row['successes']}/{row['episodes']} successful ({100 * row['success_rate']:.0f}%, "
               f"95% CI {100 * row['ci95_low']:.0f}-{100 * row['ci95_high']:.0f}%), mean length "

@@ -20,7 +20,7 @@ import torch
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import DictReplayBuffer
 
-from dust_rl.agents.checkpoint_io import check_tensor_values
+from dust_rl.storage.checkpoint_files import check_tensor_values
 
 BUFFER_FIELDS = ("actions", "rewards", "dones", "timeouts")
 COUNTERS = ("num_timesteps", "n_updates", "episode_num")

@@ -19,22 +19,29 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+from typing import NamedTuple
 
-from dust_rl.agents.checkpoint_io import (
-    CheckpointError,
-    check_tensor_values,
-    checkpoint_kind,
-    load_checkpoint,
-    one_line,
-)
+from tensordict.nn import TensorDictModuleBase
+
+from dust_rl.agents import DustPolicy
 from dust_rl.agents.factory import policy_from_entries
-from dust_rl.errors import ConfigError
-from dust_rl.evaluate.closed_loop import NOISE_SEEDING, EvalConfig, PolicyWithActor, evaluate_command
+from dust_rl.errors import CheckpointError, ConfigError, one_line
+from dust_rl.evaluate.closed_loop import NOISE_SEEDING, EvalConfig, evaluate_command
 from dust_rl.rl.config import RL_AGENT_KIND, RLConfig, SteerConfig, rl_config_from_json
 from dust_rl.rl.finetune import deterministic, finetune_env_factory, policy_network
 from dust_rl.runtime.device import resolve_device
+from dust_rl.storage.checkpoint_files import check_tensor_values, load_checkpoint
 
 STEERED_NOISE = "the RL agent picks each plan's initial action noise (a vision stream starts from one fixed draw)"
+
+
+class PolicyWithActor(NamedTuple):
+    """The base policy with the agent's closed-loop actor built around it in this process, and what the report
+    records of the agent (its ``noise_seeding``: how the actor's plans draw their noise)."""
+
+    policy: DustPolicy
+    actor: TensorDictModuleBase
+    about: dict
 
 
 def load_fine_tuned(path: pathlib.Path, device: str = "auto") -> tuple[RLConfig, PolicyWithActor]:
@@ -80,25 +87,24 @@ def load_fine_tuned(path: pathlib.Path, device: str = "auto") -> tuple[RLConfig,
     return config, PolicyWithActor(policy, actor, about)
 
 
-def evaluate_any_command(config: EvalConfig, command: str | None = None) -> dict:
-    """``dust-rl eval``: a fine-tuned RL agent's ``rl_agent.pt`` through its actor (module doc), any other policy
-    file as :func:`~dust_rl.evaluate.closed_loop.evaluate_command` runs it.
+def evaluate_agent_command(config: EvalConfig, command: str | None = None) -> dict:
+    """``dust-rl eval`` of a fine-tuned RL agent's ``rl_agent.pt``: through its actor (module doc), as
+    :func:`~dust_rl.evaluate.closed_loop.evaluate_command` runs a policy file.
 
     Raises:
         ConfigError: a setting the agent was not trained with (module doc).
     """
-    if checkpoint_kind(config.policy) != RL_AGENT_KIND:
-        return evaluate_command(config, command)
     refused = [flag for flag, given in (("--execute-steps", config.execute_steps is not None),
                                         ("resample", config.sampling is not None),
                                         ("--backend ray", config.backend != "local")) if given]
     if refused:
         raise ConfigError(f"{config.policy} is a fine-tuned RL agent: it runs as it was trained, in this process; "
                           f"drop {', '.join(refused)}")
-    fine_tuning, with_actor = load_fine_tuned(config.policy, config.device)
+    fine_tuning, agent = load_fine_tuned(config.policy, config.device)
     if fine_tuning.finite_horizon and config.max_steps not in (None, fine_tuning.max_steps):
         raise ConfigError(f"{config.policy}: the agent observes the time left of its {fine_tuning.max_steps}-step "
                           "episodes (--finite-horizon); drop --max-steps")
-    config = dataclasses.replace(config, tasks=config.tasks or (with_actor.about["task"],),
+    config = dataclasses.replace(config, tasks=config.tasks or (agent.about["task"],),
                                  max_steps=config.max_steps or fine_tuning.max_steps, workers=1)
-    return evaluate_command(config, command, with_actor)
+    return evaluate_command(config, command, agent.policy, agent.actor,
+                            {"rl_agent": agent.about, "noise_seeding": agent.about["noise_seeding"]})

@@ -50,19 +50,11 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
 
 from dust_rl.agents import DustPolicy, load_policy
-from dust_rl.agents.checkpoint_io import non_finite, save_checkpoint
 from dust_rl.agents.factory import policy_entries
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
-from dust_rl.evaluate.closed_loop import (
-    BASE_ROW,
-    Episode,
-    EvalConfig,
-    eval_setup,
-    evaluate_task,
-    paired_comparison,
-    summary_row,
-)
+from dust_rl.evaluate.closed_loop import EvalConfig, eval_setup, evaluate_task, summary_row
+from dust_rl.evaluate.records import Episode
 from dust_rl.evaluate.report import plot_learning_curve
 from dust_rl.rl.asymmetric import AsymmetricSACPolicy
 from dust_rl.rl.checkpoint import SB3LearningState
@@ -85,6 +77,7 @@ from dust_rl.rl.config import (
 from dust_rl.rl.critic_limits import LayerNormReLU, bound_critic
 from dust_rl.rl.critic_warmup import CriticWarmup
 from dust_rl.rl.frozen_policy_env import Act, FrozenPolicyEnv
+from dust_rl.rl.report_rows import BASE_ROW, rows_against_base
 from dust_rl.rl.residual import ResidualEnv
 from dust_rl.rl.sb3_logger import sb3_logger
 from dust_rl.rl.self_imitation import self_imitation
@@ -96,6 +89,7 @@ from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import torch_threads
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.checkpoint_dirs import run_out_of_space, save_checkpoint_dir
+from dust_rl.storage.checkpoint_files import non_finite, save_checkpoint
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run_folder, restore
 from dust_rl.train.imitation import diverged
@@ -130,7 +124,7 @@ def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: Dus
     if isinstance(config, (WmSelectConfig, SelfImitationConfig)):
         result = (wm_select(config, task, policy) if isinstance(config, WmSelectConfig)
                   else self_imitation(config, task, env_id, env_kwargs))
-        episodes = {name: [Episode(*e) for e in row["per_episode"]] for name, row in result["rows"].items()}
+        episodes = {name: [Episode.from_json(e) for e in row["per_episode"]] for name, row in result["rows"].items()}
         extra = {k: v for k, v in result.items() if k not in ("rows", "train_seconds")}
         trained_s = result["train_seconds"]
     else:
@@ -143,10 +137,8 @@ def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: Dus
         "policy": str(config.policy), "method": config.method, "task": task, "command": command,
         "config": config_json(config),
         "seeds": [config.eval_seed, config.eval_seed + config.eval_episodes - 1], "train_seconds": trained_s,
-        "rows": [summary_row(name, rows) | ({} if name == BASE_ROW else
-                                              {"vs_base": paired_comparison(episodes[BASE_ROW], rows)})
-                 for name, rows in episodes.items()],
-        "per_episode": {name: [list(e) for e in rows] for name, rows in episodes.items()}, **extra,
+        "rows": rows_against_base(episodes),
+        "per_episode": {name: [e.to_json() for e in rows] for name, rows in episodes.items()}, **extra,
     }
     write_json_atomic(config.out / "report.json", report, indent=2)
     write_text_atomic(config.out / "report.md", _markdown(report))

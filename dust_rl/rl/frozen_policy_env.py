@@ -66,7 +66,17 @@ from tensordict.nn import TensorDictModuleBase
 
 from dust_rl.agents import DustPolicy, pooled_text
 from dust_rl.agents.execution import episode_generator
-from dust_rl.keys import ENV_STATE_KEY, INSTRUCTION_KEY, STATE_KEY, flat_name
+from dust_rl.keys import (
+    BATCH_ACTION_CHUNK_KEY,
+    ENV_STATE_KEY,
+    FUTURE_TOKENS_KEY,
+    IMAGE_TOKENS_KEY,
+    INSTRUCTION_KEY,
+    STATE_KEY,
+    TEXT_MASK_KEY,
+    TEXT_TOKENS_KEY,
+    flat_name,
+)
 
 STATE_NAME = flat_name(STATE_KEY)
 ENV_STATE_NAME = flat_name(ENV_STATE_KEY)
@@ -181,9 +191,10 @@ class AgentView:
               object_states: np.ndarray | None = None) -> list[dict[str, np.ndarray]]:
         """The observations of N envs, each as :meth:`__call__` gives it, from their feature batch [N] (the
         read-out and the pooling run once for all); the other arguments are theirs stacked ([N, ...], N steps)."""
-        pooled = self.policy.normalizer.normalize_vision(features.get("image_tokens")).mean(2).flatten(1)
+        pooled = self.policy.normalizer.normalize_vision(features.get(IMAGE_TOKENS_KEY)).mean(2).flatten(1)
         if self.instruction:
-            pooled = torch.cat([pooled, pooled_text(features.get("text_tokens"), features.get("text_mask"))], dim=-1)
+            text = pooled_text(features.get(TEXT_TOKENS_KEY), features.get(TEXT_MASK_KEY))
+            pooled = torch.cat([pooled, text], dim=-1)
         seen = {"robot_state": np.asarray(states, dtype=np.float32), "features": _numpy(pooled)}
         if self.policy.config.aux_state_dim:
             seen["object_estimate"] = _numpy(self.policy.estimate_env_state(features))
@@ -308,8 +319,8 @@ class FrozenPolicyEnv(gym.Env):
         (None when the policy predicts none).
         """
         out = self.policy.plan_features(self.features, self.generator)
-        self.predicted_future = out.get("future_tokens", None)
-        return out.get("action_chunk")[0].cpu()
+        self.predicted_future = out.get(FUTURE_TOKENS_KEY, None)
+        return out.get(BATCH_ACTION_CHUNK_KEY)[0].cpu()
 
     def close(self) -> None:
         self.env.close()

@@ -34,9 +34,10 @@ import time
 
 from dust_rl.data import collect_demos
 from dust_rl.data.episodes import scan_episodes
-from dust_rl.evaluate.closed_loop import BASE_ROW, EvalConfig, evaluate
+from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 from dust_rl.evaluate.report import plot_learning_curve
 from dust_rl.rl.config import SelfImitationConfig, is_dagger
+from dust_rl.rl.report_rows import BASE_ROW
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.train.imitation import TrainConfig, train
 

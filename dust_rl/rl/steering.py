@@ -43,7 +43,7 @@ from dust_rl.agents import ChunkExecutor, DustPolicy
 from dust_rl.agents.execution import episode_generator
 from dust_rl.agents.flow_matching import cpu_drawn
 from dust_rl.envs import arguments
-from dust_rl.keys import SEED_KEY, STATE_KEY, STEP_KEY
+from dust_rl.keys import BATCH_ACTION_CHUNK_KEY, SEED_KEY, STATE_KEY, STEP_KEY
 from dust_rl.rl.frozen_policy_env import Act, AgentView, FrozenPolicyEnv, agent_action, observe_batch
 
 VISION_NOISE_SEED = 0
@@ -194,7 +194,7 @@ def steer(envs: list[NoiseSteeringEnv], actions: np.ndarray) -> list[tuple[dict,
     terminated, truncated, info)."""
     first = envs[0]
     features = torch.cat([env.features for env in envs])
-    chunks = first.steering.plan(first.policy, features, actions, first.generator).get("action_chunk").cpu()
+    chunks = first.steering.plan(first.policy, features, actions, first.generator).get(BATCH_ACTION_CHUNK_KEY).cpu()
     results = [env.execute(chunk) for env, chunk in zip(envs, chunks, strict=True)]
     views = observe_batch(envs, [obs for obs, *_ in results])
     return [(view, *rest) for view, (_, *rest) in zip(views, results, strict=True)]

@@ -26,9 +26,10 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, SamplerConfig, save_policy
 from dust_rl.agents.execution import replans
-from dust_rl.evaluate.closed_loop import BASE_ROW, EvalConfig, eval_collector, evaluate, prepare, run_task
+from dust_rl.evaluate.closed_loop import EvalConfig, eval_collector, evaluate, prepare, run_task
 from dust_rl.keys import PREDICTED_FUTURE_KEY
 from dust_rl.rl.config import VALIDATION_EVERY, WmSelectConfig
+from dust_rl.rl.report_rows import BASE_ROW
 
 SCORER_BATCH = 256
 SCORER_LR = 1e-3

@@ -30,8 +30,7 @@ import torch
 from torchrl.checkpoint import Checkpoint, CheckpointRotation
 from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 
-from dust_rl.agents.checkpoint_io import CheckpointError
-from dust_rl.errors import DatasetError, no_space_left
+from dust_rl.errors import CheckpointError, DatasetError, no_space_left
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.disk_space import reserve_space
 from dust_rl.storage.memmap_io import check_memmap_dir

@@ -1,6 +1,6 @@
 """Provenance for the files a run writes (config.json, reports, dataset metadata): the command's dataclass config
-as JSON values (and back, for a run that resumes with its own settings) and the versions of the packages that shaped
-the result."""
+as JSON values (and back, for a run that resumes with its own settings or a policy file that loads, less the settings
+a later version retired) and the versions of the packages that shaped the result."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import json
 import pathlib
 import platform
 import typing
+from collections.abc import Mapping
 
 _VERSIONED_PACKAGES = ("dust-rl", "mujoco", "torch", "torchrl", "tensordict", "gymnasium")
 
@@ -38,6 +39,27 @@ def config_from_json(cls: type, values: dict, **changes) -> object:
             value = pathlib.Path(value)
         kwargs[f.name] = value
     return cls(**kwargs, **changes)
+
+
+def without_retired(stored: Mapping, retired: Mapping[str, object]) -> dict:
+    """``stored`` (a config as JSON values, nested configs as dicts) without the ``retired`` settings it holds
+    (dotted names reach into nested configs: ``policy.readout_coords``).
+
+    Raises:
+        ValueError: a retired setting stored at another value than its retired one (the message names it).
+    """
+    kept = dict(stored)
+    for name, value in retired.items():
+        head, _, rest = name.partition(".")
+        if rest and isinstance(kept.get(head), Mapping):
+            try:
+                kept[head] = without_retired(kept[head], {rest: value})
+            except ValueError as err:
+                raise ValueError(f"{head}.{err}") from None
+        elif not rest and head in kept and kept.pop(head) != value:
+            raise ValueError(f"{name} = {stored[head]!r}: a setting this version removed (only {value!r} is "
+                             "still built)")
+    return kept
 
 
 def package_versions() -> dict[str, str | None]:

@@ -25,12 +25,10 @@ import torch
 from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
 from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 
-from dust_rl.agents.checkpoint_io import CheckpointError
-from dust_rl.agents.config import without_retired
-from dust_rl.errors import ConfigError
+from dust_rl.errors import CheckpointError, ConfigError
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.checkpoint_dirs import check_checkpoint_dir, newest_checkpoint
-from dust_rl.storage.config_json import config_json, package_versions
+from dust_rl.storage.config_json import config_json, package_versions, without_retired
 from dust_rl.storage.lock import LOCK_FILE, folder_lock
 
 
@@ -64,7 +62,7 @@ def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, obj
                      upgrade: Callable[[dict], dict] | None = None) -> None:
     """Raise unless ``config.out`` suits ``config.resume`` (a dataclass with ``out`` and ``resume``); ``retired``:
     settings earlier versions stored, at the one value this version honours
-    (:func:`~dust_rl.agents.config.without_retired`); ``upgrade``: the stored config as this version names its
+    (:func:`~dust_rl.storage.config_json.without_retired`); ``upgrade``: the stored config as this version names its
     settings (those an earlier version stored under other names moved to theirs). Settings are compared one by one,
     those of nested configs by their dotted names (``resumable`` names them so: ``runtime.threads``).
 

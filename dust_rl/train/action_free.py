@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
-from dust_rl.keys import ACTION_IS_PAD_KEY
+from dust_rl.keys import ACTION_IS_PAD_KEY, BATCH_ACTION_CHUNK_KEY, BATCH_STATE_KEY, HAS_ACTION_KEY
 from dust_rl.train.dataset_batches import DatasetBatches
 
 
@@ -28,13 +28,14 @@ class ActionFreeBatches(DatasetBatches):
     def sample(self) -> TensorDict:
         """A feature batch whose actions are zeros, marked absent (``has_action`` False, every step padded)."""
         batch = super().sample()
-        chunk = batch.get("action_chunk")
-        batch.set("action_chunk", torch.zeros_like(chunk))
+        chunk = batch.get(BATCH_ACTION_CHUNK_KEY)
+        batch.set(BATCH_ACTION_CHUNK_KEY, torch.zeros_like(chunk))
         batch.set(ACTION_IS_PAD_KEY, torch.ones(chunk.shape[:-1], dtype=torch.bool, device=chunk.device))
-        return batch.set("has_action", torch.zeros(chunk.shape[0], dtype=torch.bool, device=chunk.device))
+        return batch.set(HAS_ACTION_KEY, torch.zeros(chunk.shape[0], dtype=torch.bool, device=chunk.device))
 
 
 def with_action_free(batch: TensorDict, action_free: TensorDict) -> TensorDict:
     """The demonstrations' ``batch`` (``has_action`` True) and the ``action_free`` rows, in one batch."""
-    batch.set("has_action", torch.ones(batch.batch_size[0], dtype=torch.bool, device=batch.get("state").device))
+    device = batch.get(BATCH_STATE_KEY).device
+    batch.set(HAS_ACTION_KEY, torch.ones(batch.batch_size[0], dtype=torch.bool, device=device))
     return torch.cat([batch, action_free.select(*batch.keys(include_nested=True, leaves_only=True))])

@@ -47,8 +47,8 @@ class PretrainEncoderCommand:
 def run_pretrain_encoder(config: PretrainEncoderCommand, command_line: str) -> None:
     from dust_rl.agents import AutoencoderConfig
     from dust_rl.agents.backbone import IMAGE_ENCODER_KIND
-    from dust_rl.agents.checkpoint_io import check_replaceable_file
     from dust_rl.data import DemoDataset
+    from dust_rl.storage.checkpoint_files import check_replaceable_file
     from dust_rl.train.pretrain_encoder import pretrain_encoder
 
     if not config.dataset:

@@ -71,7 +71,7 @@ from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import log_config, log_image, log_scalars, log_video, make_loggers
 from dust_rl.runtime.machine import machine_line
 from dust_rl.runtime.phase_timer import PhaseTimer
-from dust_rl.storage.atomic_files import write_json_atomic
+from dust_rl.storage.atomic_files import atomic_write, write_json_atomic
 from dust_rl.storage.checkpoint_dirs import run_out_of_space, save_checkpoint_dir
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.run_folder import RunRNGState, check_run_folder, locked_run_folder, restore
@@ -90,7 +90,7 @@ from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings, g
 # compared one by one).
 RESUMABLE_FIELDS = ("resume", "runtime.progress", "runtime.threads", "runtime.device", "runtime.compile",
                     "logging.eval_every", "logging.eval_episodes", "logging.eval_workers", "logging.eval_seed",
-                    "logging.loggers", "logging.run_name", "cache_dir", "recipe")
+                    "logging.keep_best", "logging.loggers", "logging.run_name", "cache_dir", "recipe")
 TIMING_FILE = "timing.json"  # where this sitting's time went, phase by phase (dust_rl.runtime.phase_timer)
 SKILL_WINDOWS = 256  # training windows the world model's skill is logged on at every periodic evaluation
 
@@ -323,6 +323,8 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     if ranks.is_main:
         with averaged_weights(ema, trained):
             save_policy(policy, path)
+        if config.logging.keep_best:
+            _keep_best(out)
         _plot_losses(out)
         write_json_atomic(out / TIMING_FILE, {"machine": machine_line(), "steps": config.optim.steps - start,
                                               "phases": timer.summary()})
@@ -543,6 +545,19 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int, skill_fea
         video = task["videos"][0]
         log_video(loggers, f"eval/rollout/{task['task']}", list(read_mp4(pathlib.Path(video["path"]))), video["fps"],
                   step)
+
+
+def _keep_best(out: pathlib.Path) -> None:
+    """``policy.pt`` replaced by the evaluated policy of the highest validation success in ``out/eval/`` (the
+    latest of equals: the longest-trained of those that did best), this sitting's and any before a resume."""
+    reports = sorted(out.glob(f"eval/step-{'[0-9]' * 7}/report.json"))
+    success = {int(path.parent.name.removeprefix("step-")): json.loads(path.read_text())["overall"]["success_rate"]
+               for path in reports}
+    best = max(success, key=lambda step: (success[step], step))
+    with atomic_write(out / "policy.pt", "wb") as file:
+        file.write((out / "eval" / f"step-{best:07d}" / "policy.pt").read_bytes())
+    curve = ", ".join(f"{step}: {rate:.0%}" for step, rate in sorted(success.items()))
+    print(f"policy.pt: the policy of step {best}, the best validation success of the evaluations ({curve})")
 
 
 def world_model_skill(policy: DustPolicy, features: FeatureCache, seed: int, batch_size: int) -> float:

@@ -182,6 +182,9 @@ class LoggingSettings:
     eval_seed: int = VALIDATION_SEED
     """First seed of each periodic evaluation: validation seeds, so a step count chosen on these curves leaves the
     held-out seeds (from 10,000) unseen."""
+    keep_best: bool = False
+    """Make `policy.pt` the periodic evaluation's policy of the highest validation success (the latest of equals)
+    rather than the last step's; needs `eval_every`. Every evaluated policy stays in `out/eval/step-N/`."""
     loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
     """Where the scalars go, each through torchrl's `get_logger` into `out/logs/<run_name>`; TensorBoard also gets
     the run's config (text and hparams) and, from each periodic evaluation, its success plot and a rollout video.
@@ -195,6 +198,8 @@ class LoggingSettings:
         check_at_least(self, 0, "eval_every", "eval_seed")
         check_loggers(self.loggers)
         check_run_name(self.run_name)
+        if self.keep_best and not self.eval_every:
+            raise ConfigError("--logging.keep-best chooses among periodic evaluations: give --logging.eval-every N")
 
 
 GROUPS = {"optim": OptimSettings, "data": DataSettings, "readout": ReadoutSettings, "runtime": RuntimeSettings,

@@ -52,12 +52,14 @@ from tensordict import TensorDict
 from dust_rl.agents import DustPolicy
 from dust_rl.data import DatasetError
 from dust_rl.data.features import hash_weights
-from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, TASK_INDEX_KEY
+from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, STATE_KEY, TASK_INDEX_KEY
 from dust_rl.storage.atomic_files import atomic_write
 from dust_rl.storage.cache_files import cached, record_cache
 from dust_rl.train.readout.aux_frames import encode_frames, render_aux_frames
 
-FORMAT = 2  # raise when what render_aux_frames draws changes, so older files are not read as current (2: placed)
+# Raise when what render_aux_frames draws changes, so older files are not read as current (2: the arm placed; 3: the
+# robot state kept).
+FORMAT = 3
 TOKEN_FORMAT = 1  # raise when how an image encoder turns frames into tokens changes
 
 
@@ -92,7 +94,8 @@ def cached_aux_frames(folder: pathlib.Path, env_id: str, env_kwargs: dict, tasks
     folder.mkdir(parents=True, exist_ok=True)
     with atomic_write(path, "wb") as file:
         np.savez(file, **{f"image_{i}": rows.get((*IMAGE_KEY, cam)).numpy() for i, cam in enumerate(cameras)},
-                 env_state=rows.get(ENV_STATE_KEY).numpy(), task_index=rows.get(TASK_INDEX_KEY).numpy(),
+                 env_state=rows.get(ENV_STATE_KEY).numpy(), state=rows.get(STATE_KEY).numpy(),
+                 task_index=rows.get(TASK_INDEX_KEY).numpy(),
                  instructions=np.array(instructions, dtype=str))
     record_cache(path)
     return StoredFrames(rows, instructions, path)
@@ -134,7 +137,8 @@ def _read(path: pathlib.Path, cameras: list[str], count: int, env_state_width: i
     except (ValueError, OSError, EOFError, zipfile.BadZipFile) as err:
         raise DatasetError(f"{path}: unreadable aux frames ({err}); delete the file to render them again") from err
     expected = {**{f"image_{i}": (np.uint8, (count, 3)) for i in range(len(cameras))},
-                "env_state": (np.float32, (count, env_state_width)), "task_index": (np.int64, (count,)),
+                "env_state": (np.float32, (count, env_state_width)), "state": (np.float32, (count,)),
+                "task_index": (np.int64, (count,)),
                 "instructions": (np.str_, (count,))}
     for name, (dtype, leading) in expected.items():
         array = arrays.get(name)
@@ -144,5 +148,6 @@ def _read(path: pathlib.Path, cameras: list[str], count: int, env_state_width: i
                                f"{leading}...; delete the file to render them again")
     rows = TensorDict({**{(*IMAGE_KEY, cam): torch.from_numpy(arrays[f"image_{i}"]) for i, cam in enumerate(cameras)},
                        ENV_STATE_KEY: torch.from_numpy(arrays["env_state"]),
+                       STATE_KEY: torch.from_numpy(arrays["state"]),
                        TASK_INDEX_KEY: torch.from_numpy(arrays["task_index"])}, batch_size=[count])
     return rows, arrays["instructions"].tolist()

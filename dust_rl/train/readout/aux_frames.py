@@ -47,7 +47,20 @@ from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.envs.env import ACTION_WIDTH, CLOSURE, MAX_ROTATION, MAX_TRANSLATION, DustEnv, axis_angle_to_quat
 from dust_rl.envs.experts import Waypoint
 from dust_rl.envs.factory import make_env
-from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, TASK_INDEX_KEY, flat_name
+from dust_rl.keys import (
+    BATCH_ENV_STATE_KEY,
+    BATCH_STATE_KEY,
+    ENV_STATE_KEY,
+    IMAGE_KEY,
+    IMAGE_TOKENS_KEY,
+    INSTRUCTION_KEY,
+    PIXELS_KEY,
+    STATE_KEY,
+    TASK_INDEX_KEY,
+    TEXT_MASK_KEY,
+    TEXT_TOKENS_KEY,
+    flat_name,
+)
 
 FIRST_SEED = 1_000_000
 HELDOUT_FIRST_SEED = 2_000_000  # frames that only measure the read-out (never fitted)
@@ -74,12 +87,12 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
         progress: show a progress bar.
 
     Returns:
-        (rows with ``(observation, image, cam)`` uint8 [count, 3, H, W], the object state [count, S] and
-        ``task_index`` [count] (into ``tasks``), the instruction of each frame).
+        (rows with ``(observation, image, cam)`` uint8 [count, 3, H, W], the object state [count, S], the robot
+        state [count, Ds] and ``task_index`` [count] (into ``tasks``), the instruction of each frame).
     """
     envs = {task: make_env(env_id, {**env_kwargs, "task": task}) for task in tasks}
     frames = {cam: [] for cam in cameras}
-    states, instructions = torch.zeros(count, env_state_width), []
+    states, robot_states, instructions = torch.zeros(count, env_state_width), [], []
     try:
         for i in tqdm(range(count), desc="aux frames", disable=not progress):
             frame_seed = first_seed + seed * count + i
@@ -93,12 +106,14 @@ def render_aux_frames(env_id: str, env_kwargs: dict, tasks: list[str], cameras: 
                 frames[cam].append(torch.from_numpy(obs[f"{flat_name(IMAGE_KEY)}.{cam}"]).permute(2, 0, 1))
             state = torch.from_numpy(obs[flat_name(ENV_STATE_KEY)])
             states[i, :state.shape[0]] = state
+            robot_states.append(torch.from_numpy(obs[flat_name(STATE_KEY)]))
             instructions.append(obs[INSTRUCTION_KEY])
     finally:
         for env in envs.values():
             env.close()
     rows = TensorDict({**{(*IMAGE_KEY, cam): torch.stack(frames[cam]) for cam in cameras}, ENV_STATE_KEY: states,
-                       TASK_INDEX_KEY: torch.arange(count) % len(tasks)}, batch_size=[count])
+                       STATE_KEY: torch.stack(robot_states), TASK_INDEX_KEY: torch.arange(count) % len(tasks)},
+                      batch_size=[count])
     return rows, instructions
 
 
@@ -150,9 +165,9 @@ class AuxFrameBatches:
                  env_state_norm: EnvStateNorm, encode: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
         self.device = policy.weights_device
         # What the read-out reads, made once: the frozen tokens (``encode``) or the raw frames (shifted per draw).
-        self.frame_key = "image_tokens" if policy.config.readout == "tokens" else "pixels"
+        self.frame_key = IMAGE_TOKENS_KEY if policy.config.readout == "tokens" else PIXELS_KEY
         frames = policy.frames(rows)
-        if self.frame_key == "image_tokens":
+        if self.frame_key == IMAGE_TOKENS_KEY:
             frames = encode(frames) if encode is not None else encode_frames(policy, frames)
         self.frames = frames
         distinct = {text: i for i, text in enumerate(dict.fromkeys(instructions))}  # tokens once per instruction
@@ -160,6 +175,7 @@ class AuxFrameBatches:
         self.instruction_index = torch.tensor([distinct[text] for text in instructions])
         self.task_index = rows.get(TASK_INDEX_KEY)
         self.env_state = env_state_norm.normalize(rows.get(ENV_STATE_KEY), self.task_index)
+        self.state = policy.normalizer.normalize_state(rows.get(STATE_KEY).float())
 
     def __len__(self) -> int:
         return self.frames.shape[0]
@@ -171,8 +187,9 @@ class AuxFrameBatches:
     def rows(self, index: torch.Tensor) -> TensorDict:
         """The frames at ``index`` (all of them: ``rows(torch.arange(len(batches)))``)."""
         text = self.instruction_index[index]
-        return TensorDict({self.frame_key: self.frames[index], "text_tokens": self.text_tokens[text],
-                           "text_mask": self.text_mask[text], "env_state": self.env_state[index]},
+        return TensorDict({self.frame_key: self.frames[index], TEXT_TOKENS_KEY: self.text_tokens[text],
+                           TEXT_MASK_KEY: self.text_mask[text], BATCH_ENV_STATE_KEY: self.env_state[index],
+                           BATCH_STATE_KEY: self.state[index]},
                           batch_size=[len(index)], device=self.device)
 
 

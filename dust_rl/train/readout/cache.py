@@ -29,9 +29,10 @@ import torch
 from torch import nn
 
 from dust_rl.agents import DustPolicy
-from dust_rl.agents.checkpoint_io import CheckpointError, load_checkpoint, save_checkpoint
 from dust_rl.data.features import hash_weights
+from dust_rl.errors import CheckpointError
 from dust_rl.storage.cache_files import cached, record_cache
+from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
 from dust_rl.train.readout.aux_frame_cache import FORMAT as AUX_FRAMES_FORMAT
 from dust_rl.train.settings import RETIRED_FIELDS, setting
 
@@ -39,7 +40,8 @@ READOUT_KIND = "dust-rl/readout-warmup"
 # What the warm-up reads from the training settings (dust_rl.train.settings.TrainSettings, by the top-level names
 # they had before the settings were grouped, so fits cached then are still found) and the policy config.
 WARMUP_SETTINGS = ("seed", "batch_size", "aux_frames", "readout.close_up_fraction", "readout_warmup", "readout_lr")
-READOUT_POLICY_SETTINGS = ("readout", "readout_grid", "readout_heads", "keypoints", "keypoint_source")
+READOUT_POLICY_SETTINGS = ("readout", "readout_grid", "readout_heads", "readout_proprio", "readout_text", "keypoints",
+                           "keypoint_source")
 
 Logged = list[tuple[int, dict[str, float]]]  # (step, scalars) as the warm-up logged them
 

@@ -2,9 +2,9 @@
 
 A policy or encoder checkpoint file is one ``torch.save`` file holding only
 tensors, numbers, strings, lists and dicts, so it loads with
-``weights_only=True`` (no code runs on load). It is written to a temp file in
-the same folder, fsynced and moved over the target with ``os.replace``: a
-killed writer leaves the old file or the new one, never half of one.
+``weights_only=True`` (no code runs on load). It is written through
+:func:`~dust_rl.storage.atomic_files.atomic_write`: a killed writer leaves the
+old file or the new one, never half of one.
 
 A checkpoint folder follows the Hugging Face / LeRobot convention:
 ``config.json`` (everything that is not a tensor, with the kind and version)
@@ -15,6 +15,11 @@ A killed writer leaves no half folder at the target: the old folder or the new
 one (killed between the two renames, the old one is kept beside it under a
 hidden name). An existing folder is replaced only if it holds a checkpoint of
 the same kind or nothing, so a mistyped path never deletes data.
+
+Why in storage: policy, encoder and RL agent files and read-out caches are all
+read and written here (with the checks that loaded tensors hold usable values),
+and none of it knows a model; each loader above says what its payload holds.
+The agents import this module, never the reverse.
 """
 
 from __future__ import annotations
@@ -32,14 +37,13 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor
 
+from dust_rl.errors import CheckpointError, one_line
+from dust_rl.storage.atomic_files import atomic_write
+
 FORMAT_VERSION = 1
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
 MAX_CONFIG_BYTES = 16 * 2**20  # a policy's config.json is a few kB; an encoder's transformers config tens of kB
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint is missing, unreadable, of another kind, or does not fit what it is loaded into."""
 
 
 def save_checkpoint(payload: dict, path: str | pathlib.Path, kind: str) -> pathlib.Path:
@@ -52,15 +56,8 @@ def save_checkpoint(payload: dict, path: str | pathlib.Path, kind: str) -> pathl
     path = pathlib.Path(path)
     check_replaceable_file(path, kind)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            torch.save({"kind": kind, "format_version": FORMAT_VERSION, **payload}, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_write(path, "wb") as f:
+        torch.save({"kind": kind, "format_version": FORMAT_VERSION, **payload}, f)
     return path
 
 
@@ -240,7 +237,3 @@ def _few(names: list[str], shown: int = 4) -> str:
     more = f" and {len(names) - shown} more" if len(names) > shown else ""
     return f"{names[:shown]}{more}"
 
-
-def one_line(err: BaseException) -> str:
-    """``err`` as ``Type: message`` on one line (library messages may span several)."""
-    return f"{type(err).__name__}: {' '.join(str(err).split())}"
