@@ -48,11 +48,15 @@ class AttentionProbe(nn.Module):
         self.head = nn.Sequential(nn.Linear((heads + condition_at_head) * WIDTH, 2 * WIDTH), nn.GELU(),
                                   nn.Linear(2 * WIDTH, outputs))
 
-    def forward(self, tokens: Tensor, condition: Tensor) -> Tensor:
+    def forward(self, tokens: Tensor, condition: Tensor, queries: Tensor | None = None) -> Tensor:
+        """``queries`` [B, heads, WIDTH]: a query per head, whose dot product with each token joins that head's
+        attention logits (the head then looks for what its query names); None: the learnt logits alone."""
         named = self.condition(condition)[:, None]
         h = self.project(tokens) + self.position + (named if self.early else 0)
         h = h + self.mlp(h)
         logits = self.attend(h)  # [B, N, heads]
+        if queries is not None:
+            logits = logits + torch.einsum("bnw,bkw->bnk", h, queries) / WIDTH ** 0.5
         pooled = torch.einsum("bnk,bnw->bkw", logits.softmax(1), h)  # [B, heads, WIDTH]
         pooled = pooled if self.early else pooled + named
         return self.head(torch.cat([pooled, named], 1).flatten(1) if self.condition_at_head else pooled.flatten(1))

@@ -27,6 +27,8 @@ import numbers
 from dataclasses import dataclass, fields
 from typing import Literal, get_args
 
+from dust_rl.storage.config_json import Retired
+
 Variant = Literal["dust", "mmdit_shared", "decoupled", "joint", "action_only"]
 SamplerName = Literal["async", "sync", "action_only"]
 KeypointSource = Literal["features", "pixels"]
@@ -49,7 +51,6 @@ MAX_GRID_SIDE = 64
 MAX_BLOCKS = 64  # n_mmdit + n_dit
 MAX_MLP_RATIO = 16.0
 MAX_STEPS = 1024  # n_action_steps, vision_step_ratio
-MAX_CANDIDATES = 256  # joint samples per chunk
 MAX_IMAGE_SIZE = 1024  # side of the frames an image encoder works at
 MAX_CONV_WIDTH = 512  # channels of a convolutional encoder stage
 MAX_ENCODER_LAYERS = 64  # transformer layers of an image encoder
@@ -61,9 +62,17 @@ MAX_PARAMETERS = 1_000_000_000  # of the trunk, or of an image encoder: 4 GB of 
 TIME_FREQ_DIM = 256  # sinusoidal features of the timestep embedding
 
 
-RETIRED_SETTINGS: dict[str, object] = {"readout_coords": False}
-"""Model settings earlier versions had, each at the one value this version builds (what every model now is): a
-stored config holding one at that value loads, one holding another value is refused (it describes another model)."""
+RETIRED_MODEL_SETTINGS: dict[str, Retired] = {"readout_coords": Retired(False, "522ae08")}
+"""Model settings (`dust-rl train --policy.*`) earlier versions had, each at the one value this version builds (what
+every model now is): a stored config holding one at that value loads, one holding another value is refused (it
+describes another model)."""
+RETIRED_SETTINGS: dict[str, Retired] = {
+    **RETIRED_MODEL_SETTINGS,
+    # World-model selection (best of K joint samples by a scorer of the predicted future): no gain on press_button or
+    # pick_place (docs/results/2026-11-24-rl-finetuning-first-runs.md); the study is experiments/wm_select/.
+    "scorer_hidden": Retired(0, "74cb2e1"), "candidates": Retired(1, "74cb2e1")}
+"""Every setting a stored policy config may hold that this version retired, the model's and the sampler's: the
+same rule."""
 
 
 def check_size(name: str, value: object, maximum: int, minimum: int = 1) -> None:
@@ -86,9 +95,6 @@ class SamplerConfig:
     """N_A, action denoising steps per chunk (paper: 4)."""
     vision_step_ratio: int = 1
     """q, vision denoising steps per action step (async only: N_o = q * N_A)."""
-    candidates: int = 1
-    """K joint samples per chunk; the one whose predicted future the policy's future scorer rates best is
-    executed (`wm_select`, `.future_scorer`; needs a scorer). 1: the chunk as sampled."""
     noise_scale: float = 1.0
     """Scale of the initial action noise, a sampling temperature: 1 as trained; 0 integrates every chunk from the
     noise's mean (deterministic for action_only; with a vision stream its noise still varies). A chunk given its
@@ -102,7 +108,6 @@ class SamplerConfig:
             raise ValueError(f"unknown sampler {self.sampler!r}; expected one of {SAMPLERS} or None")
         check_size("n_action_steps", self.n_action_steps, MAX_STEPS)
         check_size("vision_step_ratio", self.vision_step_ratio, MAX_STEPS)
-        check_size("candidates", self.candidates, MAX_CANDIDATES)
 
     @property
     def sampler_settings(self) -> SamplerConfig:
@@ -158,8 +163,9 @@ class ModelConfig:
     """The token read-out also reads the robot's state (joints, end-effector pose, opening): what lets it turn where
     the wrist camera, which moves with the hand, sees an object into where the object is."""
     readout_text: ReadoutText = "mean"
-    """How the token read-out reads the instruction: `mean` (its tokens' mean) or `attention` (a learnt attention
-    over its tokens, so a colour or shape word can outweigh the template's words)."""
+    """How the token read-out reads the instruction: `mean` (its tokens' mean, added to every image token) or
+    `attention` (also, per read-out head, a learnt attention over its tokens whose result is the head's query, so
+    one head can look for the first named colour and another for the second)."""
     text_fusion: bool = False
     """Condition every image token on the instruction before the trunk (`.condition`): the pooled instruction
     is added to each token, which then passes a residual MLP, so "is this the named object?" is answered per token,
@@ -329,9 +335,6 @@ class DustConfig(ModelConfig, SamplerConfig):
     aux_state_dim: int = 0
     """Size of the privileged environment state the auxiliary read-out predicts (training only; 0: no read-out).
     Needs `lambda_aux`."""
-    scorer_hidden: int = 0
-    """Hidden width of the future scorer (`.future_scorer`, fitted after training by `dust-rl finetune
-    wm-select`); 0: no scorer."""
 
     def __post_init__(self) -> None:
         SamplerConfig.__post_init__(self)
@@ -349,9 +352,6 @@ class DustConfig(ModelConfig, SamplerConfig):
             raise ValueError("the action_only variant has no vision stream; use sampler='action_only'")
         if not self.decoupled and (sampler == "action_only" or self.vision_step_ratio != 1):
             raise ValueError(f"variant {self.variant!r} shares one timestep: only synchronous sampling applies")
-        if self.candidates > 1 and not (self.scorer_hidden and self.has_vision and sampler != "action_only"):
-            raise ValueError(f"candidates={self.candidates} needs a future scorer (scorer_hidden > 0, fitted by "
-                             "dust-rl finetune wm-select) and a sampler that predicts the future")
         if sampler != "async" and self.vision_step_ratio != 1:
             raise ValueError(f"vision_step_ratio (N_o = q * N_A) applies to the async sampler only; the sampler is "
                              f"{sampler!r}")
@@ -361,13 +361,10 @@ class DustConfig(ModelConfig, SamplerConfig):
         for name in ("action_dim", "state_dim", "vision_dim", "cond_dim"):
             check_size(name, getattr(self, name), MAX_WIDTH)
         check_size("aux_state_dim", self.aux_state_dim, MAX_WIDTH, minimum=0)
-        check_size("scorer_hidden", self.scorer_hidden, MAX_WIDTH, minimum=0)
         if any(c % v for c, v in zip(self.condition_grid, self.vision_grid)):
             raise ValueError(f"cond_grid {self.condition_grid} must be a multiple of vision_grid {self.vision_grid}")
         if any(t % c for t, c in zip(self.token_grid, self.condition_grid)):
             raise ValueError(f"readout_grid {self.token_grid} must be a multiple of cond_grid {self.condition_grid}")
-        if self.n_vision_tokens * self.vision_dim * self.scorer_hidden > MAX_PARAMETERS:
-            raise ValueError(f"the future scorer would have over {MAX_PARAMETERS:.3g} parameters; reduce scorer_hidden")
         if self.n_parameters > MAX_PARAMETERS:
             raise ValueError(f"the trunk would have {self.n_parameters:.3g} parameters, more than the cap of "
                              f"{MAX_PARAMETERS:.3g}; reduce d_model, the block counts or mlp_ratio")

@@ -31,8 +31,7 @@ from dust_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, FUTURE_CHUNK_KEY, PREDICT
 def replans(step: int, execute_steps: int) -> bool:
     """Whether a chunk is sampled before env step ``step`` of an episode (0: the reset's): the receding-horizon rule,
     at the reset and every ``execute_steps`` steps after. :class:`ChunkExecutor` runs by it (torchrl's
-    ``replan_interval``, checked against this function in the tests); the fine-tuning envs and the scorer's
-    rollouts (:mod:`dust_rl.rl.wm_select`) ask it here."""
+    ``replan_interval``, checked against this function in the tests); the residual env asks it here."""
     return step % execute_steps == 0
 
 

@@ -79,7 +79,6 @@ from .config import DustConfig, SamplerConfig
 from .dust_model import DustModel
 from .execution import ChunkExecutor
 from .flow_matching import WHOLE_BATCH, Shard
-from .future_scorer import FutureScorer
 from .image_encoder import channels_first, pool_tokens
 from .normalizer import Normalizer
 from .precision import Precision, autocast
@@ -157,8 +156,6 @@ class DustPolicy(VLAWrapperBase):
             self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
                                               config.aux_state_dim)
         self.model = DustModel(config)
-        if config.scorer_hidden:
-            self.future_scorer = FutureScorer(config.n_vision_tokens, config.vision_dim, config.scorer_hidden)
         self.normalizer = Normalizer(config.state_dim, config.action_dim, config.vision_dim)
         self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
         self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
@@ -357,7 +354,7 @@ class DustPolicy(VLAWrapperBase):
         """Future tokens [*B, N_o, Dv] on the vision grid, in the encoder's units (a training target, or the
         ``future_tokens`` a plan returns) -> the world model's frame units (standardised after pooling).
 
-        The units the future scorer and the diagnostics compare frames in."""
+        The units the diagnostics compare frames in."""
         return self.normalizer.standardise_future(self.normalizer.normalize_vision(future_tokens))
 
     def present_target(self, features: TensorDictBase) -> Tensor:
@@ -481,37 +478,18 @@ class DustPolicy(VLAWrapperBase):
         for key, noise in ((BATCH_ACTION_NOISE_KEY, action_noise), (VISION_NOISE_KEY, vision_noise)):
             if noise is not None:
                 batch.set(key, noise.reshape(batch.batch_size[0], *noise.shape[-2:]))
-        # K joint samples from the same fixed noises would be one sample K times: nothing to choose among
-        candidates = 1 if action_noise is not None and vision_noise is not None else self.config.candidates
-        if candidates > 1:  # K joint samples of each observation, side by side: [B * K]
-            rows = torch.arange(batch.batch_size[0], device=batch.device).repeat_interleave(candidates)
-            batch, features = batch[rows], features[rows]
         with autocast(self.weights_device, self.precision):
             out = self.model.predict_action(batch, schedule_for(self.config), generator,
                                             noise_scale=self.config.noise_scale)
         out = out.apply(lambda tensor: tensor.float() if tensor.is_floating_point() else tensor)
         if FUTURE_TOKENS_KEY in out.keys():
             out.set(FUTURE_TOKENS_KEY, self._predicted_frame(out.get(FUTURE_TOKENS_KEY), features))
-        if candidates > 1:  # keep, per observation, the sample whose predicted future scores best
-            scores = self.future_scores(out.get(FUTURE_TOKENS_KEY)).view(-1, candidates)
-            out = out.view(-1, candidates)[torch.arange(scores.shape[0], device=scores.device), scores.argmax(-1)]
         chunk = self.normalizer.denormalize_action(out.get(BATCH_ACTION_CHUNK_KEY))
         out.set(BATCH_ACTION_CHUNK_KEY, chunk.clamp(self.action_low, self.action_high))
         if FUTURE_TOKENS_KEY in out.keys():
             out.set(FUTURE_TOKENS_KEY, self.normalizer.denormalize_vision(
                 self.normalizer.unstandardise_future(out.get(FUTURE_TOKENS_KEY))))
         return out
-
-    def future_scores(self, future_tokens: Tensor) -> Tensor:
-        """The future scorer's success logits [B] of predicted futures [B, N_o, Dv] (standardised frames, as
-        :meth:`_predicted_frame` makes them of the trunk's output).
-
-        Raises:
-            ValueError: the policy has no future scorer.
-        """
-        if not self.config.scorer_hidden:
-            raise ValueError("this policy has no future scorer (fit one with dust-rl finetune wm-select)")
-        return self.future_scorer(future_tokens)
 
     def forward(self, tensordict: TensorDictBase, *, tensordict_out: TensorDictBase | None = None,
                 **kwargs) -> TensorDictBase:

@@ -12,9 +12,12 @@ demonstrations' few layouts.
 
 It is :class:`~.attention_pooling.AttentionProbe` over every camera's
 condition tokens (one position embedding per camera and cell), with the
-instruction added to each token before the attention, so which object
-is named decides where it looks. The instruction is its tokens' mean, or
-(``readout_text="attention"``) a learnt attention over them. With
+instruction (its tokens' mean) added to each token before the attention, so
+which object is named decides where it looks. With ``readout_text="attention"``
+each head also reads the instruction through its own learnt attention over
+its tokens, and the result is that head's query: the mean of "stack the red
+cube on the blue cube" is nearly that of "stack the blue cube on the red
+cube", while a head can pick out the first colour and another the second. With
 ``proprio_dim`` the robot state joins the instruction in that condition and is read again by the final MLP:
 the wrist camera moves with the hand, so where it sees an object says where the object is only given where the
 hand is.
@@ -49,24 +52,26 @@ class TokenReadout(nn.Module):
         state_dim: S.
         heads: attention poolings side by side.
         proprio_dim: P, the robot state's size; 0: the read-out does not read it.
-        text_attention: read the instruction by a learnt attention over its tokens rather than their mean.
+        text_attention: give each head a query read from the instruction by its own attention over the tokens.
     """
 
     def __init__(self, cameras: int, grid: tuple[int, int], image_dim: int, text_dim: int, state_dim: int,
                  heads: int = 1, proprio_dim: int = 0, text_attention: bool = False) -> None:
         super().__init__()
         self.proprio_dim = proprio_dim
-        self.text_attend = nn.Linear(text_dim, 1) if text_attention else None
         self.pool = AttentionProbe(cameras * grid[0] * grid[1], image_dim,
                                    lambda: nn.Linear(text_dim + proprio_dim, WIDTH), outputs=state_dim, heads=heads,
                                    condition_at_head=proprio_dim > 0)
+        # Per head, an attention over the instruction's tokens and the query its result makes.
+        self.text_attend = nn.Linear(text_dim, heads) if text_attention else None
+        self.text_query = nn.Linear(text_dim, WIDTH) if text_attention else None
 
     def forward(self, image_tokens: Tensor, text_tokens: Tensor, text_mask: Tensor,
                 state: Tensor | None = None) -> Tensor:
-        if self.text_attend is None:
-            text = pooled_text(text_tokens, text_mask)
-        else:  # masked softmax over the instruction's tokens
-            logits = self.text_attend(text_tokens).squeeze(-1).masked_fill(~text_mask, float("-inf"))
-            text = torch.einsum("bl,bld->bd", logits.softmax(-1), text_tokens)
+        text = pooled_text(text_tokens, text_mask)
         condition = torch.cat([text, state], -1) if self.proprio_dim else text
-        return self.pool(image_tokens.flatten(1, 2), condition)
+        queries = None
+        if self.text_attend is not None:  # a masked softmax over the instruction's tokens per head
+            logits = self.text_attend(text_tokens).masked_fill(~text_mask[..., None], float("-inf"))  # [B, L, heads]
+            queries = self.text_query(torch.einsum("blk,bld->bkd", logits.softmax(1), text_tokens))
+        return self.pool(image_tokens.flatten(1, 2), condition, queries)

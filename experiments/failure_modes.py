@@ -75,11 +75,11 @@ import matplotlib
 import torch
 from tensordict import TensorDictBase
 
+from dust_rl.envs.env import STATE_PARTS
 from dust_rl.envs.tasks import peg_insert, pick_into_bin, press_button, push, stack
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate_task, prepare
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, STATE_KEY
-from dust_rl.train.readout.error import EE_BLOCK
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -197,7 +197,7 @@ CLASSIFIERS = {"pick_place": pick_place_mode, "stack": stack_mode, "pick_into_bi
 
 def end_tilt(trajectory: TensorDictBase) -> float:
     """Degrees between the end effector's orientation after the episode's last step and at its start."""
-    quaternion = slice(-EE_BLOCK + 3, -1)  # wxyz, after the position, before the opening
+    quaternion = slice(-len(STATE_PARTS) + 3, -1)  # wxyz, after the position, before the opening
     start = trajectory.get(STATE_KEY)[0, quaternion].double()
     end = trajectory.get(("next", *STATE_KEY))[-1, quaternion].double()
     return math.degrees(2 * math.acos(min(1.0, abs(float(start @ end)))))

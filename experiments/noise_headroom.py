@@ -1,6 +1,6 @@
 """How much a policy's success depends on its sampling noise: the headroom of noise-space steering and selection.
 
-Why: steering (``dust-rl finetune steer``) and best-of-K selection (``wm_select``) can only choose among
+Why: steering (``dust-rl finetune steer``) and best-of-K selection (``experiments/wm_select/``) can only choose among
 what the base policy samples. If a layout fails whatever the noise, no choice of noise helps; if it succeeds under
 some draws, a perfect chooser would win it. So each layout is evaluated K times with K different noise streams
 (the evaluation's per-episode noise seed shifted by a large offset), and the script prints the mean success over

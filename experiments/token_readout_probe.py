@@ -16,6 +16,7 @@ import argparse
 import time
 
 import torch
+from readout_error import readout_error_table  # experiments/readout_error.py, beside this script
 
 from dust_rl.agents import make_policy
 from dust_rl.data import DemoDataset
@@ -28,7 +29,6 @@ from dust_rl.train.readout.aux_frames import (
     AuxFrameBatches,
     render_aux_frames,
 )
-from dust_rl.train.readout.error import readout_error_table
 from dust_rl.train.readout.warmup import warm_up_readout
 
 

@@ -21,7 +21,6 @@ from dust_rl.agents.factory import POLICY_KIND
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import CheckpointError, UserError
 from dust_rl.keys import ACTION_NOISE_KEY, PREDICTED_FUTURE_KEY
-from dust_rl.rl.wm_select import with_scorer
 from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -157,6 +156,17 @@ def test_policy_files_naming_the_old_agent_layer_still_load(tiny_encoder, minilm
     assert torch.equal(old.plan(obs, torch.Generator().manual_seed(0))["action_chunk"], expected)
 
 
+def test_policy_files_from_before_world_model_selection_was_retired_load_at_its_values_only(tiny_encoder, minilm,
+                                                                                            tmp_path):
+    payload = load_checkpoint(save_policy(tiny_policy("dust", tiny_encoder, minilm), tmp_path / "new.pt"), POLICY_KIND)
+    before = {**payload["config"], "scorer_hidden": 0, "candidates": 1}  # every policy file of before holds them
+    assert load_policy(save_checkpoint({**payload, "config": before}, tmp_path / "old.pt", POLICY_KIND))
+    for name, value in (("scorer_hidden", 128), ("candidates", 4)):  # what dust-rl finetune wm-select wrote
+        save_checkpoint({**payload, "config": {**before, name: value}}, tmp_path / "selected.pt", POLICY_KIND)
+        with pytest.raises(CheckpointError, match=rf"{name} = {value}: a setting this version removed .* 74cb2e1"):
+            load_policy(tmp_path / "selected.pt")
+
+
 def test_loading_a_corrupt_or_mismatched_checkpoint_fails_clearly(tiny_encoder, minilm, tmp_path):
     path = save_policy(tiny_policy("dust", tiny_encoder, minilm, state_dim=17), tmp_path / "policy.pt")
     (tmp_path / "cut.pt").write_bytes(path.read_bytes()[:1000])
@@ -248,30 +258,3 @@ def test_an_env_without_robot_state_gets_a_clear_error(tiny_encoder, minilm):
             make_policy("dust", env, image_encoder=tiny_encoder, text_encoder=minilm, **TINY)
     finally:
         env.close()
-
-
-def test_best_of_k_executes_the_sample_whose_predicted_future_scores_best(tiny_encoder, minilm, tmp_path):
-    policy = tiny_policy("dust", tiny_encoder, minilm)
-    perturb(policy)
-    scored = with_scorer(policy, hidden=8, candidates=1)
-    with torch.no_grad():
-        for p in scored.future_scorer.parameters():
-            p.normal_(generator=torch.Generator().manual_seed(1))
-    obs = observation()
-    # One candidate: the base policy's chunk, bit for bit.
-    base = policy.plan(obs, torch.Generator().manual_seed(0))
-    assert torch.equal(scored.plan(obs, torch.Generator().manual_seed(0))["action_chunk"], base["action_chunk"])
-    # K candidates: the same draws as planning each observation K times, and the best-scoring one is kept.
-    k = 3
-    scored.set_sampler(SamplerConfig(candidates=k))
-    chosen = scored.plan(obs, torch.Generator().manual_seed(1))
-    every = policy.plan(obs[torch.arange(2).repeat_interleave(k)], torch.Generator().manual_seed(1))
-    scores = scored.future_scores(policy.standardised_future(every["future_tokens"])).view(2, k)
-    best = every["action_chunk"].view(2, k, 6, 3)[torch.arange(2), scores.argmax(-1)]
-    assert torch.equal(chosen["action_chunk"], best) and scores.std() > 0
-    # The scorer and K travel in the policy file.
-    loaded = load_policy(save_policy(scored, tmp_path / "scored.pt"))
-    assert loaded.config.candidates == k
-    assert torch.equal(loaded.plan(obs, torch.Generator().manual_seed(1))["action_chunk"], chosen["action_chunk"])
-    with pytest.raises(ValueError, match="needs a future scorer"):
-        policy.set_sampler(SamplerConfig(candidates=2))

@@ -139,7 +139,8 @@ def test_the_token_readout_can_read_the_robot_state_and_attend_over_the_instruct
     width = env_state_width(dataset)
     policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                          horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
-                         aux_state_dim=width, lambda_aux=1.0, readout_proprio=True, readout_text="attention")
+                         aux_state_dim=width, lambda_aux=1.0, readout_heads=2, readout_proprio=True,
+                         readout_text="attention")
     rows, instructions = render_aux_frames(ENV_ID, dataset.meta["env_kwargs"], dataset.tasks, policy.cameras, 3,
                                            width, progress=False)
     batches = AuxFrameBatches(rows, instructions, policy, EnvStateNorm.of_dataset(dataset))
@@ -147,7 +148,7 @@ def test_the_token_readout_can_read_the_robot_state_and_attend_over_the_instruct
     torch.testing.assert_close(frames.get("state"), policy.normalizer.normalize_state(rows.get(STATE_KEY)))
     policy.readout_loss(frames).backward()
     readout = policy.state_readout
-    assert readout.text_attend.weight.grad.abs().sum() > 0
+    assert readout.text_attend.weight.grad.abs().sum() > 0 and readout.text_query.weight.grad.abs().sum() > 0
     assert readout.pool.condition.in_features == policy.backbone.text_dim + policy.config.state_dim
     with torch.no_grad():
         estimate = readout(frames.get("image_tokens"), frames.get("text_tokens"), frames.get("text_mask"),

@@ -90,8 +90,7 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert results["arms"]["dust"]["policy"] == {} and results["recipe"] == "plain"
     assert json.loads((cell / "dust_seed0_demos2" / "config.json").read_text())["config"]["recipe"] == "plain"
     sync8 = json.loads((tmp_path / "suite" / "eval" / "dust_seed0_demos2" / "sync_N_AN_o8" / "report.json").read_text())
-    assert sync8["sampler"] == {"name": "sync", "n_action_steps": 8, "vision_steps": 8, "candidates": 1,
-                                "noise_scale": 1.0}
+    assert sync8["sampler"] == {"name": "sync", "n_action_steps": 8, "vision_steps": 8, "noise_scale": 1.0}
     noise = json.loads((tmp_path / "suite" / "eval" / "dust_seed0_demos2" / "vision_as_noise_N_A4" /
                         "report.json").read_text())
     assert noise["sampler"]["name"] == "action_only"

@@ -172,8 +172,6 @@ def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
     for args in (["--episodes", "0"], ["--max-steps", "0"], ["--tasks", "press_button", "fly"],
                  ["--execute-steps", "0"], ["--device", "tpu"]):
         error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"), *args])
-    assert "needs a future scorer" in error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"),
-                                                 "resample", "--candidates", "2"])
     horizon = load_policy(policy).config.horizon
     assert "execute_steps must be in [1, " in error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"),
                                                         "--execute-steps", str(horizon + 1)])

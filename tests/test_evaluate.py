@@ -111,8 +111,7 @@ def test_report_rows_count_each_seed_once(report, eval_config):
     assert row["mean_length"] == sum(e.length for e in episodes) / 2
     assert report["overall"]["episodes"] == 2 and report["overall"]["successes"] == row["successes"]
     assert report["env_steps"] == sum(e.length for e in episodes) and report["env_steps_per_s"] > 0
-    assert report["sampler"] == {"name": "async", "n_action_steps": 4, "vision_steps": 4, "candidates": 1,
-                                 "noise_scale": 1.0}
+    assert report["sampler"] == {"name": "async", "n_action_steps": 4, "vision_steps": 4, "noise_scale": 1.0}
     assert report["variant"] == "dust" and report["env_id"] == "DustFranka-v0"
     policy = load_policy(eval_config.policy)
     assert report["trainable_parameters"] == sum(p.numel() for p in policy.parameters() if p.requires_grad) > 0
@@ -215,7 +214,7 @@ def test_bad_tasks_and_sampler_settings_fail_before_any_episode(policy_path, tmp
 
 def test_sampler_description_counts_vision_steps():
     assert describe_sampler(SamplerConfig("async", 4, 2)) == {"name": "async", "n_action_steps": 4, "vision_steps": 8,
-                                                              "candidates": 1, "noise_scale": 1.0}
+                                                              "noise_scale": 1.0}
     assert describe_sampler(SamplerConfig("sync", 4))["vision_steps"] == 4
     assert describe_sampler(SamplerConfig("action_only", 4))["vision_steps"] == 0
 

@@ -36,12 +36,10 @@ from dust_rl.rl.config import (
     SteerConfig,
     SteeringCollection,
     SteeringObservation,
-    WmSelectConfig,
     as_this_version,
     rl_config_from_json,
 )
 from dust_rl.rl.critic_limits import LayerNormReLU
-from dust_rl.rl.critic_warmup import CriticWarmup
 from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune, finetune_env_factory
 from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
 from dust_rl.rl.vector import SB3SteeringVecEnv
@@ -146,7 +144,7 @@ def test_eval_of_an_rl_agent_file_says_what_it_cannot_run(tmp_path):
 
     older = save_checkpoint({"config": {"method": "steer"}, "state_dict": {}}, tmp_path / "rl_agent.pt", RL_AGENT_KIND)
     for flags, refused in ((["--execute-steps", "1"], "--execute-steps"),
-                           (["resample", "--candidates", "2"], "resample")):
+                           (["resample", "--noise-scale", "0"], "resample")):
         with pytest.raises(SystemExit, match=f"runs as it was trained, in this process; drop {refused}$"):
             main(["eval", "--policy", str(older), *flags])
     with pytest.raises(SystemExit, match="written before an RL agent's file held its base policy"):
@@ -193,32 +191,6 @@ def test_ppo_rolls_out_n_steps_over_all_envs(policy_path):
     env.close()
 
 
-def test_wm_select_writes_a_policy_eval_loads_and_compares_on_the_same_seeds(policy_path, tmp_path):
-    config = WmSelectConfig(policy=policy_path, out=tmp_path / "ft", candidates=(2,), rollouts=5, scorer_hidden=8,
-                            scorer_steps=3, eval_episodes=2, max_steps=EPISODE_STEPS, progress=False)
-    report = finetune(config, command="dust-rl finetune ...")
-    assert [row["task"] for row in report["rows"]] == ["base policy", "wm_select (K = 2)"]
-    assert report["rollout_env_steps"] == 5 * EPISODE_STEPS and report["scorer"]["validation_rows"] > 0
-    evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", episodes=2, workers=1, videos=0,
-                                    max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
-    assert report["per_episode"]["base policy"] == evaluated["tasks"][0]["per_episode"]
-    # The written policy is the base one plus a scorer, acting with K = 2; dust-rl eval reads it as any policy.
-    selected = load_policy(tmp_path / "ft" / "policy.pt")
-    assert selected.config.candidates == 2 and selected.info["wm_select"]["base_policy"] == str(policy_path)
-    base_weights = load_policy(policy_path).state_dict()
-    assert all(torch.equal(v, base_weights[k]) for k, v in selected.state_dict().items() if k in base_weights)
-    again = evaluate(EvalConfig(policy=tmp_path / "ft" / "policy.pt", out=tmp_path / "eval_k2", episodes=2,
-                                workers=1, videos=0, max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
-    assert again["tasks"][0]["per_episode"] == report["per_episode"]["wm_select (K = 2)"]
-    # Each row but the base's says which episodes it won and lost against the base, seed for seed.
-    outcome = {seed: success for seed, success, *_ in report["per_episode"]["base policy"]}
-    selected_row = report["rows"][1]["vs_base"]
-    assert "vs_base" not in report["rows"][0]
-    assert selected_row["gained"] == sum(s and not outcome[seed] for seed, s, *_ in again["tasks"][0]["per_episode"])
-    assert selected_row["lost"] == sum(outcome[seed] and not s for seed, s, *_ in again["tasks"][0]["per_episode"])
-    assert "| wm_select (K = 2) | 2 |" in (tmp_path / "ft" / "report.md").read_text()
-
-
 @pytest.mark.parametrize("algorithm", ["sac", "ppo"])
 def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path):
     settings = SacSettings(learning_starts=8) if algorithm == "sac" else PpoSettings()
@@ -236,29 +208,6 @@ def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path)
         warm_up = agent.replay_buffer.actions[:8]
         assert 0 < np.abs(warm_up).max() < 0.5
         assert agent.ent_coef_tensor.item() == 0.0  # a fixed std leaves the entropy bonus nothing to do
-    env.close()
-
-
-def test_critic_warmup_holds_the_actor_at_the_base_policy_while_the_critic_learns(policy_path):
-    config = ResidualConfig(policy=policy_path, steps=16, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
-                            initial_std=0.05, lr=1e-3, progress=False,
-                            algorithm=PpoSettings(n_steps=8, n_epochs=2, target_kl=0.5, critic_warmup=8))
-    env = finetune_env_factory(config, load_policy(policy_path))[0]()
-    agent = build_agent(config, env)
-    assert (agent.learning_rate, agent.n_steps, agent.n_epochs, agent.target_kl) == (1e-3, 8, 2, 0.5)
-
-    def weights(module: torch.nn.Module) -> list[torch.Tensor]:
-        return [p.detach().clone() for p in module.parameters()]
-
-    actor, critic = (torch.nn.ModuleList([agent.policy.mlp_extractor.policy_net, agent.policy.action_net]),
-                     torch.nn.ModuleList([agent.policy.mlp_extractor.value_net, agent.policy.value_net]))
-    actor_start, critic_start = weights(actor), weights(critic)
-    warmup = CriticWarmup(config.algorithm.critic_warmup)
-    agent.learn(total_timesteps=8, callback=warmup)  # one rollout of 8 steps, inside the warm-up
-    assert all(torch.equal(a, b) for a, b in zip(weights(actor), actor_start))
-    assert not all(torch.equal(a, b) for a, b in zip(weights(critic), critic_start))
-    agent.learn(total_timesteps=8, callback=warmup, reset_num_timesteps=False)  # the next one is past it
-    assert not all(torch.equal(a, b) for a, b in zip(weights(actor), actor_start))
     env.close()
 
 
@@ -301,27 +250,6 @@ def test_layer_norm_caps_the_critic_off_its_data(policy_path):
     env.close()
 
 
-def test_q_bounds_hold_the_critic_and_its_target_within_the_returns(policy_path):
-    config = SteerConfig(policy=policy_path, steps=8, net_arch=(16,), algorithm=SacSettings(q_bounds=(0.0, 1.0)),
-                         max_steps=EPISODE_STEPS, progress=False)
-    env = finetune_env_factory(config, load_policy(policy_path))[0]()
-    agent = build_agent(config, env)
-    obs_t, _ = agent.policy.obs_to_tensor(env.reset(seed=0)[0])
-    with torch.no_grad():
-        for layer in agent.critic.q_networks[0]:  # a last layer that would say 1e6 anywhere
-            if isinstance(layer, torch.nn.Linear):
-                last = layer
-        last.bias.fill_(1e6)
-        agent.critic_target.q_networks[1][-2].bias.fill_(-1e6)
-        far = torch.full((1, env.action_space.shape[0]), 1e6)
-        q, _ = agent.critic(obs_t, far)
-        _, q_target = agent.critic_target(obs_t, far)
-    assert 0.0 <= q.item() <= 1.0 and 0.0 <= q_target.item() <= 1.0
-    assert set(agent.policy.state_dict()) == set(build_agent(dataclasses.replace(config, algorithm=SacSettings()),
-                                                             env).policy.state_dict())  # loads as before
-    env.close()
-
-
 def test_bad_finetune_settings_are_named(policy_path, tmp_path):
     with pytest.raises(ConfigError, match="noise_bound"):
         SteerConfig(policy=policy_path, noise_bound=0.0)
@@ -336,14 +264,10 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         ResidualConfig(policy=policy_path, residual_scale=float("inf"))
     with pytest.raises(ConfigError, match="initial_std must be a finite number > 0"):
         SteerConfig(policy=policy_path, initial_std=0.0)
-    with pytest.raises(ConfigError, match="q_bounds must be two finite numbers LO < HI"):
-        SacSettings(q_bounds=(1.0, 0.0))
     with pytest.raises(ConfigError, match="target_entropy must be a finite number"):
         SacSettings(target_entropy=float("nan"))
     with pytest.raises(ConfigError, match="updates_per_step"):
         SacSettings(updates_per_step=0)
-    with pytest.raises(ConfigError, match="target_kl must be a finite number > 0"):
-        PpoSettings(target_kl=0.0)
     with pytest.raises(ConfigError, match="lr must be a finite number > 0"):
         SteerConfig(policy=policy_path, lr=float("nan"))
     with pytest.raises(ConfigError, match="net_arch"):
@@ -366,10 +290,8 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
         LatentSettings(0)
     with pytest.raises(ConfigError, match=r"--latent-dim: latent_dim must be in \[1, 28\]"):
         finetune_env_factory(SteerConfig(policy=policy_path, latent=LatentSettings(29)), load_policy(policy_path))
-    with pytest.raises(ConfigError, match="rollouts >= 5"):
-        WmSelectConfig(policy=policy_path, rollouts=4)
     with pytest.raises(ConfigError, match="unknown device 'tpu'"):
-        WmSelectConfig(policy=policy_path, device="tpu")
+        ResidualConfig(policy=policy_path, device="tpu")
     with pytest.raises(ConfigError, match="no_such_task"):
         finetune(SteerConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
     busy = tmp_path / "busy"
@@ -643,30 +565,52 @@ def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
             main(["finetune", *words, "--help"])
         return capsys.readouterr().out
 
-    assert all(method in help_of() for method in ("steer", "residual", "wm-select", "self-imitation"))
+    assert all(method in help_of() for method in ("steer", "residual", "self-imitation"))
     steer, sac, ppo = help_of("steer"), help_of("steer", "sac"), help_of("steer", "ppo")
-    assert "--noise-bound" in steer and "--residual-scale" not in steer and "--candidates" not in steer
+    assert "--noise-bound" in steer and "--residual-scale" not in steer
     dsrl = ("--latent-dim", "--no-instruction", "--privileged-critic", "--envs", "--base-warmup")
     assert all(flag in steer for flag in dsrl) and not any(flag in help_of("residual") for flag in dsrl)
     assert "--updates-per-step" in sac and "--n-steps" not in sac
     assert "--n-steps" in ppo and "--updates-per-step" not in ppo
     rounds = help_of("self-imitation")
     assert "--train.optim.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
-    assert "--steps" not in help_of("wm-select")
 
 
 def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own_settings():
     old = {"method": "residual", "policy": "p.pt", "out": "runs/ft", "algorithm": "ppo", "n_steps": 512,
-           "target_kl": 0.01, "gradient_steps": 1, "net_arch": [16], "world_model_obs": True, "learning_rate": 1e-3}
+           "n_epochs": 3, "gradient_steps": 1, "net_arch": [16], "world_model_obs": True, "learning_rate": 1e-3}
     config = rl_config_from_json(old, device="cpu")
     assert isinstance(config, ResidualConfig) and config.world_model_obs and config.device == "cpu"
     assert config.lr == 1e-3  # the learning rate's earlier name
-    assert config.algorithm == PpoSettings(n_steps=512, target_kl=0.01) and config.net_arch == (16,)
-    new = SteerConfig(policy=pathlib.Path("p.pt"), algorithm=SacSettings(q_bounds=(0.0, 1.0)))
+    assert config.algorithm == PpoSettings(n_steps=512, n_epochs=3) and config.net_arch == (16,)
+    new = SteerConfig(policy=pathlib.Path("p.pt"), algorithm=SacSettings(initial_alpha=0.5))
     assert rl_config_from_json(json.loads(json.dumps(dataclasses.asdict(new), default=str))) == new
     steer = {"method": "steer", "policy": "p.pt", "out": "runs/ft", "algorithm": {"name": "sac", "gradient_steps": 5}}
     read = rl_config_from_json(steer)  # SAC's update-to-data ratio by its earlier name; the steering groups default
     assert read.algorithm.updates_per_step == 5 and read.collection == SteeringCollection()
+
+
+@pytest.mark.parametrize("algorithm,name,value,other", [(SacSettings(), "q_bounds", None, [0.0, 1.0]),
+                                                        (PpoSettings(), "target_kl", None, 0.01),
+                                                        (PpoSettings(), "critic_warmup", 0, 1024)])
+def test_a_retired_sb3_setting_reads_back_at_the_value_every_run_now_has_only(algorithm, name, value, other,
+                                                                             policy_path, tmp_path):
+    config = ResidualConfig(policy=policy_path, out=tmp_path / "ft", algorithm=algorithm, progress=False)
+    today = config_json(config)
+
+    def stored(setting: object) -> dict:  # as an rl_agent.pt or config.json of before holds the run's settings
+        return {**today, "algorithm": {**today["algorithm"], name: setting}}
+
+    assert rl_config_from_json(stored(value)) == config
+    with pytest.raises(ValueError, match=rf"^algorithm\.{name} = .*: a setting this version removed .* 74cb2e1\)$"):
+        rl_config_from_json(stored(other))
+    flat = {**today, "algorithm": algorithm.name, name: other}  # from before the algorithm had its own settings
+    with pytest.raises(ValueError, match=rf"^{name} = "):
+        rl_config_from_json(flat)
+    config.out.mkdir()
+    (config.out / "config.json").write_text(json.dumps({"config": stored(other)}))
+    with pytest.raises(ConfigError, match=rf"started with algorithm\.{name} = .* 74cb2e1\); it cannot resume"):
+        finetune(dataclasses.replace(config, resume=True))
 
 
 def test_a_self_imitation_run_from_before_the_settings_groups_reads_as_todays():

@@ -1,6 +1,9 @@
-"""The read-out error table: per step bucket, the distances it names, on a real dataset."""
+"""experiments/readout_error.py's table: per step bucket, the distances it names, on a real dataset."""
 
 from __future__ import annotations
+
+import importlib.util
+import pathlib
 
 import torch
 
@@ -9,7 +12,13 @@ from dust_rl.data import DemoDataset
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.keys import ENV_STATE_KEY
-from dust_rl.train.readout.error import STEP_BUCKETS, TARGET_XY, readout_error_table
+
+_SPEC = importlib.util.spec_from_file_location(
+    "readout_error", pathlib.Path(__file__).parents[1] / "experiments" / "readout_error.py")
+readout_error = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(readout_error)
+STEP_BUCKETS, TARGET_XY, readout_error_table = (readout_error.STEP_BUCKETS, readout_error.TARGET_XY,
+                                                readout_error.readout_error_table)
 
 
 def test_a_read_out_that_always_says_the_mean_is_as_far_off_as_the_mean_is(demo_dir, tiny_encoder, minilm):

@@ -33,7 +33,6 @@ same noise) likewise, with the p-value of a zero mean.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import pathlib
 from collections.abc import Callable
@@ -100,8 +99,7 @@ class WorldModelDiagnosis:
     """auto | cpu | cuda | cuda:N | mps."""
     sampling: Resampling = None
     """The sampler of the policy's own samples: as the policy file says (the default), or `resample` with other
-    settings, given after every other argument (`... resample --vision-step-ratio 4`: N_o = 16 vision steps). One
-    chunk per window: a file's candidates are set to 1, and `--candidates` is refused."""
+    settings, given after every other argument (`... resample --vision-step-ratio 4`: N_o = 16 vision steps)."""
     threads: int | None = None
     """torch threads (default: torch's choice)."""
     progress: bool = True
@@ -113,9 +111,6 @@ class WorldModelDiagnosis:
             raise ConfigError(f"tau_buckets must be at most {MAX_TAU_BUCKETS} (each is one more pass over every "
                               f"window), got {self.tau_buckets}")
         resolve_device(self.device)
-        if self.sampling is not None and self.sampling.candidates != 1:
-            raise ConfigError(f"the diagnosis scores one sampled chunk per window; got candidates "
-                              f"{self.sampling.candidates} (drop --candidates)")
 
 
 @dataclass
@@ -378,8 +373,6 @@ def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
         torch.set_num_threads(config.threads)
     policy = load_policy(config.policy).to(resolve_device(config.device)).eval()
     apply_sampling(policy, config.sampling, config.policy)
-    if policy.config.candidates != 1:  # a file that acts on the best of K samples: one chunk per window here
-        policy.set_sampler(dataclasses.replace(resolved_sampler(policy), candidates=1))
     trained_on = policy.info.get("dataset")
     if trained_on and pathlib.Path(trained_on).resolve() == config.dataset.resolve():
         raise DatasetError(f"{config.dataset} is the dataset {config.policy} was trained on; diagnose on held-out "

@@ -84,8 +84,8 @@ class EvalConfig:
     """Episode k of a task resets from seed + k (training data uses seeds from 0 on)."""
     sampling: Resampling = None
     """How chunks are sampled: as the policy file says (the default), or `resample` with other settings, given
-    after every other argument (`dust-rl eval --policy P resample --n-action-steps 8 --vision-step-ratio 4
-    --candidates 4`; fields not given take their defaults, not the file's)."""
+    after every other argument (`dust-rl eval --policy P resample --n-action-steps 8 --vision-step-ratio 4`; fields
+    not given take their defaults, not the file's)."""
     execute_steps: int | None = None
     """Actions executed per chunk before re-planning (1..H); default: the policy's (training's)."""
     max_steps: int | None = None

@@ -20,11 +20,6 @@ REPORT_MD = "report.md"
 SUCCESS_PNG = "success.png"
 
 
-def candidates_note(candidates: int) -> str:
-    """How many joint samples each chunk was chosen from, when more than one (``wm_select``)."""
-    return f", best of {candidates} joint samples by the future scorer" if candidates > 1 else ""
-
-
 def write_report(report: dict, out_dir: pathlib.Path) -> dict[str, pathlib.Path]:
     """Write ``report.json``, ``report.md`` and ``success.png`` into ``out_dir``; returns their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -68,7 +63,7 @@ def markdown_report(report: dict, out_dir: pathlib.Path) -> str:
         *rl_agent_line(report.get("rl_agent")),
         f"- env: `{report['env_id']}` {report['env_kwargs']}",
         f"- sampler: {sampler['name']}, N_A = {sampler['n_action_steps']}, N_o = {sampler['vision_steps']}"
-        f"{candidates_note(sampler.get('candidates', 1))}, initial noise x{sampler.get('noise_scale', 1.0):g}; "
+        f", initial noise x{sampler.get('noise_scale', 1.0):g}; "
         f"{report.get('execute_steps', '?')} actions executed "
         "per chunk",
         f"- seeds {report['seeds'][0]}..{report['seeds'][1]} per task; {report['noise_seeding']}",

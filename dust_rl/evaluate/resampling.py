@@ -40,9 +40,8 @@ def resolved_sampler(policy: DustPolicy) -> SamplerConfig:
 
 
 def describe_sampler(sampler: SamplerConfig) -> dict:
-    """Name, N_A, N_o (vision Euler steps: q * N_A async, N_A sync, none action-only), the joint samples per
-    chunk and the initial noise's scale of a resolved sampler (:func:`resolved_sampler`)."""
+    """Name, N_A, N_o (vision Euler steps: q * N_A async, N_A sync, none action-only) and the initial noise's scale
+    of a resolved sampler (:func:`resolved_sampler`)."""
     vision = {"async": sampler.n_action_steps * sampler.vision_step_ratio, "sync": sampler.n_action_steps}
     return {"name": sampler.sampler, "n_action_steps": sampler.n_action_steps,
-            "vision_steps": vision.get(sampler.sampler, 0), "candidates": sampler.candidates,
-            "noise_scale": sampler.noise_scale}
+            "vision_steps": vision.get(sampler.sampler, 0), "noise_scale": sampler.noise_scale}

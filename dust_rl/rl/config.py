@@ -4,9 +4,9 @@ module can import them.
 ``dust-rl finetune METHOD`` (:class:`FinetuneCommand`) takes the settings every method shares
 (:class:`FinetuneSettings`) and the method's own: the SB3 methods (``steer``, ``residual``) their RL agent's, with
 the algorithm a nested subcommand given last (``sac`` or ``ppo``, each with only the settings it reads);
-``wm-select`` its scorer's; ``self-imitation`` its rounds and how each round trains (the policy's own architecture
-is kept, so no ``--train.policy.*``). Each config records its method (and an SB3 one its algorithm) in the run's
-``config.json``.
+``self-imitation`` its rounds and how each round trains (the policy's own architecture is kept, so no
+``--train.policy.*``). Each config records its method (and an SB3 one its algorithm) in the run's ``config.json``;
+settings a later version retired (:data:`RETIRED_RL_SETTINGS`) read back at the one value it still honours.
 """
 
 from __future__ import annotations
@@ -24,10 +24,9 @@ from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.keys import EXPERT_ACTION_KEY
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import LoggerKind, check_loggers
-from dust_rl.storage.config_json import config_from_json
+from dust_rl.storage.config_json import Retired, config_from_json, without_retired
 from dust_rl.train.settings import DataSettings, OptimSettings, RuntimeSettings, TrainSettings, grouped_json
 
-VALIDATION_EVERY = 5  # every 5th rollout episode validates the scorer
 RL_AGENT_KIND = "dust-rl rl agent"
 RL_AGENT_FILE = "rl_agent.pt"  # the fine-tuned policy as one file (dust_rl.rl.fine_tuned_policy)
 ROLLOUT_SEED = 20_000  # rollouts start away from the training, validation and held-out seeds
@@ -55,8 +54,8 @@ class FinetuneSettings:
     max_steps: int | None = None
     """Time limit per episode in env steps; default: the task's."""
     seed: int = 0
-    """Seed of the fine-tuning: the RL agent's and its first training episode's reset, the scorer's, or each
-    self-imitation round's training (initial weights aside: the policy's)."""
+    """Seed of the fine-tuning: the RL agent's and its first training episode's reset, or each self-imitation
+    round's training (initial weights aside: the policy's)."""
     eval_episodes: int = 20
     """Closed-loop episodes of the base and the fine-tuned policy, on seeds eval_seed, eval_seed + 1, ..."""
     eval_seed: int = HELDOUT_SEED
@@ -115,9 +114,6 @@ class SacSettings:
     """The entropy coefficient's start when it is learnt (SB3's 1.0). Each step's entropy bonus is about alpha
     times the action dimension (112 when steering stack) against a sparse reward of 1, so a steering run with
     `target_entropy` wants it far smaller."""
-    q_bounds: tuple[float, float] | None = None
-    """Squash the critic's output into (LO, HI), the returns the reward can pay (sparse: 0 1;
-    `dust_rl.rl.critic_limits`). None: unbounded."""
     name: Literal["sac"] = field(default="sac", init=False)
 
     def __post_init__(self) -> None:
@@ -126,9 +122,6 @@ class SacSettings:
         check_finite(self, "initial_alpha", positive=True)
         if self.target_entropy is not None and not math.isfinite(self.target_entropy):
             raise ConfigError(f"target_entropy must be a finite number, got {self.target_entropy}")
-        if self.q_bounds is not None and not (len(self.q_bounds) == 2 and all(map(math.isfinite, self.q_bounds))
-                                              and self.q_bounds[0] < self.q_bounds[1]):
-            raise ConfigError(f"q_bounds must be two finite numbers LO < HI, got {self.q_bounds}")
 
 
 @dataclass
@@ -140,20 +133,10 @@ class PpoSettings:
     chunk, so a rollout holds `execute_steps` times as many env steps."""
     n_epochs: int = 10
     """Passes over each rollout (SB3's default)."""
-    target_kl: float | None = None
-    """End a rollout's epochs early once the policy's approximate KL from the rollout's exceeds 1.5 times this (SB3's
-    `target_kl`): SB3 normalises advantages, so each update is full-sized however weak the signal; this bounds how
-    far one rollout moves the policy. None: no limit."""
-    critic_warmup: int = 0
-    """Env steps (whole rollouts) during which only the critic learns and the actor stays at the base policy, so the
-    first actor updates follow advantages from a fitted value function instead of a random one."""
     name: Literal["ppo"] = field(default="ppo", init=False)
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "n_steps", "n_epochs")
-        check_at_least(self, 0, "critic_warmup")
-        if self.target_kl is not None:
-            check_finite(self, "target_kl", positive=True)
 
 
 Algorithm = (Annotated[SacSettings, tyro.conf.subcommand("sac")]
@@ -320,34 +303,6 @@ class ResidualConfig(RLSettings):
         check_finite(self, "residual_scale", positive=True)
 
 
-@dataclass
-class WmSelectConfig(FinetuneSettings):
-    """World-model selection: K joint samples per chunk, the one whose predicted future a scorer fitted on the
-    policy's own rollouts rates best executed (`dust_rl.rl.wm_select`; writes `policy.pt`, no RL agent)."""
-
-    candidates: tuple[int, ...] = (4, 8)
-    """The K values evaluated; the written `policy.pt` acts with the first."""
-    rollouts: int = 100
-    """Base-policy episodes whose outcomes train the scorer."""
-    rollout_seed: int = ROLLOUT_SEED
-    """First seed of the rollouts."""
-    scorer_hidden: int = 128
-    """Hidden width of the scorer."""
-    scorer_steps: int = 2000
-    """Scorer optimiser steps (the weights of the best validation loss are kept)."""
-    method: Literal["wm_select"] = field(default="wm_select", init=False)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_at_least(self, 1, "scorer_hidden", "scorer_steps")
-        check_at_least(self, 0, "rollout_seed")
-        if not self.candidates or min(self.candidates) < 1:
-            raise ConfigError(f"candidates must list positive sample counts, got {self.candidates}")
-        if self.rollouts < VALIDATION_EVERY:
-            raise ConfigError(f"wm-select needs rollouts >= {VALIDATION_EVERY}: every {VALIDATION_EVERY}th episode "
-                              "validates the scorer")
-
-
 @dataclass(kw_only=True)
 class RoundData(DataSettings):
     """What each round's batches are drawn from besides the demonstrations; the round's rollouts are its
@@ -381,6 +336,17 @@ class RoundTraining(TrainSettings):
 RENAMED = {"learning_rate": "lr", "gradient_steps": "updates_per_step"}
 """Earlier names of fine-tuning settings: the RL learning rate (the one name of ``--lr`` across commands), SAC's
 update-to-data ratio."""
+
+RETIRED_RL_SETTINGS: dict[str, Retired] = {
+    f"{group}{name}": Retired(value, "74cb2e1")
+    for group in ("algorithm.", "") for name, value in (("q_bounds", None), ("target_kl", None), ("critic_warmup", 0))}
+"""SB3 settings earlier versions had, each at the value every run now has: a run folder or ``rl_agent.pt`` stored
+with one at that value still resumes and loads, one stored at another value is refused. SAC's ``--q-bounds`` (the
+critic squashed into the returns the reward can pay) held Q at its bound on stack and gained nothing
+(docs/results/2026-11-26-steering-headroom-on-stack.md); PPO's ``--target-kl`` and ``--critic-warmup`` (the actor
+held at the base while the critic fits) slowed a residual's decline on push without stopping it, and steering with
+them gained nothing on push or press_button (docs/results/2026-11-27-push-residual-and-steering-ppo.md). Without the
+``algorithm.`` group: runs from before the algorithm had its own settings."""
 
 
 def as_this_version(stored: dict) -> dict:
@@ -424,39 +390,40 @@ class SelfImitationConfig(CurveSettings):
         check_at_least(self, 0, "rollout_seed")
 
 
-FinetuneConfig = SteerConfig | ResidualConfig | WmSelectConfig | SelfImitationConfig
+FinetuneConfig = SteerConfig | ResidualConfig | SelfImitationConfig
 RLConfig = SteerConfig | ResidualConfig
 
 
 @dataclass
 class FinetuneCommand:
-    """Fine-tune a trained DUST policy: steer its noise or add a residual with an SB3 agent (the policy frozen),
-    select among its samples by their predicted future, or imitate its own successes."""
+    """Fine-tune a trained DUST policy: steer its noise or add a residual with an SB3 agent (the policy frozen), or
+    imitate its own successes."""
 
     method: (Annotated[SteerConfig, tyro.conf.subcommand("steer")]
              | Annotated[ResidualConfig, tyro.conf.subcommand("residual")]
-             | Annotated[WmSelectConfig, tyro.conf.subcommand("wm-select")]
              | Annotated[SelfImitationConfig, tyro.conf.subcommand("self-imitation")])
     """The fine-tuning method (`dust-rl finetune METHOD --help` lists its settings)."""
 
 
-METHOD_CONFIGS: dict[str, type] = {config.method: config for config in (SteerConfig, ResidualConfig, WmSelectConfig,
-                                                                      SelfImitationConfig)}
+METHOD_CONFIGS: dict[str, type] = {config.method: config
+                                   for config in (SteerConfig, ResidualConfig, SelfImitationConfig)}
 ALGORITHM_CONFIGS: dict[str, type] = {"sac": SacSettings, "ppo": PpoSettings}
 
 
 def rl_config_from_json(values: dict, **changes) -> RLConfig:
     """The config of an SB3 run as its ``config.json`` (or ``rl_agent.pt``) records it, with ``changes``; fields the
-    run predates keep their defaults, earlier names read as today's (:func:`as_this_version`), and a run from before
-    the algorithm had its own settings (``"algorithm": "sac"``, its settings beside the others) reads too.
+    run predates keep their defaults, earlier names read as today's (:func:`as_this_version`), retired settings at
+    the value every run now has are left out (:data:`RETIRED_RL_SETTINGS`), and a run from before the algorithm had
+    its own settings (``"algorithm": "sac"``, its settings beside the others) reads too.
 
     Raises:
         TypeError, KeyError, ValueError, ConfigError: ``values`` is not such a record (not an object of settings, an
-            unknown method or algorithm, a setting out of range).
+            unknown method or algorithm, a setting out of range, a retired setting at another value: the message
+            names it and the commit that runs it).
     """
     if not isinstance(values, dict):
         raise TypeError(f"the fine-tuning settings are {values!r:.60}, not an object of settings")
-    values = as_this_version(values)
+    values = as_this_version(without_retired(values, RETIRED_RL_SETTINGS))
     settings = values.get("algorithm", "sac")
     if isinstance(settings, str):
         algorithm, settings = ALGORITHM_CONFIGS[settings], values

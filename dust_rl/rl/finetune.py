@@ -1,4 +1,4 @@
-"""RL fine-tuning of a trained DUST policy: ``dust-rl finetune steer|residual|wm-select|self-imitation``.
+"""RL fine-tuning of a trained DUST policy: ``dust-rl finetune steer|residual|self-imitation``.
 
 Read top to bottom, CleanRL style: arguments, the frozen policy and its env,
 the fine-tuning env (noise steering or residual, :mod:`dust_rl.rl.steering`,
@@ -27,9 +27,7 @@ optimisers, replay buffer, counters, RNG; :mod:`dust_rl.rl.checkpoint`) goes
 to a torchrl ``Checkpoint``; ``--resume`` continues from the newest one. The agent's scalars go through
 torchrl's loggers (``--loggers``, :mod:`dust_rl.rl.sb3_logger`), as training's do.
 
-``wm-select`` trains no RL agent: it fits a scorer of DUST's predicted futures on the policy's own
-rollouts and writes a policy that picks among K joint samples (:mod:`dust_rl.rl.wm_select`).
-``self-imitation`` trains no RL agent either: it fine-tunes the policy's own weights on its
+``self-imitation`` trains no RL agent: it fine-tunes the policy's own weights on its
 successful rollouts (:mod:`dust_rl.rl.self_imitation`). torchrl's SAC front-end is :mod:`dust_rl.rl.torchrl_sac`.
 """
 
@@ -61,21 +59,19 @@ from dust_rl.rl.checkpoint import SB3LearningState
 from dust_rl.rl.config import (
     PPO_RESUMABLE_FIELDS,
     RESUMABLE_FIELDS,
+    RETIRED_RL_SETTINGS,
     RL_AGENT_FILE,
     RL_AGENT_KIND,
     FinetuneCommand,
     FinetuneConfig,
-    PpoSettings,
     RLConfig,
     SacSettings,
     SelfImitationConfig,
     SteerConfig,
-    WmSelectConfig,
     as_this_version,
     is_dagger,
 )
-from dust_rl.rl.critic_limits import LayerNormReLU, bound_critic
-from dust_rl.rl.critic_warmup import CriticWarmup
+from dust_rl.rl.critic_limits import LayerNormReLU
 from dust_rl.rl.frozen_policy_env import Act, FrozenPolicyEnv
 from dust_rl.rl.report_rows import BASE_ROW, rows_against_base
 from dust_rl.rl.residual import ResidualEnv
@@ -84,7 +80,6 @@ from dust_rl.rl.self_imitation import self_imitation
 from dust_rl.rl.start_at_base import BaseWarmupSAC, WarmStartSAC, start_at_base
 from dust_rl.rl.steering import NoiseSteeringEnv, latent_map
 from dust_rl.rl.vector import SB3SteeringVecEnv
-from dust_rl.rl.wm_select import wm_select
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import torch_threads
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
@@ -101,10 +96,10 @@ FineTuningEnv = FrozenPolicyEnv | SB3SteeringVecEnv
 
 def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     """Fine-tune, save the result, compare with the base policy; returns the report."""
-    is_ppo = not isinstance(config, (WmSelectConfig, SelfImitationConfig)) and config.algorithm.name == "ppo"
+    is_ppo = not isinstance(config, SelfImitationConfig) and config.algorithm.name == "ppo"
     resumable = PPO_RESUMABLE_FIELDS if is_ppo else RESUMABLE_FIELDS
     with torch_threads(config.threads):
-        check_run_folder(config, resumable, upgrade=as_this_version)
+        check_run_folder(config, resumable, RETIRED_RL_SETTINGS, as_this_version)
         policy = load_policy(config.policy)
         env_id, env_kwargs, task = policy_env(config, policy)
         if isinstance(config, SelfImitationConfig):
@@ -114,16 +109,15 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
                                   "dataset: pass --demos")
             config = dataclasses.replace(config, demos=demos)
         with (run_out_of_space(f"fine-tuning into {config.out}"),
-              locked_run_folder(config, resumable, command, upgrade=as_this_version)):
+              locked_run_folder(config, resumable, command, RETIRED_RL_SETTINGS, as_this_version)):
             return _finetune_in_folder(config, command, policy, env_id, env_kwargs, task)
 
 
 def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: DustPolicy, env_id: str,
                         env_kwargs: dict, task: str) -> dict:
     """The fine-tuning and its report, once the run folder is this run's."""
-    if isinstance(config, (WmSelectConfig, SelfImitationConfig)):
-        result = (wm_select(config, task, policy) if isinstance(config, WmSelectConfig)
-                  else self_imitation(config, task, env_id, env_kwargs))
+    if isinstance(config, SelfImitationConfig):
+        result = self_imitation(config, task, env_id, env_kwargs)
         episodes = {name: [Episode.from_json(e) for e in row["per_episode"]] for name, row in result["rows"].items()}
         extra = {k: v for k, v in result.items() if k not in ("rows", "train_seconds")}
         trained_s = result["train_seconds"]
@@ -189,9 +183,7 @@ def train_rl(config: RLConfig, policy: DustPolicy, make: Callable[[], FineTuning
     if config.eval_every and not curve:  # the curve starts at the base policy (the RL agent's "off" action)
         curve.append({"rl_steps": 0, "env_steps": 0, **summary_row(BASE_ROW, run(curve_seeds, None))})
     sitting = min(config.checkpoint_every, config.eval_every or config.checkpoint_every)
-    warmup = (CriticWarmup(config.algorithm.critic_warmup)
-              if isinstance(config.algorithm, PpoSettings) and config.algorithm.critic_warmup else None)
-    callbacks = [DivergenceCheck(rotation), *([warmup] if warmup else [])]
+    callbacks = [DivergenceCheck(rotation)]
     while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every (or eval_every) steps
         agent.learn(total_timesteps=min(sitting, config.steps - agent.num_timesteps), reset_num_timesteps=False,
                     progress_bar=config.progress, callback=callbacks)
@@ -279,8 +271,7 @@ def build_agent(config: RLConfig, env: FineTuningEnv) -> BaseAlgorithm:
     else:  # a rollout no longer than the run (n_steps of all envs together), minibatches no larger than a rollout
         n_steps = min(settings.n_steps, config.steps)
         kwargs |= {"n_steps": n_steps // (config.collection.envs if steer else 1),
-                   "batch_size": min(config.batch_size, n_steps), "n_epochs": settings.n_epochs,
-                   "target_kl": settings.target_kl}
+                   "batch_size": min(config.batch_size, n_steps), "n_epochs": settings.n_epochs}
     policy_class, policy_kwargs = policy_network(config)
     agent = algorithm(policy_class, env, seed=config.seed, device=resolve_device(config.device),
                       policy_kwargs=policy_kwargs, **kwargs)
@@ -288,8 +279,6 @@ def build_agent(config: RLConfig, env: FineTuningEnv) -> BaseAlgorithm:
         agent.noise_bound = config.noise_bound
     if config.initial_std is not None:
         start_at_base(agent, config.initial_std, learn_std=target_entropy is not None)
-    if isinstance(settings, SacSettings) and settings.q_bounds is not None:
-        bound_critic(agent, *settings.q_bounds)
     return agent
 
 
@@ -382,12 +371,7 @@ def _versus_base(row: dict) -> str:
 
 
 def _markdown(report: dict) -> str:
-    if report["method"] == "wm_select":
-        scorer = report["scorer"]
-        auc = "n/a" if scorer["validation_auc"] is None else f"{scorer['validation_auc']:.2f}"
-        how = (f"a future scorer fitted on {report['config']['rollouts']} base-policy rollouts "
-               f"({report['rollout_env_steps']} env steps, {report['train_seconds']:.0f} s; validation ROC AUC {auc})")
-    elif report["method"] == "self_imitation":
+    if report["method"] == "self_imitation":
         config = as_this_version(report["config"])
         taught = ("and the failures between them, taught the expert"
                   if is_dagger(config["train"]["data"]["extra_action_key"])

@@ -41,25 +41,39 @@ def config_from_json(cls: type, values: dict, **changes) -> object:
     return cls(**kwargs, **changes)
 
 
-def without_retired(stored: Mapping, retired: Mapping[str, object]) -> dict:
+class Retired(typing.NamedTuple):
+    """A setting earlier versions had: the one value this version still honours (what every run now has), and the
+    commit whose code runs its other values (where the runs that used them reproduce)."""
+
+    value: object
+    commit: str
+
+
+def without_retired(stored: Mapping, retired: Mapping[str, Retired]) -> dict:
     """``stored`` (a config as JSON values, nested configs as dicts) without the ``retired`` settings it holds
     (dotted names reach into nested configs: ``policy.readout_coords``).
 
     Raises:
-        ValueError: a retired setting stored at another value than its retired one (the message names it).
+        ValueError: a retired setting stored at another value than its retired one (the message names it and the
+            commit that still runs it).
     """
     kept = dict(stored)
-    for name, value in retired.items():
+    for name, setting in retired.items():
         head, _, rest = name.partition(".")
         if rest and isinstance(kept.get(head), Mapping):
             try:
-                kept[head] = without_retired(kept[head], {rest: value})
+                kept[head] = without_retired(kept[head], {rest: setting})
             except ValueError as err:
                 raise ValueError(f"{head}.{err}") from None
-        elif not rest and head in kept and kept.pop(head) != value:
-            raise ValueError(f"{name} = {stored[head]!r}: a setting this version removed (only {value!r} is "
-                             "still built)")
+        elif not rest and head in kept and kept.pop(head) != setting.value:
+            raise ValueError(f"{name} = {stored[head]!r}: a setting this version removed (only {setting.value!r} is "
+                             f"still built; the code that ran other values is at commit {setting.commit})")
     return kept
+
+
+def retired_values(retired: Mapping[str, Retired]) -> dict[str, object]:
+    """The value each ``retired`` setting is still honoured at, by name."""
+    return {name: setting.value for name, setting in retired.items()}
 
 
 def package_versions() -> dict[str, str | None]:

@@ -28,11 +28,11 @@ from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 from dust_rl.errors import CheckpointError, ConfigError
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.checkpoint_dirs import check_checkpoint_dir, newest_checkpoint
-from dust_rl.storage.config_json import config_json, package_versions, without_retired
+from dust_rl.storage.config_json import Retired, config_json, package_versions, without_retired
 from dust_rl.storage.lock import LOCK_FILE, folder_lock
 
 
-def saved_run_config(out: pathlib.Path, retired: Mapping[str, object] | None = None,
+def saved_run_config(out: pathlib.Path, retired: Mapping[str, Retired] | None = None,
                      upgrade: Callable[[dict], dict] | None = None) -> dict:
     """The config the run in ``out`` was started with (its ``config.json``), as JSON values named as this version
     names its settings; ``retired`` and ``upgrade`` as :func:`check_run_folder` takes them.
@@ -58,10 +58,10 @@ def saved_run_config(out: pathlib.Path, retired: Mapping[str, object] | None = N
     return upgrade(stored) if upgrade is not None else stored
 
 
-def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, object] | None = None,
+def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, Retired] | None = None,
                      upgrade: Callable[[dict], dict] | None = None) -> None:
     """Raise unless ``config.out`` suits ``config.resume`` (a dataclass with ``out`` and ``resume``); ``retired``:
-    settings earlier versions stored, at the one value this version honours
+    settings earlier versions stored, at the one value this version honours and the commit that runs the others
     (:func:`~dust_rl.storage.config_json.without_retired`); ``upgrade``: the stored config as this version names its
     settings (those an earlier version stored under other names moved to theirs). Settings are compared one by one,
     those of nested configs by their dotted names (``resumable`` names them so: ``runtime.threads``).
@@ -143,7 +143,7 @@ def _at(values: Mapping, dotted: str, missing: object) -> object:
 
 @contextlib.contextmanager
 def locked_run_folder(config, resumable: Iterable[str], command: str | None,
-                      retired: Mapping[str, object] | None = None,
+                      retired: Mapping[str, Retired] | None = None,
                       upgrade: Callable[[dict], dict] | None = None) -> Iterator[None]:
     """Hold ``config.out``'s lock for the ``with`` body, a new run's ``config.json`` written first.
 

@@ -84,7 +84,7 @@ from dust_rl.train.readout.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HEL
 from dust_rl.train.readout.cache import readout_cache_path, warm_up_or_load
 from dust_rl.train.readout.warmup import warm_up_readout
 from dust_rl.train.recipes import LEGACY_RECIPE, RecipeName, recipe_help
-from dust_rl.train.settings import DEFAULT_OUT, RETIRED_FIELDS, TrainSettings, grouped_json
+from dust_rl.train.settings import DEFAULT_OUT, RETIRED_RUN_SETTINGS, TrainSettings, grouped_json
 
 # Fields that may differ between a run and its resumption (``recipe`` names where the settings started; they are
 # compared one by one).
@@ -158,7 +158,7 @@ def train(config: TrainConfig, command: str | None = None) -> TrainResult:
 def check_train_folder(config: TrainConfig) -> None:
     """Raise unless ``config.out`` suits ``config.resume`` by training's rule (settings that may change on resume,
     retired ones, earlier names): for a run about to start, and for a finished one reused (``bench suite``)."""
-    check_run_folder(config, RESUMABLE_FIELDS, RETIRED_FIELDS, grouped_json)
+    check_run_folder(config, RESUMABLE_FIELDS, RETIRED_RUN_SETTINGS, grouped_json)
 
 
 def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
@@ -182,7 +182,7 @@ def _train_rank(config: TrainConfig, command: str | None) -> TrainResult:
     finally:
         probe.close()
     with (run_out_of_space(f"training into {config.out}"),
-          locked_run_folder(config, RESUMABLE_FIELDS, command, RETIRED_FIELDS, grouped_json) if ranks.is_main
+          locked_run_folder(config, RESUMABLE_FIELDS, command, RETIRED_RUN_SETTINGS, grouped_json) if ranks.is_main
           else contextlib.nullcontext()):
         return _train_in_folder(config, ranks, dataset, policy)
 

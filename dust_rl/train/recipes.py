@@ -31,7 +31,7 @@ from dust_rl.storage.config_json import config_from_json
 from dust_rl.storage.run_folder import saved_run_config
 from dust_rl.train.settings import (
     DEFAULT_OUT,
-    RETIRED_FIELDS,
+    RETIRED_RUN_SETTINGS,
     DataSettings,
     OptimSettings,
     ReadoutSettings,
@@ -193,7 +193,7 @@ def _resumed(out: pathlib.Path, given: str | None) -> tuple[str, TrainSettings, 
         ConfigError: a recipe this version does not have, or another than ``given`` (``--recipe``).
         FileNotFoundError: no run in ``out``.
     """
-    stored = saved_run_config(out, RETIRED_FIELDS, grouped_json)
+    stored = saved_run_config(out, RETIRED_RUN_SETTINGS, grouped_json)
     name = stored.get("recipe", LEGACY_RECIPE)
     if name not in RECIPES:
         raise ConfigError(f"{out} was trained with recipe {name!r}, which this version does not have; start a "

@@ -17,12 +17,13 @@ from dataclasses import dataclass, field
 from operator import attrgetter
 from typing import Literal
 
-from dust_rl.agents.config import RETIRED_SETTINGS, PolicyConfig
+from dust_rl.agents.config import RETIRED_MODEL_SETTINGS, PolicyConfig
 from dust_rl.agents.precision import Precision
 from dust_rl.data.seeding import VALIDATION_SEED
 from dust_rl.errors import ConfigError, check_at_least, check_finite, check_fraction
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import LoggerKind, check_loggers, check_run_name
+from dust_rl.storage.config_json import Retired, retired_values
 
 DEFAULT_OUT = pathlib.Path("runs/train")  # dust-rl train's run folder when --out is not given
 
@@ -213,12 +214,16 @@ GROUPED_SETTINGS: dict[str, str] = {
 # Inputs whose batches are drawn apart from the demonstration windows: not split over ranks yet.
 NOT_DATA_PARALLEL = ("readout.aux_frames", "readout.warmup_steps", "data.video_dataset", "data.extra_dataset")
 # Settings earlier versions had, each at the value every run now has (their other values were measured and did not
-# help; docs/franka_results.md): a run or cached read-out fit stored with one of them at that value is still this
-# version's, one stored at another value is not.
-RETIRED_FIELDS: dict[str, object] = {
-    "aux_expert_fraction": 0.0, "aux_approach_fraction": 0.0, "aux_approach_displacement": 0.0,
-    "aux_expert_displacement": 0.0, "readout_lr_decay": False,
-    **{f"policy.{name}": value for name, value in RETIRED_SETTINGS.items()}}
+# help; docs/franka_results.md), with the commit whose code runs the others: a run stored with one of them at that
+# value is still this version's, one stored at another value is not.
+RETIRED_RUN_SETTINGS: dict[str, Retired] = {
+    **{name: Retired(value, "522ae08") for name, value in (
+        ("aux_expert_fraction", 0.0), ("aux_approach_fraction", 0.0), ("aux_approach_displacement", 0.0),
+        ("aux_expert_displacement", 0.0), ("readout_lr_decay", False))},
+    **{f"policy.{name}": setting for name, setting in RETIRED_MODEL_SETTINGS.items()}}
+# Their values alone, as a cached read-out fit's key and a study's recipe hold them (a fit or study stored before a
+# setting was retired matches one stored after only at that value).
+RETIRED_FIELDS: dict[str, object] = retired_values(RETIRED_RUN_SETTINGS)
 
 
 def setting(settings: object, name: str) -> object:
