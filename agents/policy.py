@@ -161,6 +161,7 @@ class DustPolicy(VLAWrapperBase):
         self.register_buffer("action_high", torch.full((config.action_dim,), torch.inf))
         self.info: dict = {}
         self.precision: Precision = "fp32"
+        self.mean_cameras: list[int] = []  # indices of cameras whose tokens are the mean (set_mean_cameras)
 
     def _update_keys(self) -> None:
         super()._update_keys()
@@ -188,6 +189,18 @@ class DustPolicy(VLAWrapperBase):
         self.precision = precision
         if compile:
             self.model.compile()
+
+    def set_mean_cameras(self, cameras: Sequence[str]) -> None:
+        """Replace the tokens of ``cameras`` by the training data's mean token wherever the policy reads frames (an
+        ablation, not stored in the policy file: what acting loses without those views).
+
+        Raises:
+            ValueError: a camera the policy does not read.
+        """
+        unknown = [camera for camera in cameras if camera not in self.cameras]
+        if unknown:
+            raise ValueError(f"the policy reads no camera {unknown}; its cameras are {self.cameras}")
+        self.mean_cameras = [self.cameras.index(camera) for camera in cameras]
 
     def set_sampler(self, sampler: SamplerConfig) -> None:
         """Switch between synchronous, asynchronous (N_o = q * N_A) and action-only sampling.
@@ -297,6 +310,8 @@ class DustPolicy(VLAWrapperBase):
         frames = self.frames(td)
         frames = frames.reshape(-1, *frames.shape[-4:])
         image = self.frame_tokens(frames)
+        if self.mean_cameras:  # an ablation (set_mean_cameras): those views say nothing
+            image[:, self.mean_cameras] = self.normalizer.vision_mean.to(image.dtype)
         text, mask = self.backbone.text_tokens(instruction_list(td.get(self.tensor_keys.instruction), image.shape[0]))
         return self.feature_batch(image, text, mask, td.get(self.tensor_keys.state).reshape(image.shape[0], -1), frames)
 

@@ -41,6 +41,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
     from dust_rl.bench.suite import SuiteConfig, suite_command
     from dust_rl.bench.train_speed import TrainSpeedConfig, train_speed_command
     from dust_rl.data import commands as data
+    from dust_rl.diagnose.cameras import CameraAblation, diagnose_cameras_command
     from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose_world_model_command
     from dust_rl.evaluate.closed_loop import EvalConfig
     from dust_rl.quickstart import QuickstartConfig, quickstart
@@ -65,6 +66,7 @@ def commands() -> dict[str, tuple[type, Callable[[object, str], object]]]:
         "bench steer-speed": (SteerSpeedConfig, steer_speed_command),
         "bench train-speed": (TrainSpeedConfig, train_speed_command),
         "diagnose world-model": (WorldModelDiagnosis, diagnose_world_model_command),
+        "diagnose cameras": (CameraAblation, diagnose_cameras_command),
     }
 
 

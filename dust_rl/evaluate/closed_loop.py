@@ -103,6 +103,9 @@ class EvalConfig:
     """The trunk's precision while sampling: fp32, or bf16 autocast (`dust_rl.agents.precision`)."""
     compile: bool = False
     """Compile the trunk's forward pass with `torch.compile` in every worker (each pays the compilation once)."""
+    mean_cameras: tuple[str, ...] = ()
+    """Cameras whose frozen tokens are replaced by the training data's mean token while acting: an ablation of
+    what those views give the policy (`dust-rl diagnose cameras` runs one per camera)."""
     progress: bool = True
     """Show progress bars."""
 
@@ -132,6 +135,7 @@ class EvalSetup:
     device: str  # where each worker's policy runs (resolved, e.g. "cuda:0")
     precision: Precision = "fp32"
     compile: bool = False
+    mean_cameras: tuple[str, ...] = ()
 
 
 def make_eval_env(env_id: str, env_kwargs: dict, schedule: SeedSchedule, count_steps: bool = False) -> TransformedEnv:
@@ -175,6 +179,7 @@ def make_eval_policy(setup: EvalSetup) -> FiniteActions:
     policy = load_policy(setup.policy_path, execute_steps=setup.execute_steps).to(setup.device)
     policy.set_sampler(setup.sampler)
     policy.set_runtime(setup.precision, setup.compile)
+    policy.set_mean_cameras(setup.mean_cameras)
     return FiniteActions(policy.executor(seeded=True), setup.policy_path)
 
 
@@ -215,8 +220,12 @@ def eval_setup(config: EvalConfig, policy: DustPolicy) -> EvalSetup:
     apply_sampling(policy, config.sampling, config.policy)
     sampler = resolved_sampler(policy)
     policy.set_runtime(config.precision, config.compile)
+    try:
+        policy.set_mean_cameras(config.mean_cameras)
+    except ValueError as err:
+        raise ConfigError(f"--mean-cameras: {err}") from err
     return EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps, str(device),
-                     config.precision, config.compile)
+                     config.precision, config.compile, config.mean_cameras)
 
 
 def eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: Workers, seed: int,
