@@ -42,17 +42,20 @@ key                    shape / dtype        meaning
                                             training target, and predicted by ``predict_action``
 ``future_is_clamped``  [B] bool             optional; True where t+H lies past the episode's last
                                             stored row, so ``future_tokens`` hold that row instead
+                                            (read by the diagnostics; the loss treats it as the future)
 =====================  ===================  =====================================================
 
 ``action_is_pad`` entries and action-free samples are left out of the action
-loss, and clamped futures out of the vision loss: the last stored row is the
-observation before the final action, not the frame H steps on, and a padded
-chunk's repeated actions are no more real than that frame. A clamped future
-is also not shown to the action stream: its vision tokens are pure noise (at
-tau_o = 0 in the decoupled variants), as an action-free sample's action
-tokens are. Fed noised, it taught the actions from a hindsight goal frame the
-world model was never taught to predict (on press_button a quarter to a third
-of the training windows).
+loss. A window whose t+H lies past the episode's end has its episode's last
+frame as its future (``future_is_clamped``): an episode ends where its task is
+done, and the scene then holds still. That frame is the world model's target
+as it is the action stream's input, one rule for both streams. Before, it was
+fed to the actions but left out of the vision loss, so the actions learnt from
+a frame the world model was never taught to predict (on press_button a
+quarter to a third of the training windows). Feeding the actions pure noise
+there instead (tau_o = 0, as an action-free sample's actions) was measured and
+not kept: the main job's held-out success fell from 98% to 90% (0 episodes
+gained, 4 lost against the same code without it; docs/results/2026-12-02-speed-and-perception.md).
 
 An action-free sample also gets pure-noise action tokens (tau_A = 0 in
 the decoupled variants, as UWM does), so the vision stream learns the future
@@ -77,7 +80,6 @@ from dust_rl.keys import (
     BATCH_STATE_KEY,
     COND_MASK_KEY,
     COND_TOKENS_KEY,
-    FUTURE_IS_CLAMPED_KEY,
     FUTURE_TOKENS_KEY,
     HAS_ACTION_KEY,
     VISION_NOISE_KEY,
@@ -330,19 +332,13 @@ class DustModel(nn.Module):
                 tau_a = torch.where(has_action, tau_a, 0.0)
 
         noisy_vision = target_vision = None
-        clamped = batch.get(FUTURE_IS_CLAMPED_KEY, None)
         if cfg.has_vision:
             future = batch[FUTURE_TOKENS_KEY]
             eps_o = cpu_drawn(torch.randn, *future.shape, generator=generator, device=device, shard=shard)
             noisy_vision = interpolate(future, eps_o, tau_o)
             target_vision = velocity_target(future, eps_o)
-            if clamped is not None:  # no future to interpolate towards: pure noise, as an action-free sample's actions
-                noisy_vision = torch.where(clamped.view(-1, 1, 1), eps_o, noisy_vision)
-                if cfg.decoupled:
-                    tau_o = torch.where(clamped, 0.0, tau_o)
         v_a, v_o = self(ctx, noisy_action, noisy_vision, tau_a, tau_o if cfg.has_vision else None)
-        losses = decoupled_loss(v_a, velocity_target(action, eps_a), valid, v_o, target_vision, cfg.lambda_wm,
-                                None if clamped is None else ~clamped)
+        losses = decoupled_loss(v_a, velocity_target(action, eps_a), valid, v_o, target_vision, cfg.lambda_wm)
         return TensorDict(losses, batch_size=[])
 
     @torch.no_grad()

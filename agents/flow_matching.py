@@ -149,7 +149,6 @@ def decoupled_loss(
     v_vision: Tensor | None,
     target_vision: Tensor | None,
     lambda_wm: float,
-    vision_valid: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """DUST's loss: L = mse_A + lambda_wm * mse_o.
 
@@ -160,8 +159,6 @@ def decoupled_loss(
         v_vision: predicted vision velocity [B, N_o, Dv], None without a vision stream.
         target_vision: o - eps_o, None without a vision stream.
         lambda_wm: world-model loss weight.
-        vision_valid: bool [B]; False for samples whose future frame is not the one after the chunk
-            (clamped at the episode end); None: all valid.
 
     Returns:
         Dict with ``loss``, ``loss_action`` and ``loss_vision`` (0 without vision).
@@ -170,7 +167,7 @@ def decoupled_loss(
     if v_vision is None or target_vision is None:
         loss_vision = torch.zeros((), device=v_action.device)
     else:
-        loss_vision = masked_mse(v_vision, target_vision, None if vision_valid is None else vision_valid.view(-1, 1))
+        loss_vision = masked_mse(v_vision, target_vision)
     return {
         "loss": loss_action + lambda_wm * loss_vision,
         "loss_action": loss_action,
