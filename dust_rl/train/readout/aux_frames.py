@@ -12,10 +12,11 @@ renders N of them once at the start of training and adds their read-out error to
 demonstrations'.
 
 The arm is placed, not walked (:meth:`~dust_rl.envs.env.DustEnv.place_end_effectors`: ten IK steps, the joints
-set, three control periods of physics for the fingers): a walked frame cost 19.5 ms on a 2-core x86 CPU (a reset
-that rendered two frames nobody used, then ~20 control steps of an IK solve and 25 physics substeps each), a
-placed one ~6 ms, nearly all of it the one rendered frame of two cameras. What a placement leaves out is the walk's
-pushes: a walk rarely reached an object from home.
+set, two control periods of physics for the fingers): a walked frame cost 19.7 ms in the main job on a 2-core x86
+CPU (a reset that rendered two frames nobody used, then ~20 control steps of an IK solve and 25 physics substeps
+each), a placed one 7.2 ms, of which rendering the two cameras is 2.5 (BENCHMARKS.md). What a placement leaves out
+is the walk's pushes: a walk rarely reached an object from home. The main job scored the same with placed frames
+(98%, 49/50 held-out; docs/results/2026-12-02-speed-and-perception.md).
 
 Random motions never lift a cube, so a read-out trained on them alone is
 3 cm off before the grasp but 12-15 cm off once the cube is carried
