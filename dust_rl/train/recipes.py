@@ -56,7 +56,8 @@ def vision_readout() -> TrainSettings:
     8,000 rendered frames and fed to the trunk, three quarters of each batch from an episode's first 4 rows
     (docs/franka_results.md, "The token read-out"). 2,000 steps: 96% / 84% on 50 validation / held-out seeds and
     14.3 minutes in all on 2 idle cores (2026-11-25), where 3,000 steps gave 90% / 86% in 18.0 minutes; 98% held-out
-    in 17.8 minutes on a 2-core AVX-512 CPU (2026-12-01, docs/quickstart.md). lr 3e-4, higher than the paper's 1e-4:
+    in 17.8 minutes on a 2-core AVX-512 CPU (2026-12-01), 96% in 16.5 minutes on a 2-core CPU's AVX2 paths with
+    placed read-out frames (2026-12-02, docs/quickstart.md). lr 3e-4, higher than the paper's 1e-4:
     a small model trained for minutes."""
     return replace(plain(), policy=replace(plain().policy, readout="tokens", readout_grid=(16, 16), lambda_aux=1.0,
                                            aux_state_input=True),
