@@ -50,8 +50,9 @@ STATE_MODE_KEYS = {FLAT_STATE_KEY: "agent_pos", FLAT_ENV_STATE_KEY: "environment
 
 MAX_TRANSLATION = 0.02  # metres per control step at |action| = 1 (delta mode)
 MAX_ROTATION = 0.1  # radians per control step at |action| = 1 (delta mode)
-# place_end_effectors: 10 IK steps of 4 control periods each reach 99% of targets 50 cm away within 0.1 mm (5 steps
-# leave 20 mm at the 90th percentile), then 2 control periods of physics (the fingers' command half reached).
+# place_end_effectors: 10 IK steps of 4 control periods each put 90% of 100 walk and close-up targets (up to ~50 cm
+# from home) within 0.01 mm and the farthest 3.2 mm off (5 steps left 20 mm at the 90th percentile), then 2 control
+# periods of physics (the fingers' command about half reached).
 PLACEMENT_ITERATIONS = 10
 PLACEMENT_STEP_PERIODS = 4
 PLACEMENT_SETTLE_STEPS = 2
@@ -368,17 +369,19 @@ class DustEnv(gym.Env):
                 pose[4:] = self._workspace_low + (a[:3] + 1.0) / 2.0 * (self._workspace_high - self._workspace_low)
             pose[4:] = self._clip_to_workspace(pose[4:])
             targets.append(mink.SE3(pose))
-        q = self.data.qpos[self._sim_qadr]
-        # Contacts can push joints marginally past their limits, which makes the QP infeasible.
-        q = np.minimum(np.maximum(q, self._ik_low), self._ik_high)
         try:
-            q_cmd = self.controller.step(q, targets)
+            q_cmd = self.controller.step(self._ik_start(), targets)
         except mink.NoSolutionFound:
             return "ik_failure"
         self.data.ctrl[self._arm_ctrl] = q_cmd[self._ik_arm_qadr]
         for i, (ee, ctrl) in enumerate(zip(self.robot.end_effectors, self._ee_ctrl)):
             self.data.ctrl[ctrl] = ee.closure_to_ctrl((action[ACTION_WIDTH * i + CLOSURE] + 1.0) / 2.0)
         return ""
+
+    def _ik_start(self) -> np.ndarray:
+        """The measured joints as the IK's start, inside their limits: contacts can push joints marginally past
+        them, which makes the QP infeasible."""
+        return np.minimum(np.maximum(self.data.qpos[self._sim_qadr], self._ik_low), self._ik_high)
 
     def _clip_to_workspace(self, position: np.ndarray) -> np.ndarray:
         """A commanded position inside the robot's workspace (a little below its floor allowed, to press)."""
@@ -500,7 +503,7 @@ class DustEnv(gym.Env):
                              "effectors; give one of each per end effector")
         targets = [mink.SE3.from_rotation_and_translation(target.rotation(), self._clip_to_workspace(
             target.translation())) for target in targets]
-        q = np.minimum(np.maximum(self.data.qpos[self._sim_qadr], self._ik_low), self._ik_high)
+        q = self._ik_start()
         for _ in range(iterations):
             try:
                 q = self.controller.step(q, targets, PLACEMENT_STEP_PERIODS * self.control_dt).copy()
