@@ -1,18 +1,18 @@
 """DUST agents: the dual-stream trunk with its loss and sampler, baselines, frozen backbone, torchrl policy."""
 
-from .autoencoder import AutoencoderConfig, ConvAutoencoder
-from .backbone import FrozenBackbone, load_image_encoder, save_image_encoder
-from .batch import random_batch
 from .config import VARIANTS, DustConfig, ModelConfig, PolicyConfig, SamplerConfig
-from .dust_model import ChunkContext, DustModel
+from .encoders.autoencoder import AutoencoderConfig, ConvAutoencoder
+from .encoders.backbone import FrozenBackbone, load_image_encoder, save_image_encoder
+from .encoders.hf_vision import TransformersImageEncoder
+from .encoders.image_encoder import ImageEncoder
+from .encoders.text_encoder import TextEncoder, TransformersTextEncoder, pooled_text
 from .execution import ChunkExecutor
 from .factory import env_spec, load_policy, make_policy, save_policy
-from .flow_matching import action_validity, decoupled_loss, interpolate, masked_mse, sample_tau, velocity_target
-from .hf_vision import TransformersImageEncoder
-from .image_encoder import ImageEncoder
+from .model.batch import random_batch
+from .model.dust_model import ChunkContext, DustModel
+from .model.flow_matching import action_validity, decoupled_loss, interpolate, masked_mse, sample_tau, velocity_target
+from .model.samplers import DenoiseStep, action_only_schedule, async_schedule, run_schedule, schedule_for, sync_schedule
 from .policy import DustPolicy
-from .samplers import DenoiseStep, action_only_schedule, async_schedule, run_schedule, schedule_for, sync_schedule
-from .text_encoder import TextEncoder, TransformersTextEncoder, pooled_text
 
 __all__ = [
     "VARIANTS",

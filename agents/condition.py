@@ -8,13 +8,13 @@ interface between the frozen backbone and the policy, like the projector
 between a VLM and its action head. With ``n_keypoints`` > 0 each camera also
 gets trainable spatial-softmax keypoints that become tokens of their own:
 coordinates finer than the grid, for grasping. Their heat maps come from the
-frozen grid (:mod:`.keypoints`) or from the raw frames through a small
-network trained with the policy (:mod:`.pixel_keypoints`).
+frozen grid (:mod:`.heads.keypoints`) or from the raw frames through a small
+network trained with the policy (:mod:`.heads.pixel_keypoints`).
 
 With ``text_fusion`` the image tokens also see the instruction before the
 trunk does: the pooled instruction is added to every image token and a
 residual MLP (hidden width ``FUSION_HIDDEN``) mixes the two per token, the
-structure of the attention probe (:mod:`dust_rl.agents.attention_pooling`) that reads
+structure of the attention probe (:mod:`dust_rl.agents.heads.attention_pooling`) that reads
 the expert's first move off the frozen stride-8 tokens to 1.2 cm. In the
 policy it did not help the trunk learn that move (docs/franka_results.md, pick_place).
 """
@@ -25,9 +25,9 @@ import torch
 from torch import Tensor, nn
 
 from .config import KeypointSource
-from .keypoints import SpatialKeypoints
-from .pixel_keypoints import PixelKeypoints
-from .text_encoder import pooled_text
+from .encoders.text_encoder import pooled_text
+from .heads.keypoints import SpatialKeypoints
+from .heads.pixel_keypoints import PixelKeypoints
 
 EMBED_INIT_STD = 0.02
 FUSION_HIDDEN = 128

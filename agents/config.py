@@ -3,7 +3,7 @@
 Each setting is declared once, in the dataclass of whoever chooses it:
 :class:`SamplerConfig` (how a chunk is sampled: chosen when acting, by
 ``dust-rl eval ... resample --*``), :class:`ModelConfig` (variant, trunk size,
-losses: chosen for training, ``dust-rl train --policy.*``, with
+losses: chosen for training, ``dust-rl train --model.*``, with
 :class:`PolicyConfig` adding the image encoder and the executed steps) and
 :class:`DustConfig`, which joins the two and adds the sizes the data and
 the frozen backbone fix. Every baseline is the same code at the same
@@ -63,7 +63,7 @@ TIME_FREQ_DIM = 256  # sinusoidal features of the timestep embedding
 
 
 RETIRED_MODEL_SETTINGS: dict[str, Retired] = {"readout_coords": Retired(False, "522ae08")}
-"""Model settings (`dust-rl train --policy.*`) earlier versions had, each at the one value this version builds (what
+"""Model settings (`dust-rl train --model.*`) earlier versions had, each at the one value this version builds (what
 every model now is): a stored config holding one at that value loads, one holding another value is refused (it
 describes another model)."""
 RETIRED_SETTINGS: dict[str, Retired] = {
@@ -117,7 +117,7 @@ class SamplerConfig:
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """The model settings a user chooses (`dust-rl train --policy.*`); the data fixes the rest (DustConfig)."""
+    """The model settings a user chooses (`dust-rl train --model.*`); the data fixes the rest (DustConfig)."""
 
     variant: Variant = "dust"
     """Model: DUST or one of the paper's baselines at the same depth and width (module doc; single-stream variants
@@ -143,15 +143,15 @@ class ModelConfig:
     """Trainable spatial-softmax keypoints per camera, each one more condition token: positions finer than the
     grid, for grasping small objects. 0: none."""
     keypoint_source: KeypointSource = "features"
-    """What the keypoints' heat maps come from: `features` (the frozen condition grid, `.keypoints`) or
-    `pixels` (a small network on the raw frames trained with the policy, `.pixel_keypoints`)."""
+    """What the keypoints' heat maps come from: `features` (the frozen condition grid, `.heads.keypoints`) or
+    `pixels` (a small network on the raw frames trained with the policy, `.heads.pixel_keypoints`)."""
     lambda_aux: float = 0.0
     """Weight of an auxiliary loss that teaches the keypoints the objects' positions from the privileged
-    environment state (`.state_readout`; training only, the policy never reads that state). 0: off."""
+    environment state (`.heads.readout`; training only, the policy never reads that state). 0: off."""
     readout: ReadoutInput = "keypoints"
-    """What that state read-out reads: `keypoints` (their coordinates and the instruction, `.state_readout`)
+    """What that state read-out reads: `keypoints` (their coordinates and the instruction, `.heads.state_readout`)
     or `tokens` (every camera's frozen condition tokens pooled by an attention the instruction steers,
-    `.token_readout`; no keypoints needed)."""
+    `.heads.token_readout`; no keypoints needed)."""
     readout_heads: int = 1
     """Attention poolings of the token read-out (each attends to one place; several objects may need several)."""
     readout_grid: tuple[int, int] | None = None
@@ -275,7 +275,7 @@ class ModelConfig:
 @dataclass(frozen=True)
 class PolicyConfig(ModelConfig):
     """A policy as training builds it: the model settings, its frozen image encoder and how many actions it
-    executes per chunk (`dust-rl train --policy.*`)."""
+    executes per chunk (`dust-rl train --model.*`)."""
 
     image_encoder: str | None = None
     """Frozen image encoder: a name (`efficientnet-lite0`: ImageNet EfficientNet-Lite0 to stride 16,
@@ -296,7 +296,7 @@ class PolicyConfig(ModelConfig):
         # Here, not in ModelConfig: policy files written when lambda_aux defaulted to 1 store it without keypoints.
         if self.lambda_aux and not self.readout_inputs_exist:
             raise ValueError("lambda_aux with readout 'keypoints' needs keypoints > 0: the auxiliary loss is read "
-                             "off the keypoints (or choose --policy.readout tokens)")
+                             "off the keypoints (or choose --model.readout tokens)")
         if self.aux_state_input and not self.lambda_aux:
             raise ValueError("aux_state_input needs lambda_aux > 0: it feeds that read-out's estimate")
         if self.execute_steps is not None and not 1 <= self.execute_steps <= self.horizon:
@@ -307,11 +307,11 @@ class PolicyConfig(ModelConfig):
         return {f.name: getattr(self, f.name) for f in fields(ModelConfig)}
 
 
-# Named trunk sizes (``dust-rl train --preset NAME``, then any ``--policy.*`` flag on top). ``cpu-small`` is the
+# Named trunk sizes (``dust-rl train --preset NAME``, then any ``--model.*`` flag on top). ``cpu-small`` is the
 # default, sized and measured for 2 CPU cores; ``gpu-base`` is a paper-scale trunk for GPUs (pair it with a
-# large pretrained image encoder, an encoder file wrapping SigLIP/DINOv2 (``hf_vision.TransformersImageEncoder``),
-# and frames collected at 224 px, ``dust-rl collect --image-size 224``). Parameter counts and one step's CPU cost:
-# BENCHMARKS.md.
+# large pretrained image encoder, an encoder file wrapping SigLIP/DINOv2
+# (``encoders.hf_vision.TransformersImageEncoder``), and frames collected at 224 px, ``dust-rl collect --image-size
+# 224``). Parameter counts and one step's CPU cost: BENCHMARKS.md.
 POLICY_PRESETS: dict[str, PolicyConfig] = {
     "cpu-small": PolicyConfig(),
     "gpu-base": PolicyConfig(d_model=768, n_heads=12, n_mmdit=12, n_dit=4),
@@ -371,7 +371,7 @@ class DustConfig(ModelConfig, SamplerConfig):
 
     @property
     def n_parameters(self) -> int:
-        """Parameters of the trunk (:class:`~.dust_model.DustModel`), from the sizes alone (nothing is built)."""
+        """Parameters of the trunk (:class:`~.model.dust_model.DustModel`), from the sizes alone (nothing is built)."""
         d, streams, blocks = self.d_model, 2 if self.two_streams else 1, self.n_mmdit + self.n_dit
         hidden = int(d * self.mlp_ratio)
 

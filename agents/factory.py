@@ -35,12 +35,12 @@ from dust_rl.storage.checkpoint_files import (
 )
 from dust_rl.storage.config_json import without_retired
 
-from .backbone import FrozenBackbone, resolve_image_encoder, stores_image_weights
 from .config import MAX_CAMERAS, MAX_IMAGE_SIZE, RETIRED_SETTINGS, DustConfig, check_size
-from .image_encoder import ImageEncoder, channels_first
+from .encoders.backbone import FrozenBackbone, resolve_image_encoder, stores_image_weights
+from .encoders.image_encoder import ImageEncoder, channels_first
+from .encoders.text_encoder import TextEncoder, TransformersTextEncoder
 from .normalizer import Normalizer
 from .policy import DustPolicy
-from .text_encoder import TextEncoder, TransformersTextEncoder
 
 POLICY_KIND = "dust-rl-policy"
 # ``info`` entry of a trained policy: [height, width] of the frames it was trained on, checked against an env's.

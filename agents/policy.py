@@ -73,18 +73,17 @@ from dust_rl.keys import (
     flat_name,
 )
 
-from .backbone import FrozenBackbone
 from .condition import ConditionProjector
 from .config import DustConfig, SamplerConfig
-from .dust_model import DustModel
+from .encoders.backbone import FrozenBackbone
+from .encoders.image_encoder import channels_first, pool_tokens
 from .execution import ChunkExecutor
-from .flow_matching import WHOLE_BATCH, Shard
-from .image_encoder import channels_first, pool_tokens
+from .heads.readout import NO_FRAME_READOUT, ObjectStateReadout, object_state_readout, squared_error
+from .model.dust_model import DustModel
+from .model.flow_matching import WHOLE_BATCH, Shard
+from .model.precision import Precision, autocast
+from .model.samplers import schedule_for
 from .normalizer import Normalizer
-from .precision import Precision, autocast
-from .samplers import schedule_for
-from .state_readout import StateReadout
-from .token_readout import TokenReadout
 
 FEATURE_KEYS = (IMAGE_TOKENS_KEY, TEXT_TOKENS_KEY, TEXT_MASK_KEY, PIXELS_KEY)
 
@@ -147,14 +146,10 @@ class DustPolicy(VLAWrapperBase):
         self.config = config  # the policy's own: set_sampler replaces it; the model reads only its model fields
         # The read-out is built before the trunk, so its initial weights do not depend on the variant: runs of one
         # seed then warm up the same read-out (dust_rl.train.readout.cache).
-        if config.aux_state_dim and config.readout == "tokens":
-            self.state_readout = TokenReadout(len(cameras), config.token_grid, backbone.image_dim, backbone.text_dim,
-                                              config.aux_state_dim, config.readout_heads,
-                                              config.state_dim if config.readout_proprio else 0,
-                                              config.readout_text == "attention")
-        elif config.aux_state_dim:
-            self.state_readout = StateReadout(len(cameras) * config.keypoints, backbone.text_dim,
-                                              config.aux_state_dim)
+        self.readout: ObjectStateReadout | None = object_state_readout(
+            config, len(cameras), backbone.image_dim, backbone.text_dim, self.condition.keypoints)
+        if self.readout is not None:  # registered here: policy files store its weights as state_readout.*
+            self.state_readout = self.readout.network
         self.model = DustModel(config)
         self.normalizer = Normalizer(config.state_dim, config.action_dim, config.vision_dim)
         self.register_buffer("action_low", torch.full((config.action_dim,), -torch.inf))
@@ -184,7 +179,7 @@ class DustPolicy(VLAWrapperBase):
 
     def set_runtime(self, precision: Precision = "fp32", compile: bool = False) -> None:
         """How sampling runs here (not stored in the policy file): the trunk's precision
-        (:mod:`.precision`) and whether its forward pass is compiled with ``torch.compile`` (every step of
+        (:mod:`.model.precision`) and whether its forward pass is compiled with ``torch.compile`` (every step of
         the sampler's loop then runs the compiled graph; the first call pays the compilation)."""
         self.precision = precision
         if compile:
@@ -217,32 +212,9 @@ class DustPolicy(VLAWrapperBase):
     def trainable_modules(self) -> nn.ModuleDict:
         """The modules training optimises and averages, by name (checkpoints key their state by these names)."""
         modules = {"condition": self.condition, "model": self.model}
-        if self.config.aux_state_dim:
-            modules["state_readout"] = self.state_readout
+        if self.readout is not None:
+            modules["state_readout"] = self.readout.network
         return nn.ModuleDict(modules)
-
-    def readout_modules(self) -> nn.ModuleDict:
-        """The state read-out (and the pixel keypoint networks it reads): what ``--readout.warmup-steps`` fits and then
-        freezes.
-
-        Raises:
-            ValueError: the policy has no read-out that frames alone can train.
-        """
-        self._check_frame_readout()
-        if self.config.readout == "tokens":
-            return nn.ModuleDict({"state_readout": self.state_readout})
-        return nn.ModuleDict({"keypoints": self.condition.keypoints, "state_readout": self.state_readout})
-
-    def _check_frame_readout(self) -> None:
-        if not (self.config.aux_state_dim and self.reads_frames_for_readout):
-            raise ValueError("this needs a state read-out on the image tokens (--policy.lambda-aux with "
-                             "--policy.readout tokens) or on pixel keypoints (--policy.keypoint-source pixels)")
-
-    @property
-    def reads_frames_for_readout(self) -> bool:
-        """Whether the read-out can be fitted on rendered frames: on their frozen tokens, or on pixel keypoints
-        (keypoints on the frozen tokens also train through the action loss, so they cannot)."""
-        return self.config.readout == "tokens" or self.reads_pixels
 
     # -- features ----------------------------------------------------------
     def canonical_view(self, td: TensorDictBase) -> TensorDictBase:
@@ -353,9 +325,9 @@ class DustPolicy(VLAWrapperBase):
         batch = features.exclude(*FEATURE_KEYS).set(COND_TOKENS_KEY, cond).set(COND_MASK_KEY, mask)
         # The loss and the diagnostics read the estimate, the trunk only if fed; a batch may bring the frozen
         # read-out's estimate along (dust_rl.data.features.FeatureCache.store_readout_estimates).
-        if self.config.aux_state_dim and READOUT_ESTIMATE_KEY not in features.keys():
-            batch.set(READOUT_ESTIMATE_KEY, self._readout(image, keypoints, text, text_mask,
-                                                          features.get(BATCH_STATE_KEY)))
+        if self.readout is not None and READOUT_ESTIMATE_KEY not in features.keys():
+            batch.set(READOUT_ESTIMATE_KEY, self.readout.estimate(image, keypoints, text, text_mask,
+                                                                  features.get(BATCH_STATE_KEY)))
         if self.config.aux_state_input:
             batch.set(BATCH_STATE_KEY, torch.cat([batch.get(BATCH_STATE_KEY), batch.get(READOUT_ESTIMATE_KEY)], dim=-1))
         if FUTURE_TOKENS_KEY in features.keys():
@@ -399,12 +371,12 @@ class DustPolicy(VLAWrapperBase):
         Raises:
             ValueError: the policy was trained without the auxiliary state loss.
         """
-        if not self.config.aux_state_dim:
-            raise ValueError("this policy has no state read-out (trained without --policy.lambda-aux)")
+        if self.readout is None:
+            raise ValueError("this policy has no state read-out (trained without --model.lambda-aux)")
         image = self.normalizer.normalize_vision(features.get(IMAGE_TOKENS_KEY))  # the read-out alone, no trunk input
         keypoints = self._keypoints(self._pooled(image, self.config.condition_grid), features)
-        return self._readout(image, keypoints, features.get(TEXT_TOKENS_KEY), features.get(TEXT_MASK_KEY),
-                             features.get(BATCH_STATE_KEY))
+        return self.readout.estimate(image, keypoints, features.get(TEXT_TOKENS_KEY), features.get(TEXT_MASK_KEY),
+                                     features.get(BATCH_STATE_KEY))
 
     def _keypoints(self, on_grid: Tensor, features: TensorDictBase, augment: bool = False,
                    generator: torch.Generator | None = None) -> Tensor | None:
@@ -413,31 +385,22 @@ class DustPolicy(VLAWrapperBase):
             return None
         return self.condition.keypoint_features(on_grid, features.get(PIXELS_KEY, None), augment, generator)
 
-    def _readout(self, image: Tensor, keypoints: Tensor | None, text: Tensor, text_mask: Tensor,
-                 state: Tensor) -> Tensor:
-        """The read-out's estimate [B, S] from the standardised image tokens or the keypoints, whichever it reads
-        (and the normalised robot state [B, Ds], where it reads that too)."""
-        if self.config.readout != "tokens":
-            return self.state_readout(keypoints, text, text_mask)
-        return self.state_readout(image, text, text_mask, state if self.config.readout_proprio else None)
-
     # -- training and inference ---------------------------------------------
     def compute_loss(self, batch: TensorDictBase, generator: torch.Generator | None = None,
                      shard: Shard = WHOLE_BATCH) -> TensorDict:
         """DUST's flow-matching loss of a feature batch (``loss``, ``loss_action``, ``loss_vision``).
 
-        ``shard``: the batch is this part of a data-parallel batch (:class:`~.flow_matching.Shard`).
+        ``shard``: the batch is this part of a data-parallel batch (:class:`~.model.flow_matching.Shard`).
 
-        In training mode the frames of pixel keypoints are shifted at random (:mod:`.pixel_keypoints`).
+        In training mode the frames of pixel keypoints are shifted at random (:mod:`.heads.pixel_keypoints`).
 
-        With ``config.aux_state_dim`` and an ``env_state`` in the batch, ``loss`` also holds
-        ``lambda_aux`` times ``loss_aux``, the read-out error of the privileged state (:mod:`.state_readout`).
+        With a read-out and an ``env_state`` in the batch, ``loss`` also holds ``lambda_aux`` times ``loss_aux``, the
+        read-out error of the privileged state (:mod:`.heads.readout`).
         """
         model_batch = self._model_batch(batch, augment=self.training, generator=generator)
         losses = self.model.compute_loss(model_batch, generator, shard)
-        if self.config.aux_state_dim and BATCH_ENV_STATE_KEY in batch.keys():
-            losses.set("loss_aux", _squared_error(model_batch.get(READOUT_ESTIMATE_KEY),
-                                                  batch.get(BATCH_ENV_STATE_KEY)))
+        if self.readout is not None and BATCH_ENV_STATE_KEY in batch.keys():
+            losses.set("loss_aux", squared_error(model_batch.get(READOUT_ESTIMATE_KEY), batch.get(BATCH_ENV_STATE_KEY)))
             losses.set("loss", losses.get("loss") + self.config.lambda_aux * losses.get("loss_aux"))
         return losses
 
@@ -452,15 +415,16 @@ class DustPolicy(VLAWrapperBase):
         Raises:
             ValueError: the policy has no read-out that frames alone can train.
         """
-        self._check_frame_readout()
-        if self.config.readout == "tokens":
+        if self.readout is None or not self.readout.reads_frames:
+            raise ValueError(NO_FRAME_READOUT)
+        if self.readout.reads_tokens:
             image, keypoints = self.normalizer.normalize_vision(frames.get(IMAGE_TOKENS_KEY)), None
         else:
             image, keypoints = None, self.condition.keypoint_features(None, frames.get(PIXELS_KEY), self.training,
                                                                       generator)
-        estimate = self._readout(image, keypoints, frames.get(TEXT_TOKENS_KEY), frames.get(TEXT_MASK_KEY),
-                                 frames.get(BATCH_STATE_KEY))
-        return _squared_error(estimate, frames.get(BATCH_ENV_STATE_KEY))
+        estimate = self.readout.estimate(image, keypoints, frames.get(TEXT_TOKENS_KEY), frames.get(TEXT_MASK_KEY),
+                                         frames.get(BATCH_STATE_KEY))
+        return squared_error(estimate, frames.get(BATCH_ENV_STATE_KEY))
 
     @torch.no_grad()
     def plan(self, td: TensorDictBase, generator: torch.Generator | None = None,
@@ -488,7 +452,7 @@ class DustPolicy(VLAWrapperBase):
         """:meth:`plan` from a flat feature batch [B] (:meth:`observation_features`), for callers that also
         read the features (an RL critic) and so encode each observation once. ``vision_noise`` [B, N_o, Dv]:
         the initial vision noise instead of the drawn one; with ``action_noise`` too, nothing is drawn and the
-        chunk is a deterministic function of the two (:func:`~.samplers.run_schedule`)."""
+        chunk is a deterministic function of the two (:func:`~.model.samplers.run_schedule`)."""
         batch = self._model_batch(features)
         for key, noise in ((BATCH_ACTION_NOISE_KEY, action_noise), (VISION_NOISE_KEY, vision_noise)):
             if noise is not None:
@@ -532,8 +496,3 @@ class DustPolicy(VLAWrapperBase):
             out.set(PREDICTED_FUTURE_KEY, future)
             out.set(FUTURE_CHUNK_KEY, future.unsqueeze(-3).expand(*chunk.shape[:-1], *future.shape[-2:]))
         return self._output_tensordict(tensordict, out, tensordict_out)
-
-
-def _squared_error(estimate: Tensor, target: Tensor) -> Tensor:
-    """The auxiliary read-out loss: mean squared error of the normalised object state."""
-    return (estimate - target).square().mean()

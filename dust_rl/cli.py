@@ -8,7 +8,7 @@ given beside them (anywhere) still override them.
 Bad input ends in one line, ``dust-rl: error: <what is wrong and what to do>`` (exit code 1):
 a :class:`~dust_rl.errors.UserError` (bad settings, unusable datasets, a busy dataset folder, a
 diverged training run), a corrupt or unfitting checkpoint, or a file system error. Argument syntax
-errors, and settings a nested config group refuses (``--policy.n-heads 3``), are reported by the
+errors, and settings a nested config group refuses (``--model.n-heads 3``), are reported by the
 parser, naming the group (exit code 2). Any other exception is a bug and keeps its traceback.
 """
 
@@ -28,6 +28,10 @@ if TYPE_CHECKING:
     from dust_rl.evaluate.closed_loop import EvalConfig
 
 GROUPS = (tyro.conf.OmitSubcommandPrefixes,)  # "dust-rl dataset info", not "dust-rl dataset action:info"
+# Flags earlier versions gave some commands, now the runtime group every command shares
+# (dust_rl.runtime.settings): refused with their spelling today rather than tyro's list of every flag.
+REGROUPED_FLAGS = {f"--{name}": f"--runtime.{name}" for name in
+                   ("threads", "device", "precision", "compile", "no-compile", "progress", "no-progress")}
 DESCRIPTION = ("DUST (dual-stream diffusion) for torchrl and gymnasium: collect demonstrations, train, evaluate, "
                "fine-tune with RL. `dust-rl COMMAND --help` lists a command's arguments; `dust-rl --version` prints "
                "the version.")
@@ -109,7 +113,9 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def check_arguments(argv: list[str]) -> None:
-    """Raise :class:`ConfigError` at an argument that is not UTF-8 text (a path with such a byte: torch's files,
+    """Raise :class:`ConfigError` at a runtime flag of earlier versions (:data:`REGROUPED_FLAGS`) or a setting of the
+    policy built spelled as they did (``--policy.d-model``, now ``--model.d-model``), at an argument
+    that is not UTF-8 text (a path with such a byte: torch's files,
     JSON metadata and tyro need text, and would fail on it deep inside a run) or that is empty: no setting takes
     an empty value, and an empty path is the current folder (``--out "$OUT"`` with ``OUT`` unset would make it a
     dataset or a run)."""
@@ -120,6 +126,13 @@ def check_arguments(argv: list[str]) -> None:
             raise ConfigError(f"argument {os.fsencode(arg)!r} is not UTF-8 text; rename the file or folder "
                               "with a UTF-8 name") from None
         flag, equals, value = arg.partition("=")
+        if flag in REGROUPED_FLAGS:
+            raise ConfigError(f"{flag} is spelled {REGROUPED_FLAGS[flag]}: every command's runtime settings are one "
+                              "group (--runtime.threads, --runtime.device, --runtime.no-progress ...)")
+        before, policy_group, setting = flag.partition("policy.")
+        if policy_group and before in ("--", "--train."):
+            raise ConfigError(f"{flag} is spelled {before}model.{setting}: the policy a command builds is the group "
+                              "--model.*, and --policy PATH a policy file")
         if (equals and flag.startswith("--") and not value) or not arg:
             named = flag if equals else previous if previous.startswith("--") else "an argument"
             raise ConfigError(f"{named} is given an empty value (an unset shell variable?); give it one or drop it")
@@ -138,10 +151,11 @@ def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:
             if any(arg == flag or arg.startswith(f"{flag}=") for arg in args):
                 raise ConfigError(f"{flag} applies to dust-rl train, quickstart and bench suite, not dust-rl {name}")
         return args, None
-    from dust_rl.bench.suite import SuiteConfig
+    from dust_rl.bench.suite import CellTraining, SuiteConfig
     from dust_rl.quickstart import QuickstartConfig
     from dust_rl.train.imitation import TrainConfig
     from dust_rl.train.recipes import starting_settings
+    from dust_rl.train.settings import NestedTrainSettings, as_class
 
     start = starting_settings(name, args)
     if start.settings is None:
@@ -149,8 +163,9 @@ def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:
     if name == "train":
         return start.args, TrainConfig.from_settings(start.settings, **{"dataset": tyro.MISSING, **start.run},
                                                       recipe=start.recipe)
-    return start.args, {"quickstart": QuickstartConfig, "bench suite": SuiteConfig}[name](recipe=start.recipe,
-                                                                                           train=start.settings)
+    if name == "quickstart":
+        return start.args, QuickstartConfig(recipe=start.recipe, train=as_class(NestedTrainSettings, start.settings))
+    return start.args, SuiteConfig(recipe=start.recipe, train=CellTraining.of(start.settings))
 
 
 if __name__ == "__main__":

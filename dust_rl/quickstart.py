@@ -16,18 +16,19 @@ from __future__ import annotations
 
 import pathlib
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
-from dust_rl.agents.backbone import check_image_encoder
+from dust_rl.agents.encoders.backbone import check_image_encoder
 from dust_rl.data import DemoDataset, collect_demos
 from dust_rl.envs.factory import DEFAULT_ENV_ID
 from dust_rl.errors import check_at_least
-from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.evaluate.closed_loop import EvalConfig, eval_runtime, evaluate
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TrainConfig, train
 from dust_rl.train.recipes import RecipeName, vision_readout
-from dust_rl.train.settings import TrainSettings
+from dust_rl.train.settings import NestedTrainSettings, as_class
 
 
 @dataclass
@@ -46,14 +47,15 @@ class QuickstartConfig:
     """Env processes for collection and evaluation (on 2 cores one is fastest: rendering uses both)."""
     image_size: int = 128
     """Camera resolution (every measured recipe ran at 128 px)."""
-    progress: bool = True
-    """Show progress bars."""
+    runtime: RuntimeSettings = runtime_field()
+    """Where and how training runs (`--runtime.threads`, `--runtime.device` ...); evaluation runs each worker on
+    one thread, as `dust-rl eval` does."""
     recipe: RecipeName = "vision-readout"
     """The named recipe training starts from (`dust-rl train --help` lists them; `--train.*` flags override
     it)."""
-    train: TrainSettings = field(default_factory=vision_readout)
-    """Training (`--train.optim.steps`, `--train.policy.variant` ...; as `dust-rl train`, defaults from
-    `recipe`)."""
+    train: NestedTrainSettings = field(default_factory=lambda: as_class(NestedTrainSettings, vision_readout()))
+    """Training (`--train.optim.steps`, `--train.model.variant` ...; as `dust-rl train`, defaults from
+    `recipe`, runtime from `--runtime.*`)."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "demos", "eval_episodes", "workers", "image_size")
@@ -64,16 +66,16 @@ def quickstart(config: QuickstartConfig, command: str | None = None) -> dict:
     began = time.perf_counter()
     data, train_dir, eval_dir = config.out / "data", config.out / "train", config.out / "eval"
     check_image_encoder(config.train.policy.image_encoder)
-    settings = replace(config.train, runtime=replace(config.train.runtime, progress=config.progress))
-    train_config = TrainConfig.from_settings(settings, dataset=data, out=train_dir,
+    train_config = TrainConfig.from_settings(config.train.under(config.runtime), dataset=data, out=train_dir,
                                              resume=(train_dir / "config.json").is_file(), recipe=config.recipe)
     eval_config = EvalConfig(policy=train_dir / "policy.pt", out=eval_dir, episodes=config.eval_episodes,
-                             workers=config.workers, train_dir=train_dir, progress=config.progress)
+                             workers=config.workers, train_dir=train_dir,
+                             runtime=eval_runtime(config.runtime))
     stages = {}
 
     tick = time.perf_counter()
     collect_demos(data, DEFAULT_ENV_ID, [config.task], config.demos, env_kwargs={"image_size": config.image_size},
-                  workers=config.workers, progress=config.progress)
+                  workers=config.workers, progress=config.runtime.progress)
     stages["collect"] = time.perf_counter() - tick
 
     tick = time.perf_counter()

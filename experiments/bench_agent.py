@@ -10,7 +10,7 @@ steps); the table gives the median and the best of ``--repeats`` calls, the
 best being the better estimate on a machine shared with other jobs, and the
 median process CPU time per call, which with ``--threads 1`` estimates the
 latency on an idle core even while other jobs share the machine. ``--compile``
-(``torch.compile`` of the trunk, as ``--compile`` of train and eval) and
+(``torch.compile`` of the trunk, as ``--runtime.compile`` of train and eval) and
 ``--precision bf16`` (autocast) apply to the trunk rows and the training row;
 the "first" column is the first call's wall time, with ``--compile`` the
 compilation's cost.
@@ -42,7 +42,7 @@ from dust_rl.agents import (
     random_batch,
     schedule_for,
 )
-from dust_rl.agents.precision import Precision, autocast
+from dust_rl.agents.model.precision import Precision, autocast
 
 N_COND_TOKENS = 40
 CAMERAS = ("front", "wrist")

@@ -73,7 +73,7 @@ def main() -> None:
         parser.error("--k needs K >= 1")
     policy, setup, config = prepare_in_process(args)
     if args.rule == "nearest" and not policy.config.aux_state_dim:
-        raise SystemExit("--rule nearest needs a policy with a state read-out (--policy.lambda-aux)")
+        raise SystemExit("--rule nearest needs a policy with a state read-out (--model.lambda-aux)")
     for task in setup.tasks:
         with ChunkChoice(policy, args.rule, args.k, args.target_columns, args.holding_below) as choice:
             episodes, _, _, _ = evaluate_task(setup, task, policy, config)

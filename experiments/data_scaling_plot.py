@@ -3,7 +3,7 @@
 Why: each demonstration count of the study lives in a folder of its own (and the lambda_WM = 0 control in
 another), so no single ``results.png`` shows how the variants scale. This reads every folder's ``results.json``,
 keeps the rows sampled as trained, and draws success (episodes pooled over training seeds, 95% interval) against
-demonstrations; a folder trained with ``--train.policy.lambda-wm 0`` gets its own line, named so.
+demonstrations; a folder trained with ``--train.model.lambda-wm 0`` gets its own line, named so.
 
     .venv/bin/python experiments/data_scaling_plot.py runs/bench/press_button runs/bench/press_button_20 \
         runs/bench/press_button_100 runs/bench/press_button_20_wm0 runs/bench/press_button_100_wm0 \

@@ -80,6 +80,7 @@ from dust_rl.envs.tasks import peg_insert, pick_into_bin, press_button, push, st
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate_task, prepare
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, STATE_KEY
+from dust_rl.runtime.settings import RuntimeSettings
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -236,7 +237,7 @@ def main() -> None:
     parser.add_argument("--per-class", type=int, default=3, help="episodes per class on the sheet")
     args = parser.parse_args()
     config = EvalConfig(policy=args.policy, seed=args.seed, episodes=args.episodes, workers=1, videos=args.episodes,
-                        threads=args.threads, max_steps=args.max_steps, device="cpu")
+                        max_steps=args.max_steps, runtime=RuntimeSettings(threads=args.threads, device="cpu"))
     torch.set_num_threads(args.threads)
     policy, setup = prepare(config)
     if len(setup.tasks) != 1 or setup.tasks[0] not in CLASSIFIERS:

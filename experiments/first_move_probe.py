@@ -3,7 +3,7 @@
 For every demonstration of ``--dataset`` the frozen tokens of all cameras at step 0 (the policy's
 own encoder and condition grid) and the pooled instruction embedding (its text encoder) are fitted
 to the expert's first 8-step displacement (cm) by an attention-pooling head
-(:mod:`dust_rl.agents.attention_pooling`); the error (the best of its periodic checks) is on step 0 of
+(:mod:`dust_rl.agents.heads.attention_pooling`); the error (the best of its periodic checks) is on step 0 of
 ``--val-dataset``'s demonstrations, beside the error of predicting no move.
 ``experiments/first_move_error.py`` gives the same number for
 the policy itself: where the head is far better, the information is in the inputs and the policy
@@ -23,9 +23,9 @@ from torch import Tensor, nn
 from tqdm import trange
 
 from dust_rl.agents import load_policy
-from dust_rl.agents.attention_pooling import WIDTH, AttentionProbe, standardise
+from dust_rl.agents.encoders.text_encoder import pooled_text
+from dust_rl.agents.heads.attention_pooling import WIDTH, AttentionProbe, standardise
 from dust_rl.agents.policy import DustPolicy
-from dust_rl.agents.text_encoder import pooled_text
 from dust_rl.data import DemoDataset
 from dust_rl.envs.env import MAX_TRANSLATION
 from dust_rl.keys import EXPERT_ACTION_KEY, IMAGE_KEY

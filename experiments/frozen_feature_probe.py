@@ -20,9 +20,9 @@ import torch
 from torch import Tensor, nn
 
 import dust_rl  # noqa: F401  (registers the envs)
-from dust_rl.agents.attention_pooling import WIDTH, AttentionProbe, standardise
-from dust_rl.agents.efficientnet_lite import EfficientNetLite
-from dust_rl.agents.image_encoder import image_tokens
+from dust_rl.agents.encoders.efficientnet_lite import EfficientNetLite
+from dust_rl.agents.encoders.image_encoder import image_tokens
+from dust_rl.agents.heads.attention_pooling import WIDTH, AttentionProbe, standardise
 from dust_rl.envs.tasks.base import COLORS
 from dust_rl.keys import ENV_STATE_KEY, INSTRUCTION_KEY, flat_name
 

@@ -32,6 +32,7 @@ from dust_rl.diagnose.world_model import (
     per_window_error,
     renoised_source,
 )
+from dust_rl.runtime.settings import RuntimeSettings
 
 
 def main() -> None:
@@ -46,7 +47,7 @@ def main() -> None:
 
     policy = load_policy(args.policy).eval()
     config = WorldModelDiagnosis(policy=args.policy, dataset=args.dataset, windows=args.windows, seed=args.seed,
-                                 progress=False)
+                                 runtime=RuntimeSettings(progress=False))
     windows = draw_windows(config, policy)
     batch, episode = windows.batch, windows.episode
     action, true = batch.get("action_chunk"), batch.get("future_tokens")

@@ -15,6 +15,7 @@ import torch
 from dust_rl.agents import DustPolicy, execution
 from dust_rl.evaluate.closed_loop import EvalConfig, EvalSetup, prepare, summary_row
 from dust_rl.evaluate.records import Episode
+from dust_rl.runtime.settings import RuntimeSettings
 
 NOISE_OFFSET = 1_000_003  # added to the episode seed per further draw: far from every seed schedule
 
@@ -55,7 +56,7 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
 def prepare_in_process(args: argparse.Namespace) -> tuple[DustPolicy, EvalSetup, EvalConfig]:
     """The policy (to attach hooks to), its evaluation setup and config, one env in this process, no videos."""
     config = EvalConfig(policy=args.policy, seed=args.seed, episodes=args.episodes, workers=1, videos=0,
-                        threads=args.threads, device="cpu", progress=False)
+                        runtime=RuntimeSettings(threads=args.threads, device="cpu", progress=False))
     torch.set_num_threads(args.threads)
     policy, setup = prepare(config)
     return policy, setup, config

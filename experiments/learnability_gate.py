@@ -271,7 +271,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     policy = load_policy(args.policy).eval()
     if not policy.config.aux_state_dim:
-        raise SystemExit("the deployable features need a policy with a state read-out (--policy.lambda-aux)")
+        raise SystemExit("the deployable features need a policy with a state read-out (--model.lambda-aux)")
     args.out.mkdir(parents=True, exist_ok=True)
     gate = GateEnv(policy, args.candidates)
     with torch.inference_mode():

@@ -1,10 +1,9 @@
 """Can the pixel-keypoint network find the named cube? A regression on frames whose objects do not follow the arm.
 
 Renders ``--frames`` aux frames of pick_place (random resets and random arm motions,
-:mod:`dust_rl.train.readout.aux_frames`), fits :class:`~dust_rl.agents.pixel_keypoints.PixelKeypoints` on front and
-wrist
-plus an MLP from the keypoint coordinates and the named colour to the target cube's and the plate's xy on
-80% of them, and prints the mean error on the rest every 500 steps, beside predicting the mean.
+:mod:`dust_rl.train.readout.aux_frames`), fits :class:`~dust_rl.agents.heads.pixel_keypoints.PixelKeypoints` on
+front and wrist plus an MLP from the keypoint coordinates and the named colour to the target cube's and the plate's
+xy on 80% of them, and prints the mean error on the rest every 500 steps, beside predicting the mean.
 
     .venv/bin/python experiments/pixel_probe.py [--frames 3000] [--steps 4000] [--lr 1e-3]
 """
@@ -17,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dust_rl.agents.pixel_keypoints import PixelKeypoints
+from dust_rl.agents.heads.pixel_keypoints import PixelKeypoints
 from dust_rl.envs.tasks.base import COLORS
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY
 from dust_rl.train.readout.aux_frames import render_aux_frames

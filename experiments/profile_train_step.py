@@ -33,7 +33,7 @@ def main() -> None:
     windows = DemoWindows(dataset, horizon=policy.config.horizon, future_offset=policy.config.future_steps,
                           batch_size=64, images=False)
     policy.train()
-    policy.readout_modules().requires_grad_(False)
+    policy.readout.frame_modules().requires_grad_(False)
     optimizer = adamw([p for p in policy.trainable_modules().parameters() if p.requires_grad], 1e-4)
 
     def step() -> None:

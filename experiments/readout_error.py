@@ -1,6 +1,6 @@
 """How far is a policy's object-state read-out from the truth, by time in the episode?
 
-A policy trained with ``--policy.lambda-aux`` estimates the privileged object state
+A policy trained with ``--model.lambda-aux`` estimates the privileged object state
 from its keypoints or frozen tokens. On expert demonstrations the gripper sits on the
 target cube for most of an episode, so an estimate that merely follows the gripper
 scores well on average; the table separates the steps where the gripper is still far
@@ -69,7 +69,7 @@ def readout_error_table(policy: DustPolicy, dataset: DemoDataset, norm: EnvState
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--policy", required=True, help="policy.pt trained with --policy.lambda-aux")
+    parser.add_argument("--policy", required=True, help="policy.pt trained with --model.lambda-aux")
     parser.add_argument("--dataset", required=True, help="demonstrations from other seeds than the training data")
     parser.add_argument("--columns", type=int, default=3, help="object-state columns per object (press_button: 4)")
     args = parser.parse_args()

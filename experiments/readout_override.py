@@ -1,6 +1,6 @@
 """What a read-out policy does with a corrected estimate: evaluate it with some of the estimate's columns replaced.
 
-Why: a policy that feeds its read-out's object-state estimate to the trunk (``--policy.aux-state-input``) can fail
+Why: a policy that feeds its read-out's object-state estimate to the trunk (``--model.aux-state-input``) can fail
 because the estimate is off or because it acts imprecisely on a good one; replacing one object's columns tells the
 two apart without training anything. ``--truth`` writes the simulator's object state (normalised as the read-out
 was trained) into the columns at every re-plan; ``--hold K`` writes the estimate's mean over the episode's first K

@@ -11,6 +11,7 @@ deterministic action shows how far it has moved from the base policy (0 is the b
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pathlib
 
 import numpy as np
@@ -30,7 +31,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     saved = load_checkpoint(args.run / "rl_agent.pt", RL_AGENT_KIND)
-    config = rl_config_from_json(saved["config"], device="cpu", progress=False)
+    config = rl_config_from_json(saved["config"])
+    config = dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, device="cpu", progress=False))
     env = finetune_env_factory(config, load_policy(config.policy))[0]()
     agent = build_agent(config, env)
     agent.policy.load_state_dict(saved["state_dict"])

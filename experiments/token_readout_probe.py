@@ -1,4 +1,4 @@
-"""How many centimetres off is the token read-out (``--policy.readout tokens``), object by object?
+"""How many centimetres off is the token read-out (``--model.readout tokens``), object by object?
 
 Fits only the read-out, as ``dust-rl train --readout.aux-frames N --readout.warmup-steps S --readout.no-demos`` warms it
 up (the same frames: seeds from ``dust_rl.train.readout.aux_frames.FIRST_SEED``, the same held-out ones), and

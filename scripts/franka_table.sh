@@ -5,7 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 for task in ${TASKS:-open_drawer close_drawer press_button push pick_place stack peg_insert pick_into_bin}; do
-  .venv/bin/dust-rl collect --task "$task" --episodes 200 --out "runs/data/$task" --workers 1 --no-progress
+  .venv/bin/dust-rl collect --task "$task" --episodes 200 --out "runs/data/$task" --workers 1 --runtime.no-progress
   if [ ! -f "runs/train/$task/policy.pt" ]; then
     resume=()
     [ -f "runs/train/$task/config.json" ] && resume=(--resume)
@@ -13,5 +13,5 @@ for task in ${TASKS:-open_drawer close_drawer press_button push pick_place stack
       --optim.lr 3e-4 --runtime.threads 1 --runtime.no-progress "${resume[@]}" "$@"
   fi
   [ -f "runs/eval/$task/report.json" ] || .venv/bin/dust-rl eval --policy "runs/train/$task/policy.pt" \
-    --out "runs/eval/$task" --episodes 20 --workers 1 --no-progress
+    --out "runs/eval/$task" --episodes 20 --workers 1 --runtime.no-progress
 done

@@ -43,7 +43,7 @@ import sys
 import torch
 from transformers import AutoTokenizer, BertConfig, BertModel
 
-from dust_rl.agents.text_encoder import minilm_path
+from dust_rl.agents.encoders.text_encoder import minilm_path
 
 tokenizer = AutoTokenizer.from_pretrained(minilm_path(), local_files_only=True)
 torch.manual_seed(0)

@@ -9,8 +9,8 @@ import torch
 from tensordict import TensorDict
 
 from dust_rl.agents import load_policy, make_policy, save_policy
-from dust_rl.agents.backbone import NAMED_IMAGE_ENCODERS, build_image_encoder, resolve_image_encoder
-from dust_rl.agents.efficientnet_lite import (
+from dust_rl.agents.encoders.backbone import NAMED_IMAGE_ENCODERS, build_image_encoder, resolve_image_encoder
+from dust_rl.agents.encoders.efficientnet_lite import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     EfficientNetLite,

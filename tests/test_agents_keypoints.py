@@ -8,7 +8,7 @@ from test_agents_policy import observation, perturb, tiny_policy
 
 from dust_rl.agents import DustConfig, load_policy, make_policy, save_policy
 from dust_rl.agents.condition import ConditionProjector
-from dust_rl.agents.keypoints import SpatialKeypoints
+from dust_rl.agents.heads.keypoints import SpatialKeypoints
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.data.features import FeatureCache, dataset_policy_kwargs
@@ -114,6 +114,9 @@ def test_keypoint_policy_round_trips_and_its_heads_get_gradients(source, aux_sta
     losses["loss"].backward()
     for module in (policy.condition.keypoints, policy.state_readout):
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in module.parameters())
+    # The read-out head is the policy's own modules under the names policy files store them by.
+    assert policy.readout.network is policy.state_readout and policy.readout.keypoints is policy.condition.keypoints
+    assert policy.readout.reads_frames == (source == "pixels")
     # Training optimises exactly the trainable parameters, the read-out among them.
     trained = {id(p) for p in policy.trainable_modules().parameters()}
     assert trained == {id(p) for p in policy.trainable_parameters()}
@@ -147,5 +150,6 @@ def test_feature_batches_carry_the_normalised_environment_state(demo_dir, tiny_e
         FeatureCache(dataset, policy, progress=False)
     without = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                           horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=0)
+    assert without.readout is None
     with pytest.raises(ValueError, match="no state read-out"):
         without.estimate_env_state(cache.batch(windows))

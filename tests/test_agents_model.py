@@ -289,7 +289,7 @@ def test_invalid_configs_are_rejected():
 def test_attention_over_a_batch_too_large_for_cuda_runs_in_slices(variant, monkeypatch):
     """Batches above CUDA's attention limit (65,535) are sliced: here the limit is lowered to 2, and a batch of
     5 chunks (10 stream rows, padded streams masked) gives the velocities of the unsliced computation."""
-    from dust_rl.agents import mmdit
+    from dust_rl.agents.model import mmdit
 
     torch.manual_seed(0)
     model = DustModel(DustConfig(variant=variant, d_model=32, n_heads=2, n_mmdit=2, n_dit=2)).double().eval()

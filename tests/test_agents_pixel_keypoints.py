@@ -7,7 +7,7 @@ import torch
 from test_agents_policy import observation, tiny_policy
 
 from dust_rl.agents import make_policy
-from dust_rl.agents.pixel_keypoints import MAX_SHIFT, PixelKeypoints, random_shift
+from dust_rl.agents.heads.pixel_keypoints import MAX_SHIFT, PixelKeypoints, random_shift
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.data.features import FeatureCache, dataset_policy_kwargs
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from dust_rl.agents.attention_pooling import WIDTH, AttentionProbe, standardise
+from dust_rl.agents.heads.attention_pooling import WIDTH, AttentionProbe, standardise
 
 TOKENS, DIM, SAMPLES = 6, 4, 512
 

@@ -8,7 +8,7 @@ import torch
 from conftest import DEMO_ENV_KWARGS
 
 from dust_rl.agents import DustConfig, DustPolicy, make_policy
-from dust_rl.agents.attention_pooling import WIDTH
+from dust_rl.agents.heads.attention_pooling import WIDTH
 from dust_rl.data import DemoDataset
 from dust_rl.data.env_state_norm import EnvStateNorm
 from dust_rl.data.features import dataset_policy_kwargs, env_state_width

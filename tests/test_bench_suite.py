@@ -17,6 +17,7 @@ from dust_rl.bench.suite import (
     VISION_AS_NOISE,
     WITH_VIDEO,
     Cell,
+    CellTraining,
     SuiteConfig,
     arm_policies,
     arm_policy,
@@ -35,26 +36,26 @@ from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate.records import t_bounds, t_critical, t_interval
+from dust_rl.runtime.settings import RuntimeSettings
 from dust_rl.storage.lock import folder_lock
 from dust_rl.train.imitation import TrainSettings
 from dust_rl.train.recipes import RECIPES, plain, vision_readout
-from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
+from dust_rl.train.settings import LoggingSettings, OptimSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, tmp_path, capsys):
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
-    train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
-                          optim=OptimSettings(steps=2, batch_size=8),
-                          logging=LoggingSettings(log_every=1, checkpoint_every=2),
-                          runtime=RuntimeSettings(threads=1, progress=False))
+    train = CellTraining.of(TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
+                                          optim=OptimSettings(steps=2, batch_size=8),
+                                          logging=LoggingSettings(log_every=1, checkpoint_every=2)))
     config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1, 2),
                          variants=("dust", "action_only", "dust_no_wm", "action_only_wide"), seeds=(0,),
                          recipe="plain", train=train, arm_steps=("action_only_wide=3",), vision_steps=(4, 8),
                          eval_episodes=1, val_episodes=1, diagnose_episodes=2,
                          image_size=32, max_steps=6, video_dataset=tmp_path / "suite" / "data" / "1",  # collected
-                         progress=False)                                                               # by the suite
+                         runtime=RuntimeSettings(threads=1, progress=False))                          # by the suite
     with pytest.raises(ConfigError, match="no cell of this study has finished yet"):
         run_suite(dataclasses.replace(config, finished_only=True))
     results = run_suite(config, "dust-rl bench suite ...")
@@ -129,7 +130,7 @@ def test_suite_runs_every_cell_once_writes_the_tables_and_resumes(tiny_encoder, 
     assert set(diagnosis["action_only"]["action_error"]) == {"own"} and diagnosis["action_only"]["skill"] is None
     alone = diagnose(WorldModelDiagnosis(policy=cell / "dust_seed0_demos2" / "policy.pt",
                                          dataset=tmp_path / "suite" / "data" / "heldout_2", out=tmp_path / "alone",
-                                         threads=1, progress=False))
+                                         runtime=RuntimeSettings(threads=1, progress=False)))
     assert diagnosis["dust"]["action_error"] == {name: row["action_error"]["mean"]
                                                  for name, row in alone["oracle_future"]["conditions"].items()}
     assert diagnosis["dust"]["skill"] == alone["vision_stream"]["joint_sample"]["skill"]
@@ -198,12 +199,13 @@ def test_a_cell_another_process_holds_comes_last(holder, tiny_encoder, tmp_path,
     """Two suites on one folder share its cells: while one holds a cell (or a training run its folder), the other
     runs the rest, then waits for it and finds it done (here the test holds it and, as a suite, trains it)."""
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
-    train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
-                          optim=OptimSettings(steps=2, batch_size=8), logging=LoggingSettings(checkpoint_every=2),
-                          runtime=RuntimeSettings(threads=1, progress=False))
+    train = CellTraining.of(TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
+                                          optim=OptimSettings(steps=2, batch_size=8),
+                                          logging=LoggingSettings(checkpoint_every=2)))
     config = SuiteConfig(out=tmp_path / "suite", task="press_button", demos=(1,), variants=("action_only",),
                          seeds=(0, 1), recipe="plain", train=train, vision_steps=(), eval_episodes=1,
-                         diagnose_episodes=0, image_size=32, max_steps=6, progress=False)
+                         diagnose_episodes=0, image_size=32, max_steps=6,
+                         runtime=RuntimeSettings(threads=1, progress=False))
     held, other = Cell("action_only", 0, 1), Cell("action_only", 1, 1)
     held_folder = claim_folder(config.out, held) if holder == "suite" else config.out / "train" / held.name
     held_folder.mkdir(parents=True, exist_ok=True)
@@ -271,13 +273,13 @@ def test_recipe_gives_the_settings_every_cell_trains_with_and_flags_override_it(
     args, default = with_preset("bench suite", ["--recipe", "plain", "--train.optim.steps", "7", "--variants",
                                                 "dust_no_wm", "action_only_wide"])
     config = tyro.cli(SuiteConfig, args=args, default=default)
-    assert config.recipe == "plain" and config.train == dataclasses.replace(plain(), optim=dataclasses.replace(
-        plain().optim, steps=7))
+    assert config.recipe == "plain" and config.train == CellTraining.of(
+        dataclasses.replace(plain(), optim=dataclasses.replace(plain().optim, steps=7)))
     assert config.variants == ("dust_no_wm", "action_only_wide")
     args, default = with_preset("bench suite", ["--train.optim.steps", "7"])
     config = tyro.cli(SuiteConfig, args=args, default=default)
-    assert (config.recipe, config.train.policy, config.train.readout) == ("vision-readout", vision_readout().policy,
-                                                                          vision_readout().readout)
+    assert (config.recipe, config.train.policy, config.train.readout) == (
+        "vision-readout", CellTraining.of(vision_readout()).policy, vision_readout().readout)
     with pytest.raises(ConfigError, match="--preset applies to dust-rl train, not dust-rl bench suite"):
         with_preset("bench suite", ["--preset", "gpu-base"])
 

@@ -36,7 +36,7 @@ def test_the_machine_line_names_the_cpu_its_kernels_and_threads(monkeypatch):
 def test_train_speed_times_every_phase_of_the_recipe(tmp_path, capsys):
     out = tmp_path / "speed"
     args = ["bench", "train-speed", "--out", str(out), "--demos", "1", "--steps", "4", "--image-size", "32",
-            "--eval-episodes", "1", "--threads", "1", "--no-progress"]
+            "--eval-episodes", "1", "--runtime.threads", "1", "--runtime.no-progress"]
     main(args)
     result = json.loads((out / "train_speed.json").read_text())
     phases = {row["phase"]: row for row in result["rows"]}

@@ -62,11 +62,11 @@ def test_smaller_episode_count_keeps_every_episode(dataset_copy, capsys):
         assert len(dataset.episode(5)) == before[5]["length"]  # the rows are all still there
 
 
-@pytest.mark.parametrize("progress", ["--progress", "--no-progress"])
+@pytest.mark.parametrize("progress", ["--runtime.progress", "--runtime.no-progress"])
 def test_collection_progress_bars_can_be_turned_off(progress, dataset_copy, capsys):
     main([*collect_args(dataset_copy, episodes=4, task="press_button"), progress])  # one more episode
     assert DemoDataset(dataset_copy).meta["episodes_per_task"]["press_button"] == 4
-    assert ("collecting press_button" in capsys.readouterr().err) == (progress == "--progress")
+    assert ("collecting press_button" in capsys.readouterr().err) == (progress == "--runtime.progress")
 
 
 def test_bad_task_list_writes_nothing(dataset_copy, tmp_path):
@@ -163,14 +163,14 @@ def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
     policy = tiny_policy_file(tmp_path / "policy.pt", minilm)
     out = tmp_path / "eval"
     main(["eval", "--policy", str(policy), "--out", str(out), "--episodes", "1", "--workers", "1",
-          "--max-steps", "103", "--execute-steps", "3", "--videos", "0", "--no-progress"])  # default limit: 100
+          "--max-steps", "103", "--execute-steps", "3", "--videos", "0", "--runtime.no-progress"])  # default limit: 100
     report = json.loads((out / "report.json").read_text())
     assert report["env_kwargs"]["max_episode_steps"] == 103 and report["execute_steps"] == 3
     episode = report["tasks"][0]["per_episode"][0]
     assert (episode["success"], episode["length"]) == (False, 103)
     assert not list(out.glob(".*.tmp"))  # the report files were moved into place
     for args in (["--episodes", "0"], ["--max-steps", "0"], ["--tasks", "press_button", "fly"],
-                 ["--execute-steps", "0"], ["--device", "tpu"]):
+                 ["--execute-steps", "0"], ["--runtime.device", "tpu"]):
         error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"), *args])
     horizon = load_policy(policy).config.horizon
     assert "execute_steps must be in [1, " in error_of(["eval", "--policy", str(policy), "--out", str(tmp_path / "bad"),
@@ -179,7 +179,7 @@ def test_eval_max_steps_above_the_task_default_is_used(tmp_path, minilm):
     assert not (tmp_path / "bad").exists()
 
 
-EVAL_ARGS = ["--episodes", "1", "--workers", "1", "--max-steps", "5", "--no-progress"]
+EVAL_ARGS = ["--episodes", "1", "--workers", "1", "--max-steps", "5", "--runtime.no-progress"]
 
 
 def test_an_eval_folder_holds_one_evaluation_and_never_a_run(tmp_path, minilm):
@@ -214,12 +214,61 @@ def test_an_empty_out_is_refused_rather_than_the_current_folder(spelling, tmp_pa
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("args,old,new", [
+    (["eval", "--policy", "X", "--threads", "1"], "--threads", "--runtime.threads"),
+    (["collect", "--task", "press_button", "--episodes", "1", "--no-progress"], "--no-progress",
+     "--runtime.no-progress"),
+    (["finetune", "steer", "--policy", "X", "--device=cpu"], "--device", "--runtime.device"),
+    (["diagnose", "world-model", "--policy", "X", "--dataset", "d", "--precision", "bf16"], "--precision",
+     "--runtime.precision"),
+    (["bench", "train-speed", "--compile"], "--compile", "--runtime.compile"),
+    (["quickstart", "--progress"], "--progress", "--runtime.progress"),
+])
+def test_a_runtime_flag_of_earlier_versions_ends_in_one_line_naming_todays(args, old, new, tmp_path, monkeypatch):
+    """Every command's runtime settings are one group (`--runtime.*`): an earlier spelling is refused, naming
+    today's, before anything runs (no policy read, no folder made)."""
+    monkeypatch.chdir(tmp_path)
+    message = error_of([*args, "--out", str(tmp_path / "out")])
+    assert f"{old} is spelled {new}: every command's runtime settings are one group" in message
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("args", "new"), [(["train", "--dataset", "d", "--policy.d-model", "64"], "--model.d-model"),
+                                           (["quickstart", "--train.policy.variant=joint"], "--train.model.variant"),
+                                           (["bench", "suite", "--train.policy.lambda-wm", "0"],
+                                            "--train.model.lambda-wm")])
+def test_the_policy_built_is_the_model_group_and_its_earlier_spelling_is_refused(args, new, tmp_path, monkeypatch):
+    """`--policy PATH` is always a policy file; the policy a command builds is `--model.*`, and a setting spelled as
+    the group was before is refused naming today's flag, before anything runs."""
+    monkeypatch.chdir(tmp_path)
+    message = error_of([*args, "--out", str(tmp_path / "out")])
+    assert f"is spelled {new}: the policy a command builds is the group --model.*" in message
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("args", [["pretrain-encoder", "--dataset", "d", "--runtime.precision", "bf16"],
+                                  ["bench", "gpu", "--runtime.compile"]])
+def test_a_command_that_runs_at_fp32_refuses_another_precision_or_compilation(args, tmp_path):
+    """Its runtime group is every command's, but it cannot honour these two: refused, not ignored."""
+    message = error_of([*args, "--out", str(tmp_path / "out")])
+    assert "runs at fp32, uncompiled: drop --runtime." in message and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("command", [["quickstart"], ["bench", "suite"], ["finetune", "self-imitation"]])
+def test_a_nested_training_runs_under_the_commands_own_runtime(command, capsys):
+    """quickstart, bench suite and self-imitation's rounds train under the command's --runtime.*: the training's
+    own group is not offered."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([*command, "--train.runtime.threads", "1"])
+    assert exit_info.value.code == 2 and "--train.runtime.threads" in capsys.readouterr().err
+
+
 def test_pretrain_encoder_does_not_overwrite_a_policy(demo_dir, tmp_path, minilm):
     policy = tiny_policy_file(tmp_path / "policy.pt", minilm)
     before = policy.read_bytes()
     assert "is not a 'dust-rl-image-encoder' checkpoint file" in error_of(
         ["pretrain-encoder", "--dataset", str(demo_dir), "--out", str(policy), "--steps", "2", "--batch-size", "4",
-         "--image-size", "32", "--width", "8", "--dim", "16", "--device", "cpu"])
+         "--image-size", "32", "--width", "8", "--dim", "16", "--runtime.device", "cpu"])
     assert policy.read_bytes() == before
 
 
@@ -231,7 +280,7 @@ def test_a_policy_that_acts_nan_ends_eval_in_one_line_naming_it(workers, tmp_pat
     policy.normalizer.state_std.fill_(1e-30)
     path = save_policy(policy, tmp_path / "overflows.pt")
     message = error_of(["eval", "--policy", str(path), "--out", str(tmp_path / "eval"), "--episodes", "1",
-                        "--workers", workers, "--max-steps", "5", "--videos", "0", "--no-progress"])
+                        "--workers", workers, "--max-steps", "5", "--videos", "0", "--runtime.no-progress"])
     assert f"{path}: the policy's action holds NaN or infinity (at episode seed " in message
     assert not list((tmp_path / "eval").glob("report.*"))
 
@@ -239,7 +288,7 @@ def test_a_policy_that_acts_nan_ends_eval_in_one_line_naming_it(workers, tmp_pat
 @pytest.fixture
 def train_args(dataset_copy, tiny_encoder, tmp_path):
     encoder = save_image_encoder(tiny_encoder, tmp_path / "encoder.pt")
-    return ["train", "--dataset", str(dataset_copy), "--policy.image-encoder", str(encoder), "--runtime.threads", "1",
+    return ["train", "--dataset", str(dataset_copy), "--model.image-encoder", str(encoder), "--runtime.threads", "1",
             "--runtime.no-progress", "--logging.log-every", "1", "--logging.checkpoint-every", "1", *TINY_ARGS]
 
 
@@ -253,8 +302,8 @@ def test_train_refuses_bad_settings_before_writing(train_args, tmp_path, capsys)
                          (["--optim.batch-size", "7", "--runtime.nproc", "2"], "split evenly")):
         assert field in error_of([*train_args, "--out", str(out), *flags])
     # The nested policy settings are checked while tyro parses: a usage error (exit 2) naming the group and rule.
-    for flags, reason in ((["--policy.execute-steps", "9"], "execute_steps must be in [1, horizon=4], got 9"),
-                          (["--policy.n-heads", "3"], "d_model must be divisible by n_heads")):
+    for flags, reason in ((["--model.execute-steps", "9"], "execute_steps must be in [1, horizon=4], got 9"),
+                          (["--model.n-heads", "3"], "d_model must be divisible by n_heads")):
         with pytest.raises(SystemExit) as exit_info:
             main([*train_args, "--out", str(out), *flags])
         stderr = " ".join(capsys.readouterr().err.split())
@@ -299,9 +348,9 @@ def test_preset_sets_the_policy_size_over_the_recipe_and_flags_override_both(tra
     from dust_rl.cli import with_preset
     from dust_rl.train.imitation import TrainConfig
 
-    args, default = with_preset("train", ["--dataset", "d", "--preset", "gpu-base", "--policy.n-dit", "2",
+    args, default = with_preset("train", ["--dataset", "d", "--preset", "gpu-base", "--model.n-dit", "2",
                                           "--recipe=plain"])
-    assert args == ["--dataset", "d", "--policy.n-dit", "2"]
+    assert args == ["--dataset", "d", "--model.n-dit", "2"]
     config = tyro.cli(TrainConfig, args=args, default=default)
     gpu = POLICY_PRESETS["gpu-base"]
     assert (config.policy.d_model, config.policy.n_mmdit, config.policy.n_dit) == (gpu.d_model, gpu.n_mmdit, 2)
@@ -309,7 +358,7 @@ def test_preset_sets_the_policy_size_over_the_recipe_and_flags_override_both(tra
     assert with_preset("train", ["--help"]) == (["--help"], None)  # --help shows every setting's own default
     assert "one of ['cpu-small', 'gpu-base'], got huge" in error_of([*train_args, "--out", str(tmp_path / "r"),
                                                                         "--preset", "huge"])
-    assert "--recipe takes one of ['defaults', 'pick-place-readout', 'plain', 'vision-readout'], got fast" in \
+    assert "--recipe takes one of ['action-only', 'defaults', 'pick-place-readout', 'plain', 'vision-readout'], got fast" in \
         error_of([*train_args, "--out", str(tmp_path / "r"), "--recipe", "fast"])
     assert "--preset applies to dust-rl train, not dust-rl quickstart" in error_of(["quickstart", "--preset",
                                                                                   "gpu-base"])
@@ -350,7 +399,7 @@ def _fifo_policy(tmp_path, demo_dir) -> list[str]:
 
 def _odd_size_export(tmp_path, demo_dir) -> list[str]:
     main(["collect", "--task", "press_button", "--episodes", "1", "--image-size", "31", "--out", str(tmp_path / "ds"),
-          "--no-progress"])
+          "--runtime.no-progress"])
     return ["dataset", "export", str(tmp_path / "ds"), "--out", str(tmp_path / "lerobot")]
 
 

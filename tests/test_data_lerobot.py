@@ -21,7 +21,7 @@ from dust_rl.data.lerobot_import import import_lerobot
 from dust_rl.data.video import read_mp4
 from dust_rl.errors import ConfigError
 from dust_rl.train.imitation import TrainConfig, train
-from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
+from dust_rl.train.settings import LoggingSettings, OptimSettings, TrainRuntime
 
 IMAGE = ("observation", "image", "front")
 # The per-frame features any LeRobot v3 dataset has (besides its videos); no dust-rl extras.
@@ -196,7 +196,7 @@ def test_training_runs_on_a_plain_lerobot_import(plain_import, tiny_encoder, tmp
     result = train(TrainConfig(dataset=imported, out=tmp_path / "run", policy=tiny_policy(encoder),
                                optim=OptimSettings(steps=2, batch_size=8),
                                logging=LoggingSettings(log_every=1, checkpoint_every=2),
-                               runtime=RuntimeSettings(threads=1, progress=False)))
+                               runtime=TrainRuntime(threads=1, progress=False)))
     assert np.isfinite(result.final_loss)
     policy = load_policy(result.policy)
     assert policy.info["env_id"] == "DustFranka-v0" and policy.info["tasks"] == ["press_button"]

@@ -29,7 +29,7 @@ from dust_rl.agents import (
     make_policy,
     save_policy,
 )
-from dust_rl.agents.hf_vision import build_transformers_config
+from dust_rl.agents.encoders.hf_vision import build_transformers_config
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, DemoDataset, collect_demos
 from dust_rl.data.lerobot_export import EPISODES_FILE
@@ -37,7 +37,7 @@ from dust_rl.data.video import write_mp4
 from dust_rl.errors import CheckpointError
 from dust_rl.storage.memmap_io import check_memmap_dir
 from dust_rl.train.imitation import TrainConfig, train
-from dust_rl.train.settings import OptimSettings, RuntimeSettings
+from dust_rl.train.settings import OptimSettings, TrainRuntime
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -60,7 +60,7 @@ def _read_with(entry: str, root: pathlib.Path, tmp_path: pathlib.Path, encoder: 
     """Read the dataset at ``root`` the way one of the package's entry points does."""
     if entry == "train":
         train(TrainConfig(dataset=root, out=tmp_path / "run", policy=PolicyConfig(image_encoder=str(encoder)),
-                          optim=OptimSettings(steps=1), runtime=RuntimeSettings(threads=1, progress=False)))
+                          optim=OptimSettings(steps=1), runtime=TrainRuntime(threads=1, progress=False)))
     elif entry == "collect-resume":  # one more episode, then the consolidated rows are read back
         collect_demos(root, tasks=["press_button"], episodes=4, env_kwargs={"image_size": 32}, progress=False)
     else:

@@ -1,11 +1,11 @@
-"""``--device``: names resolve to what torch can use here, anything else is refused with the reason."""
+"""``--runtime.device``: names resolve to what torch can use here, anything else is refused with the reason."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from dust_rl.agents.flow_matching import cpu_drawn
+from dust_rl.agents.model.flow_matching import cpu_drawn
 from dust_rl.errors import ConfigError
 from dust_rl.runtime.device import resolve_device
 

@@ -42,7 +42,7 @@ def test_every_arm_runs_the_same_episodes_and_is_compared_with_all_cameras(tmp_p
     policy = save_policy(untrained, tmp_path / "policy.pt")
     out = tmp_path / "cameras"
     main(["diagnose", "cameras", "--policy", str(policy), "--out", str(out), "--episodes", "2", "--max-steps", "6",
-          "--workers", "1", "--no-progress"])
+          "--workers", "1", "--runtime.no-progress"])
     report = json.loads((out / "report.json").read_text())
     assert [row["arm"] for row in report["rows"]] == ["all cameras", "front as its mean", "wrist as its mean"]
     assert "vs_all" not in report["rows"][0] and all("vs_all" in row for row in report["rows"][1:])

@@ -10,13 +10,14 @@ import torch
 from conftest import make_tiny_encoder
 
 from dust_rl.agents import DustConfig, DustModel, SamplerConfig, random_batch
-from dust_rl.agents.samplers import action_only_schedule, async_schedule, run_schedule
+from dust_rl.agents.model.samplers import action_only_schedule, async_schedule, run_schedule
 from dust_rl.cli import main
 from dust_rl.data import DatasetError, collect_demos
 from dust_rl.diagnose.world_model import WorldModelDiagnosis, diagnose
 from dust_rl.errors import ConfigError
+from dust_rl.runtime.settings import RuntimeSettings
 from dust_rl.train.imitation import TrainConfig, train
-from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
+from dust_rl.train.settings import LoggingSettings, OptimSettings, TrainRuntime
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -98,7 +99,7 @@ def trained(demo_dir, tmp_path_factory):
     for variant in ("dust", "action_only"):
         config = TrainConfig(dataset=data, out=root / variant, optim=OptimSettings(steps=6, batch_size=8),
                              logging=LoggingSettings(checkpoint_every=6, loggers=("csv",)),
-                             runtime=RuntimeSettings(threads=1, progress=False),
+                             runtime=TrainRuntime(threads=1, progress=False),
                              policy=PolicyConfig(**TINY, variant=variant, image_encoder=str(encoder)))
         policies[variant] = train(config).policy
     return policies, data, shutil.copytree(demo_dir, root / "heldout")
@@ -108,7 +109,7 @@ def test_report_of_a_dust_policy(trained, tmp_path, capsys):
     policies, _, heldout = trained
     out = tmp_path / "report"
     main(["diagnose", "world-model", "--policy", str(policies["dust"]), "--dataset", str(heldout), "--out",
-          str(out), "--windows", "48", "--batch-size", "16", "--no-progress", "--threads", "1"])
+          str(out), "--windows", "48", "--batch-size", "16", "--runtime.no-progress", "--runtime.threads", "1"])
     report = json.loads((out / "report.json").read_text())
     assert set(report["oracle_future"]["conditions"]) == {"own", "true", "present", "noise", "other"}
     assert {"true - noise", "true - present"} <= set(report["oracle_future"]["paired_action_error"])
@@ -149,7 +150,7 @@ def test_resample_scores_the_policy_with_another_sampler(trained, tmp_path):
     the actions of the noise condition, which holds the vision stream still, take the same steps at q = 4 as at 1."""
     policies, _, heldout = trained
     args = ["diagnose", "world-model", "--policy", str(policies["dust"]), "--dataset", str(heldout), "--windows", "32",
-            "--batch-size", "16", "--no-progress", "--threads", "1"]
+            "--batch-size", "16", "--runtime.no-progress", "--runtime.threads", "1"]
     main([*args, "--out", str(tmp_path / "saved")])
     main([*args, "--out", str(tmp_path / "q4"), "resample", "--sampler", "async", "--vision-step-ratio", "4"])
     saved, q4 = (json.loads((tmp_path / name / "report.json").read_text()) for name in ("saved", "q4"))
@@ -166,13 +167,14 @@ def test_resample_scores_the_policy_with_another_sampler(trained, tmp_path):
     assert "sampler async (N_A 4, N_o 16)" in (tmp_path / "q4" / "report.md").read_text()
     with pytest.raises(ConfigError, match="does not apply"):
         diagnose(WorldModelDiagnosis(policy=policies["action_only"], dataset=heldout, out=tmp_path / "no",
-                                     windows=8, progress=False, sampling=SamplerConfig("async", 4, 2)))
+                                     windows=8, runtime=RuntimeSettings(progress=False),
+                                     sampling=SamplerConfig("async", 4, 2)))
 
 
 def test_an_action_only_policy_has_only_its_own_condition(trained, tmp_path):
     policies, _, heldout = trained
     report = diagnose(WorldModelDiagnosis(policy=policies["action_only"], dataset=heldout, out=tmp_path,
-                                          windows=16, progress=False))
+                                          windows=16, runtime=RuntimeSettings(progress=False)))
     assert list(report["oracle_future"]["conditions"]) == ["own"]
     assert "vision_stream" not in report
     assert "| task | windows | own action error |\n" in (tmp_path / "report.md").read_text()
@@ -181,7 +183,8 @@ def test_an_action_only_policy_has_only_its_own_condition(trained, tmp_path):
 def test_the_training_dataset_is_refused(trained, tmp_path):
     policies, data, _ = trained
     with pytest.raises(DatasetError, match="trained on"):
-        diagnose(WorldModelDiagnosis(policy=policies["dust"], dataset=data, out=tmp_path, windows=8, progress=False))
+        diagnose(WorldModelDiagnosis(policy=policies["dust"], dataset=data, out=tmp_path, windows=8,
+                                     runtime=RuntimeSettings(progress=False)))
 
 
 def test_a_dataset_of_other_frames_or_tasks_is_refused(trained, tmp_path):
@@ -191,7 +194,7 @@ def test_a_dataset_of_other_frames_or_tasks_is_refused(trained, tmp_path):
     with pytest.raises(DatasetError, match=r"frames: \[48, 48\] px, the policy was trained on \[32, 32\]; tasks "
                                            r"\['close_drawer'\], which the policy never trained on"):
         diagnose(WorldModelDiagnosis(policy=policies["dust"], dataset=other, out=tmp_path / "d", windows=8,
-                                     progress=False))
+                                     runtime=RuntimeSettings(progress=False)))
     assert not (tmp_path / "d").exists()
 
 

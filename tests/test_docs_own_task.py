@@ -27,9 +27,9 @@ TINY = {
     "demo": ["--episodes", "1", "--image-size", "32"],
     "collect": ["--episodes", "2", "--image-size", "32"],
     "train": ["--optim.steps", "5", "--runtime.threads", "1", "--runtime.no-progress",
-              "--policy.image-encoder", "encoder.pt", "--policy.cond-grid", "4", "4", "--policy.readout-grid", "4", "4",
+              "--model.image-encoder", "encoder.pt", "--model.cond-grid", "4", "4", "--model.readout-grid", "4", "4",
               *[arg for arg in TINY_ARGS if not arg.startswith("--recipe")]],
-    "eval": ["--episodes", "1", "--workers", "1", "--videos", "0", "--no-progress"],
+    "eval": ["--episodes", "1", "--workers", "1", "--videos", "0", "--runtime.no-progress"],
 }
 # Runs each command of the page through the launcher's main(), in one interpreter.
 DRIVER = """

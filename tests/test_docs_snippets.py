@@ -97,3 +97,15 @@ def test_readme_uses_only_dust_rl_commands_that_exist():
               "        assert exit.code in (0, None), (name, exit.code)\n")
     done = subprocess.run([sys.executable, "-c", script, *sorted(used)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
+
+
+def test_readme_commands_give_runtime_settings_as_the_runtime_group():
+    """The runtime flags of earlier versions (`--threads 1`, `--no-progress`, a nested training's
+    `--train.runtime.threads`) fail today; the README's dust-rl commands spell them `--runtime.*`."""
+    from dust_rl.cli import REGROUPED_FLAGS
+
+    stale = [(block.line, arg) for block in code_blocks(README, "bash") for line in shell_commands(block.code)
+             if COMMAND.search(line) for arg in line.split()
+             if arg.partition("=")[0] in REGROUPED_FLAGS or arg.startswith("--train.runtime.")]
+    assert stale == []
+    assert any("--runtime.threads" in block.code for block in code_blocks(README, "bash"))  # the check sees them

@@ -28,11 +28,13 @@ from dust_rl.evaluate.report import plot_loss_curves, read_scalar_csv
 from dust_rl.evaluate.resampling import describe_sampler
 from dust_rl.evaluate.video import LABEL_HEIGHT, future_decoder
 from dust_rl.keys import ACTION_CHUNK_KEY
+from dust_rl.runtime.settings import RuntimeSettings
 from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 IMAGE = 32
+QUIET = RuntimeSettings(threads=1, progress=False)  # dust-rl eval's one thread per worker, no progress bars
 SIZES = dict(horizon=6, d_model=32, n_heads=2, n_mmdit=2, n_dit=1, state_dim=17)
 INFO = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": IMAGE}, "tasks": ["press_button"],
         "image_size": [IMAGE, IMAGE]}
@@ -66,7 +68,7 @@ def policy_path(tmp_path_factory, minilm) -> pathlib.Path:
 @pytest.fixture(scope="module")
 def eval_config(policy_path, tmp_path_factory) -> EvalConfig:
     return EvalConfig(policy=policy_path, out=tmp_path_factory.mktemp("eval"), episodes=2, workers=1, max_steps=10,
-                      videos=1, progress=False)
+                      videos=1, runtime=QUIET)
 
 
 @pytest.fixture(scope="module")
@@ -181,7 +183,7 @@ def test_a_policy_for_other_frames_or_cameras_is_refused(tmp_path, minilm):
     # Trained on 32 px frames (as recorded at training), its info edited to ask for a 64 px env.
     claims_64 = tiny_policy_file(tmp_path / "claims_64.pt", minilm,
                                  info={**INFO, "env_kwargs": {"image_size": 64}, "image_size": [32, 32]})
-    config = EvalConfig(policy=claims_64, out=tmp_path / "eval", episodes=1, max_steps=5, progress=False)
+    config = EvalConfig(policy=claims_64, out=tmp_path / "eval", episodes=1, max_steps=5, runtime=QUIET)
     with pytest.raises(CheckpointError, match=r"image size: policy was trained on \[32, 32\] px frames, env renders "
                                               r"\[64, 64\]"):
         evaluate(config)
@@ -239,7 +241,7 @@ def test_loss_curves_keep_the_last_value_of_a_repeated_step(tmp_path):
 
 def test_the_executor_samples_a_chunk_where_the_replanning_rule_says(policy_path, tmp_path):
     config = EvalConfig(policy=policy_path, out=tmp_path, episodes=1, workers=1, max_steps=10, videos=0,
-                        execute_steps=4, progress=False)
+                        execute_steps=4, runtime=QUIET)
     policy, setup = prepare(config)
     with eval_collector(setup, "press_button", policy, config.worker_pool(), config.seed) as collector:
         (episode,), kept = run_task(collector, range(config.seed, config.seed + 1), tqdm(disable=True), keep=1)

@@ -43,8 +43,9 @@ from dust_rl.rl.critic_limits import LayerNormReLU
 from dust_rl.rl.finetune import RL_AGENT_KIND, build_agent, finetune, finetune_env_factory
 from dust_rl.rl.self_imitation import ROUND_SECONDS, _add_seconds, control_row
 from dust_rl.rl.vector import SB3SteeringVecEnv
+from dust_rl.runtime.settings import RuntimeSettings
 from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
-from dust_rl.storage.config_json import config_json
+from dust_rl.storage.config_json import config_from_json, config_json
 from dust_rl.storage.lock import FolderLockedError, folder_lock
 from dust_rl.storage.run_folder import RunRNGState, restore
 from dust_rl.train.imitation import NonFiniteLossError
@@ -53,6 +54,7 @@ from dust_rl.train.settings import LoggingSettings, OptimSettings
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 EPISODE_STEPS = 10
+QUIET = RuntimeSettings(threads=1, progress=False)
 METHODS = {"steer": SteerConfig, "residual": ResidualConfig}
 
 DSRL = {"reward": "penalty", "finite_horizon": True, "noise_bound": 1.5, "latent": LatentSettings(7),
@@ -84,7 +86,7 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
     settings = SacSettings(learning_starts=4) if algorithm == "sac" else PpoSettings()
     config = METHODS[method](policy=policy_path, out=tmp_path / "ft", algorithm=settings, steps=8, reward=reward,
                              batch_size=4, net_arch=(16,), eval_episodes=2, max_steps=EPISODE_STEPS, eval_every=4,
-                             curve_episodes=1, progress=False)
+                             curve_episodes=1, runtime=QUIET)
     report = finetune(config, command="dust-rl finetune ...")
     # Steering also runs the base policy at the centre of its noise, where a deterministic steering agent starts.
     assert [row["episodes"] for row in report["rows"]] == [2] * (3 if method == "steer" else 2)
@@ -99,7 +101,7 @@ def test_finetune_trains_saves_and_compares_with_the_evaluated_policy(method, al
     assert (tmp_path / "ft" / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
     # The base row is the policy's own evaluation, episode for episode (same seeds, same noise, same actions).
     evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", episodes=2, workers=1, videos=0,
-                                    max_steps=EPISODE_STEPS, seed=config.eval_seed, progress=False))
+                                    max_steps=EPISODE_STEPS, seed=config.eval_seed, runtime=QUIET))
     assert report["per_episode"]["base policy"] == evaluated["tasks"][0]["per_episode"]
     agent = load_checkpoint(tmp_path / "ft" / "rl_agent.pt", RL_AGENT_KIND)
     assert agent["config"]["method"] == method and all(torch.isfinite(v).all() for v in agent["state_dict"].values())
@@ -124,7 +126,7 @@ def assert_eval_runs_the_agent(report: dict, tmp_path: pathlib.Path, seed: int) 
     hidden = policy_dir.rename(policy_dir.with_name(policy_dir.name + "_moved"))  # the file must not need the base's
     try:
         main(["eval", "--policy", str(tmp_path / "ft" / "rl_agent.pt"), "--out", str(tmp_path / "eval_agent"),
-              "--episodes", "2", "--seed", str(seed), "--videos", "1", "--no-progress"])
+              "--episodes", "2", "--seed", str(seed), "--videos", "1", "--runtime.no-progress"])
     finally:
         hidden.rename(policy_dir)
     evaluated = json.loads((tmp_path / "eval_agent" / "report.json").read_text())
@@ -154,7 +156,7 @@ def test_eval_of_an_rl_agent_file_says_what_it_cannot_run(tmp_path):
 def test_dsrl_design_trains_saves_and_its_actor_acts_without_the_object_state(policy_path, tmp_path):
     config = SteerConfig(policy=policy_path, out=tmp_path / "ft", steps=8, batch_size=4, net_arch=(16, 16),
                          layer_norm=True, eval_episodes=2, max_steps=EPISODE_STEPS, eval_every=4, curve_episodes=1,
-                         progress=False, algorithm=SacSettings(learning_starts=4, updates_per_step=2), **DSRL)
+                         runtime=QUIET, algorithm=SacSettings(learning_starts=4, updates_per_step=2), **DSRL)
     report = finetune(config, command="dust-rl finetune ...")
     assert [row["episodes"] for row in report["rows"]] == [2, 2, 2]  # base, noise centre, fine-tuned
     curve = json.loads((tmp_path / "ft" / "learning_curve.json").read_text())
@@ -181,7 +183,7 @@ def test_dsrl_design_trains_saves_and_its_actor_acts_without_the_object_state(po
 
 def test_ppo_rolls_out_n_steps_over_all_envs(policy_path):
     config = SteerConfig(policy=policy_path, steps=8, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
-                         progress=False, algorithm=PpoSettings(n_steps=8, n_epochs=1),
+                         runtime=QUIET, algorithm=PpoSettings(n_steps=8, n_epochs=1),
                          collection=SteeringCollection(envs=2))
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
@@ -195,7 +197,7 @@ def test_ppo_rolls_out_n_steps_over_all_envs(policy_path):
 def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path):
     settings = SacSettings(learning_starts=8) if algorithm == "sac" else PpoSettings()
     config = ResidualConfig(policy=policy_path, algorithm=settings, steps=16, batch_size=4, net_arch=(16,),
-                            max_steps=EPISODE_STEPS, initial_std=0.05, progress=False)
+                            max_steps=EPISODE_STEPS, initial_std=0.05, runtime=QUIET)
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
@@ -213,7 +215,7 @@ def test_initial_std_starts_the_agent_at_the_base_policy(algorithm, policy_path)
 
 def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_path):
     config = SteerConfig(policy=policy_path, steps=12, batch_size=4, net_arch=(16,), max_steps=EPISODE_STEPS,
-                         initial_std=0.5, progress=False,
+                         initial_std=0.5, runtime=QUIET,
                          algorithm=SacSettings(learning_starts=4, target_entropy=0.0, initial_alpha=0.01,
                                                updates_per_step=3))
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
@@ -232,7 +234,7 @@ def test_a_learnt_entropy_moves_the_std_that_starts_at_the_base_policy(policy_pa
 
 def test_layer_norm_caps_the_critic_off_its_data(policy_path):
     config = SteerConfig(policy=policy_path, steps=8, net_arch=(16, 16), layer_norm=True, max_steps=EPISODE_STEPS,
-                         progress=False)
+                         runtime=QUIET)
     env = finetune_env_factory(config, load_policy(policy_path))[0]()
     agent = build_agent(config, env)
     obs, _ = env.reset(seed=0)
@@ -291,20 +293,20 @@ def test_bad_finetune_settings_are_named(policy_path, tmp_path):
     with pytest.raises(ConfigError, match=r"--latent-dim: latent_dim must be in \[1, 28\]"):
         finetune_env_factory(SteerConfig(policy=policy_path, latent=LatentSettings(29)), load_policy(policy_path))
     with pytest.raises(ConfigError, match="unknown device 'tpu'"):
-        ResidualConfig(policy=policy_path, device="tpu")
+        ResidualConfig(policy=policy_path, runtime=RuntimeSettings(device="tpu"))
     with pytest.raises(ConfigError, match="no_such_task"):
-        finetune(SteerConfig(policy=policy_path, out=tmp_path, task="no_such_task", progress=False))
+        finetune(SteerConfig(policy=policy_path, out=tmp_path, task="no_such_task", runtime=QUIET))
     busy = tmp_path / "busy"
     busy.mkdir()
     with folder_lock(busy), pytest.raises(FolderLockedError, match=f"pid {os.getpid()}"):  # as a run holds it
-        finetune(SteerConfig(policy=policy_path, out=busy, steps=8, progress=False))
+        finetune(SteerConfig(policy=policy_path, out=busy, steps=8, runtime=QUIET))
     assert [p.name for p in busy.iterdir()] == [".lock"]
 
 
 def test_a_finished_ppo_run_resumes_to_a_larger_budget_and_sac_refuses(policy_path, tmp_path):
     config = ResidualConfig(policy=policy_path, out=tmp_path / "ppo", algorithm=PpoSettings(n_steps=8), steps=8,
                             batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
-                            checkpoint_every=8, progress=False)
+                            checkpoint_every=8, runtime=QUIET)
     first = finetune(config)
     saved = Checkpoint.manifest(CheckpointRotation(config.out / "checkpoints", keep_last=2).latest())["metadata"]
     began = time.perf_counter()
@@ -330,12 +332,13 @@ def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path, desi
     settings = {"steps": 120, "checkpoint_every": 8, "batch_size": 4, "net_arch": (16,), "eval_episodes": 1,
                 "max_steps": EPISODE_STEPS}
     dsrl = design == "dsrl"
-    reference = SteerConfig(policy=policy_path, out=tmp_path / "ref", progress=False,
+    reference = SteerConfig(policy=policy_path, out=tmp_path / "ref", runtime=QUIET,
                             algorithm=SacSettings(learning_starts=4, updates_per_step=2 if dsrl else 1),
                             **settings, **(DSRL if dsrl else {}))
     finetune(reference)
     out = tmp_path / "killed"
-    args = ["finetune", "steer", "--policy", str(policy_path), "--out", str(out), "--no-progress", "--threads", "1"]
+    args = ["finetune", "steer", "--policy", str(policy_path), "--out", str(out), "--runtime.no-progress",
+            "--runtime.threads", "1"]
     for key, value in settings.items():
         args += [f"--{key.replace('_', '-')}", *map(str, value if isinstance(value, tuple) else (value,))]
     args += [*(DSRL_FLAGS if dsrl else []), "sac", "--learning-starts", "4",
@@ -366,7 +369,7 @@ def test_resume_after_kill_loses_and_repeats_no_step(policy_path, tmp_path, desi
 
 def test_self_imitation_rolls_out_the_policy_on_fresh_seeds(policy_path, demo_dir, tmp_path):
     config = SelfImitationConfig(policy=policy_path, out=tmp_path / "ft", rollout_successes=1, max_steps=EPISODE_STEPS,
-                                 curve_episodes=1, progress=False)
+                                 curve_episodes=1, runtime=QUIET)
     with pytest.raises(ConfigError, match="pass --demos"):  # the policy file names no training dataset
         finetune(config)
     # An untrained policy never succeeds: the first round's collection gives up, its rollouts kept on disk.
@@ -397,7 +400,7 @@ def test_the_control_is_the_base_fine_tuned_as_long_on_its_demonstrations_alone(
     config = SelfImitationConfig(policy=policy_path, out=tmp_path / "ft", demos=demo_dir, rounds=2, seed=3,
                             train=RoundTraining(optim=OptimSettings(steps=2, lr=1e-4, batch_size=4),
                                                 logging=LoggingSettings(log_every=1)),
-                            eval_episodes=1, max_steps=EPISODE_STEPS, progress=False)
+                            eval_episodes=1, max_steps=EPISODE_STEPS, runtime=QUIET)
     name, row = control_row(config)
     assert name == "demonstrations alone (4 steps, the control)"  # two rounds of two steps
     trained = json.loads((tmp_path / "ft" / "control" / "steps-4" / "config.json").read_text())["config"]
@@ -420,7 +423,7 @@ def sac_run(policy_path, tmp_path_factory) -> SteerConfig:
     """A finished SAC steering run of 8 steps, checkpointed at 4 and 8 (tests that change it put it back)."""
     config = SteerConfig(policy=policy_path, out=tmp_path_factory.mktemp("sac") / "ft", steps=8, checkpoint_every=4,
                          algorithm=SacSettings(learning_starts=2), batch_size=4, net_arch=(16,), eval_episodes=1,
-                         max_steps=EPISODE_STEPS, progress=False)
+                         max_steps=EPISODE_STEPS, runtime=QUIET)
     finetune(config)
     return config
 
@@ -454,7 +457,7 @@ def test_eval_of_a_tampered_rl_agent_file_ends_in_one_line_naming_it(sac_run, tm
     edit, problem = TAMPERED_AGENTS[case]
     agent = _tampered_agent(sac_run, tmp_path / "rl_agent.pt", edit)
     assert f"{agent}: {problem}" in error_of(["eval", "--policy", str(agent), "--out", str(tmp_path / "eval"),
-                                             "--episodes", "1", "--no-progress"])
+                                             "--episodes", "1", "--runtime.no-progress"])
 
 
 def _forge(checkpoint: pathlib.Path, entry: str, value: object) -> None:
@@ -508,7 +511,7 @@ def test_a_forged_replay_buffer_or_step_counter_is_refused_on_resume(sac_run, tm
 def test_diverging_rl_training_stops_before_non_finite_weights_act_or_are_saved(policy_path, tmp_path):
     config = SteerConfig(policy=policy_path, out=tmp_path / "ft", steps=16, checkpoint_every=8, lr=1e30,
                          algorithm=SacSettings(learning_starts=8), batch_size=4, net_arch=(16,), eval_episodes=1,
-                         max_steps=EPISODE_STEPS, progress=False)
+                         max_steps=EPISODE_STEPS, runtime=QUIET)
     with pytest.raises(NonFiniteLossError, match=r"training diverged at step 9: NaN or infinity in the RL agent's "
                                                  r"weights .*no rl_agent\.pt was written and the newest checkpoint, "
                                                  r"checkpoint-000000000008, is intact; lower --lr"):
@@ -522,7 +525,7 @@ def test_diverging_rl_training_stops_before_non_finite_weights_act_or_are_saved(
 def test_a_pickle_grafted_into_a_finetune_checkpoint_never_runs_on_resume(policy_path, tmp_path):
     config = ResidualConfig(policy=policy_path, out=tmp_path / "ppo", algorithm=PpoSettings(n_steps=8), steps=8,
                             batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
-                            checkpoint_every=8, progress=False)
+                            checkpoint_every=8, runtime=QUIET)
     finetune(config)
     agent_file = (config.out / "rl_agent.pt").read_bytes()
     latest = CheckpointRotation(config.out / "checkpoints", keep_last=2).latest()
@@ -539,7 +542,7 @@ def test_a_full_disk_at_a_checkpoint_ends_fine_tuning_in_one_line(policy_path, t
     monkeypatch.setattr(shutil, "disk_usage", lambda path: real(path)._replace(free=0))
     config = ResidualConfig(policy=policy_path, out=tmp_path / "ppo", algorithm=PpoSettings(n_steps=8), steps=8,
                             batch_size=4, net_arch=(16,), eval_episodes=1, max_steps=EPISODE_STEPS,
-                            checkpoint_every=8, progress=False)
+                            checkpoint_every=8, runtime=QUIET)
     with pytest.raises(NoSpaceError, match=f"no space left on device while fine-tuning into {config.out} "):
         finetune(config)
     assert not list((config.out / "checkpoints").glob(".*"))  # no half-written checkpoint left
@@ -574,13 +577,15 @@ def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
     assert "--n-steps" in ppo and "--updates-per-step" not in ppo
     rounds = help_of("self-imitation")
     assert "--train.optim.steps" in rounds and "--train.policy" not in rounds and "--train.init-policy" not in rounds
+    # The rounds run under the run's own --runtime.* (one group, not a second one of the rounds').
+    assert "--runtime.threads" in rounds and "--train.runtime" not in rounds
 
 
 def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own_settings():
     old = {"method": "residual", "policy": "p.pt", "out": "runs/ft", "algorithm": "ppo", "n_steps": 512,
            "n_epochs": 3, "gradient_steps": 1, "net_arch": [16], "world_model_obs": True, "learning_rate": 1e-3}
-    config = rl_config_from_json(old, device="cpu")
-    assert isinstance(config, ResidualConfig) and config.world_model_obs and config.device == "cpu"
+    config = rl_config_from_json(old, runtime=RuntimeSettings(device="cpu"))
+    assert isinstance(config, ResidualConfig) and config.world_model_obs and config.runtime.device == "cpu"
     assert config.lr == 1e-3  # the learning rate's earlier name
     assert config.algorithm == PpoSettings(n_steps=512, n_epochs=3) and config.net_arch == (16,)
     new = SteerConfig(policy=pathlib.Path("p.pt"), algorithm=SacSettings(initial_alpha=0.5))
@@ -590,12 +595,27 @@ def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own
     assert read.algorithm.updates_per_step == 5 and read.collection == SteeringCollection()
 
 
+def test_a_run_config_from_before_the_runtime_group_reads_its_threads_device_and_progress_into_it():
+    """Runs stored before every command's runtime settings were one group kept `threads`, `device` and `progress`
+    beside the other settings (`--threads 2`); they read back as `runtime`, where today's run keeps them."""
+    runtime = RuntimeSettings(threads=2, device="cpu", progress=False)
+    today = config_json(SteerConfig(policy=pathlib.Path("p.pt"), runtime=runtime))
+    flat = {"threads": 2, "device": "cpu", "progress": False}
+    before = {**{k: v for k, v in today.items() if k != "runtime"}, **flat}
+    assert as_this_version(before)["runtime"] == flat and not set(flat) & set(as_this_version(before))
+    read = rl_config_from_json(before)
+    assert read.runtime == runtime and read == rl_config_from_json(today)
+    rounds = SelfImitationConfig(policy=pathlib.Path("p.pt"), runtime=runtime)  # as a resumed run reads it back
+    stored = {**{k: v for k, v in config_json(rounds).items() if k != "runtime"}, **flat}
+    assert config_from_json(SelfImitationConfig, as_this_version(stored)) == rounds
+
+
 @pytest.mark.parametrize("algorithm,name,value,other", [(SacSettings(), "q_bounds", None, [0.0, 1.0]),
                                                         (PpoSettings(), "target_kl", None, 0.01),
                                                         (PpoSettings(), "critic_warmup", 0, 1024)])
 def test_a_retired_sb3_setting_reads_back_at_the_value_every_run_now_has_only(algorithm, name, value, other,
                                                                              policy_path, tmp_path):
-    config = ResidualConfig(policy=policy_path, out=tmp_path / "ft", algorithm=algorithm, progress=False)
+    config = ResidualConfig(policy=policy_path, out=tmp_path / "ft", algorithm=algorithm, runtime=QUIET)
     today = config_json(config)
 
     def stored(setting: object) -> dict:  # as an rl_agent.pt or config.json of before holds the run's settings
@@ -626,7 +646,7 @@ def test_bench_steer_speed_times_collection_and_updates_for_each_env_count(polic
     from dust_rl.cli import main
 
     main(["bench", "steer-speed", "--policy", str(policy_path), "--envs", "1", "2", "--rl-steps", "2", "--updates", "2",
-          "--batch-size", "4", "--net-arch", "16", "--max-steps", str(EPISODE_STEPS), "--device", "cpu"])
+          "--batch-size", "4", "--net-arch", "16", "--max-steps", str(EPISODE_STEPS), "--runtime.device", "cpu"])
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("| envs | RL steps | env steps/s") and len(lines) == 4
     rows = [line.split("|")[1:-1] for line in lines[2:]]

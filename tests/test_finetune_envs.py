@@ -24,6 +24,7 @@ from dust_rl.rl.start_at_base import BaseWarmupSAC
 from dust_rl.rl.steering import NoiseSteeringEnv, latent_map, prior_latents
 from dust_rl.rl.torchrl_sac import FIXED_STD_ALPHA, sac_critic, torchrl_env, train_sac
 from dust_rl.rl.vector import GymSteeringVectorEnv, SB3SteeringVecEnv
+from dust_rl.runtime.settings import RuntimeSettings
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -302,7 +303,8 @@ def runner_episodes(policy, tmp_path, actor, seeds: range) -> list[Episode]:
     policy.info = {"env_id": "DustFranka-v0", "env_kwargs": {"image_size": IMAGE}, "tasks": ["press_button"],
                    "image_size": [IMAGE, IMAGE]}
     config = EvalConfig(policy=save_policy(policy, tmp_path / "policy.pt"), episodes=len(seeds), seed=seeds.start,
-                        workers=1, videos=0, max_steps=RUNNER_STEPS, device="cpu", progress=False)
+                        workers=1, videos=0, max_steps=RUNNER_STEPS,
+                        runtime=RuntimeSettings(device="cpu", progress=False))
     return evaluate_task(eval_setup(config, policy), "press_button", policy, config, actor)[0]
 
 
@@ -368,7 +370,8 @@ def test_the_runner_names_a_bad_agent_action_and_keeps_a_live_actor_in_this_proc
     residual = ResidualEnv(env.env, policy)
     with pytest.raises(ValueError, match="NaN"):
         runner_episodes(policy, tmp_path, residual.closed_loop_actor(lambda obs: np.full(7, np.nan)), range(1))
-    config = EvalConfig(policy=tmp_path / "policy.pt", workers=2, videos=0, device="cpu", progress=False)
+    config = EvalConfig(policy=tmp_path / "policy.pt", workers=2, videos=0,
+                        runtime=RuntimeSettings(device="cpu", progress=False))
     with pytest.raises(ValueError, match="runs in one local worker, not 2"):
         eval_collector(eval_setup(config, policy), "press_button", policy, config.worker_pool(), 0,
                        env.closed_loop_actor(lambda obs: np.zeros(28, np.float32)))

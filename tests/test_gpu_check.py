@@ -9,11 +9,12 @@ import pytest
 
 from dust_rl.bench.gpu_check import CheckFailedError, GpuCheckConfig, gpu_check_command
 from dust_rl.cli import main
+from dust_rl.runtime.settings import RuntimeSettings
 
 
 def test_every_section_runs_and_resume_matches(tmp_path, capsys):
     out = tmp_path / "check"
-    main(["bench", "gpu", "--size", "tiny", "--device", "cpu", "--out", str(out), "--no-progress"])
+    main(["bench", "gpu", "--size", "tiny", "--runtime.device", "cpu", "--out", str(out), "--runtime.no-progress"])
     results = json.loads((out / "results.json").read_text())
     rows = results["rows"]
     assert {row["section"] for row in rows} == {"train", "latency", "ddp", "eval"}
@@ -27,15 +28,15 @@ def test_every_section_runs_and_resume_matches(tmp_path, capsys):
 def test_failing_row_is_reported_and_the_rest_runs(tmp_path):
     out = tmp_path / "check"
     with pytest.raises(CheckFailedError, match="eval"):  # eval needs the policy the skipped ddp section trains
-        gpu_check_command(GpuCheckConfig(out=out, device="cpu", size="tiny", sections=("eval", "latency"),
-                                         progress=False))
+        gpu_check_command(GpuCheckConfig(out=out, size="tiny", sections=("eval", "latency"),
+                                         runtime=RuntimeSettings(device="cpu", progress=False)))
     rows = json.loads((out / "results.json").read_text())["rows"]
     assert [row["status"] for row in rows] == ["failed"] + ["ok"] * (len(rows) - 1) and len(rows) > 1
     assert "ddp section trains the policy" in rows[0]["detail"]
 
 
 def test_spent_budget_skips_rows(tmp_path):
-    gpu_check_command(GpuCheckConfig(out=tmp_path, device="cpu", size="tiny", sections=("latency",), budget_s=0,
-                                     progress=False))
+    gpu_check_command(GpuCheckConfig(out=tmp_path, size="tiny", sections=("latency",), budget_s=0,
+                                     runtime=RuntimeSettings(device="cpu", progress=False)))
     rows = json.loads((tmp_path / "results.json").read_text())["rows"]
     assert rows and all(row["status"] == "skipped" for row in rows)

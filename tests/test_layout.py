@@ -30,6 +30,14 @@ FORBIDDEN = {
     "dust_rl.evaluate": {"dust_rl.train", "dust_rl.rl", "dust_rl.bench"},
     "dust_rl.train": {"dust_rl.rl", "dust_rl.bench"},
 }
+# Inside the agents, what each subpackage may import of the agents besides itself. The frozen encoders and the trunk
+# read only the config (size caps, DustConfig); the heads read the encoders' outputs too. None imports the policy,
+# the factory or the package's top level, which put them together.
+AGENT_PARTS = {
+    "dust_rl.agents.encoders": {"dust_rl.agents.config"},
+    "dust_rl.agents.model": {"dust_rl.agents.config"},
+    "dust_rl.agents.heads": {"dust_rl.agents.config", "dust_rl.agents.encoders"},
+}
 
 
 def modules() -> dict[str, pathlib.Path]:
@@ -98,6 +106,10 @@ def package_of(module: str) -> str:
     return ".".join(module.split(".")[:2])
 
 
+def within(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
 def package_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
     packages: dict[str, set[str]] = {}
     for name, targets in graph.items():
@@ -127,6 +139,15 @@ def test_layers_import_only_downwards(graph, package):
     upward = sorted((name, target) for name, targets in graph.items() if package_of(name) == package
                     for target in targets if package_of(target) in FORBIDDEN[package])
     assert upward == []
+
+
+@pytest.mark.parametrize("part", sorted(AGENT_PARTS))
+def test_agent_parts_import_only_what_they_build_on(graph, part):
+    allowed = {part, *AGENT_PARTS[part]}
+    members = [name for name in graph if within(name, part)]
+    stray = sorted((name, target) for name in members for target in graph[name]
+                   if within(target, "dust_rl.agents") and not any(within(target, a) for a in allowed))
+    assert len(members) > 1 and stray == []
 
 
 def test_the_checks_see_a_circle():

@@ -77,6 +77,24 @@ def test_constraints_pin_only_what_pyproject_asks_for():
     assert not stray, f"constraints.txt pins packages pyproject.toml does not ask for: {stray}"
 
 
+def test_every_package_folder_and_its_data_is_in_the_wheel():
+    """pyproject lists the packages one by one: a subpackage missing from the list, or a package-data pattern that
+    matches nothing, would be left out of a wheel while the editable install works."""
+    tomllib = pytest.importorskip("tomllib")
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    folders = setuptools["package-dir"]
+
+    def folder(package: str) -> pathlib.Path:
+        root = max((p for p in folders if package == p or package.startswith(p + ".")), key=len)
+        return ROOT / folders[root] / pathlib.Path(*package.removeprefix(root).split(".")[1:])
+
+    found = {".".join([package, *init.parent.relative_to(ROOT / path).parts])
+             for package, path in folders.items() for init in (ROOT / path).rglob("__init__.py")}
+    assert found == set(setuptools["packages"])
+    for package, patterns in setuptools["package-data"].items():
+        assert all(list(folder(package).glob(pattern)) for pattern in patterns), (package, patterns)
+
+
 def test_setup_installs_with_the_constraints_and_reinstalls_when_they_change():
     setup = (ROOT / "scripts" / "setup.sh").read_text()
     stamp = next(line for line in setup.splitlines() if line.startswith("want="))

@@ -14,8 +14,8 @@ from safetensors.torch import load_file, save_file
 from test_agents_policy import observation, perturb, tiny_policy
 
 from dust_rl.agents import DustPolicy, SamplerConfig, load_policy, save_policy
+from dust_rl.agents.encoders.text_encoder import minilm_path
 from dust_rl.agents.factory import POLICY_KIND
-from dust_rl.agents.text_encoder import minilm_path
 from dust_rl.errors import CheckpointError
 from dust_rl.storage.checkpoint_files import CONFIG_FILE, MAX_CONFIG_BYTES, WEIGHTS_FILE
 

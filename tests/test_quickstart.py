@@ -17,9 +17,9 @@ def test_quickstart_then_eval_command(tiny_encoder, tmp_path, capsys):
     out = tmp_path / "qs"
     args = ["quickstart", "--out", str(out), "--task", "press_button", "--demos", "2", "--train.optim.steps", "4",
             "--train.optim.batch-size", "8", "--eval-episodes", "1", "--image-size", "32",
-            "--train.policy.image-encoder", str(encoder), "--train.policy.cond-grid", "4", "4",
-            "--train.policy.readout-grid", "4", "4", "--train.readout.aux-frames", "8",
-            "--train.readout.warmup-steps", "2", "--train.runtime.threads", "1", "--no-progress"]
+            "--train.model.image-encoder", str(encoder), "--train.model.cond-grid", "4", "4",
+            "--train.model.readout-grid", "4", "4", "--train.readout.aux-frames", "8",
+            "--train.readout.warmup-steps", "2", "--runtime.threads", "1", "--runtime.no-progress"]
     main(args)
     printed = capsys.readouterr().out
     assert "press_button: " in printed and str(out / "eval" / "report.md") in printed
@@ -47,6 +47,6 @@ def test_quickstart_then_eval_command(tiny_encoder, tmp_path, capsys):
     assert (out / "data" / "meta.json").read_text() == meta
 
     main(["eval", "--policy", str(out / "train" / "policy.pt"), "--out", str(tmp_path / "eval"), "--episodes", "1",
-          "--workers", "1", "--max-steps", "5", "--videos", "0", "--no-progress"])
+          "--workers", "1", "--max-steps", "5", "--videos", "0", "--runtime.no-progress"])
     assert "overall: " in capsys.readouterr().out
     assert json.loads((tmp_path / "eval" / "report.json").read_text())["tasks"][0]["mean_length"] <= 5

@@ -17,6 +17,7 @@ from test_evaluate import tiny_policy_file
 from dust_rl.data import DemoDataset, collect_demos
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.runtime.settings import RuntimeSettings
 from dust_rl.runtime.workers import Workers
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -46,7 +47,7 @@ def test_missing_ray_says_how_to_install(monkeypatch):
 def test_ray_evaluation_runs_the_local_episodes(tmp_path, minilm):
     pytest.importorskip("ray")
     config = EvalConfig(policy=tiny_policy_file(tmp_path / "policy.pt", minilm), out=tmp_path / "local", episodes=4,
-                        workers=1, max_steps=10, videos=1, progress=False)
+                        workers=1, max_steps=10, videos=1, runtime=RuntimeSettings(progress=False))
     local = evaluate(config)
     on_ray = evaluate(dataclasses.replace(config, out=tmp_path / "ray", workers=2, backend="ray"))
     assert on_ray["tasks"][0]["per_episode"] == local["tasks"][0]["per_episode"]

@@ -49,7 +49,7 @@ def test_warm_up_fits_the_readout_alone_then_freezes_it(with_demos, readout, dem
     assert policy.readout_loss(frames).item() < 0.5 * before
     expected = {"warmup/loss_aux_frames", "warmup/lr"} | ({"warmup/loss_aux"} if with_demos else set())
     assert sorted(logged) == [100] and set(logged[100]) == expected and logged[100]["warmup/lr"] == 3e-3
-    assert not any(p.requires_grad or p.grad is not None for p in policy.readout_modules().parameters())
+    assert not any(p.requires_grad or p.grad is not None for p in policy.readout.frame_modules().parameters())
     assert all(p.requires_grad for p in policy.model.parameters())
     assert all(torch.equal(v, agent[k]) for k, v in policy.model.state_dict().items())
 

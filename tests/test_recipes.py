@@ -20,7 +20,15 @@ from dust_rl.quickstart import QuickstartConfig
 from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TrainConfig, train
 from dust_rl.train.recipes import RECIPES, default_recipe, plain, scaled_to_steps, vision_readout
-from dust_rl.train.settings import GROUPED_SETTINGS, DataSettings, OptimSettings, ReadoutSettings, TrainSettings
+from dust_rl.train.settings import (
+    GROUPED_SETTINGS,
+    DataSettings,
+    NestedTrainSettings,
+    OptimSettings,
+    ReadoutSettings,
+    TrainSettings,
+    as_class,
+)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 # How a command ran, not what it trains.
@@ -37,8 +45,11 @@ def trains(settings: object) -> dict:
 
 def todays_flag(arg: str) -> str:
     """``arg`` of a train command line as today's: a setting's top-level flag of before the groups (``--lr``,
-    ``--no-readout-demos``) becomes its group's (``--optim.lr``, ``--readout.no-demos``)."""
+    ``--no-readout-demos``) becomes its group's (``--optim.lr``, ``--readout.no-demos``), and ``--policy.*``
+    ``--model.*``."""
     flag, equals, value = arg.partition("=")
+    if flag.startswith("--policy."):  # the policy group's flags of before --model.*
+        return f"--model.{flag.removeprefix('--policy.')}{equals}{value}"
     negated = flag.startswith("--no-")
     name = GROUPED_SETTINGS.get(flag.removeprefix("--no-" if negated else "--").replace("-", "_"))
     if not flag.startswith("--") or name is None:
@@ -56,11 +67,16 @@ def settings_of(command: str) -> dict:
 
 
 def test_each_recipe_is_the_command_its_result_was_measured_with():
-    script = pathlib.Path("scripts/recipe.sh").read_text()
-    base = re.search(r"dust-rl train (.*?)\"\$\{resume", script, re.S).group(1).replace('"$steps"', "20000")
-    readme = pathlib.Path("README.md").read_text()
-    row3 = re.search(r"# 3 .*?pp200_tokro_g16_h4_f32k_w16k_20k (.*?)\n(?:STEPS|#)", readme, re.S).group(1)
+    log = pathlib.Path("docs/franka_results.md").read_text()
+    base = re.search(r"--out\s+runs/train/pp2000_ao_start75_20k (.*?)`", log, re.S).group(1)
+    assert settings_of(base) == trains(RECIPES["action-only"].settings())
+    row3 = re.search(r"`STEPS=20000 bash scripts/recipe.sh pick_place 200 pp200_tokro_g16_h4_f32k_w16k_20k\s(.*?)`",
+                     log, re.S).group(1)
     assert settings_of(f"{base} {row3}") == trains(RECIPES["pick-place-readout"].settings())
+    # the script and the README name them rather than restate their flags
+    assert "--recipe action-only" in pathlib.Path("scripts/recipe.sh").read_text()
+    readme = pathlib.Path("README.md").read_text()
+    assert "pp200_tokro_g16_h4_f32k_w16k_20k --recipe pick-place-readout\n" in readme
     diagnosis = pathlib.Path("docs/results/2026-11-28-world-model-diagnosis.md").read_text()
     plain_command = re.search(r"--out runs/train/pb_dust_plain (.*?)\n\S", diagnosis, re.S).group(1)
     assert settings_of(plain_command) == trains(plain())
@@ -71,19 +87,20 @@ def test_each_recipe_is_the_command_its_result_was_measured_with():
                                optim=OptimSettings(steps=2000, lr=3e-4),
                                data=DataSettings(start_rows=4, start_fraction=0.75),
                                readout=ReadoutSettings(aux_frames=8000, warmup_steps=4000, demos=False))
-    assert vision_readout() == quickstart == QuickstartConfig().train
+    assert vision_readout() == quickstart and QuickstartConfig().train == as_class(NestedTrainSettings, quickstart)
     assert RECIPES["defaults"].settings() == TrainSettings()
 
 
 def test_flags_override_the_recipe_and_quickstart_takes_one(capsys):
     args, default = with_preset("train", ["--recipe", "vision-readout", "--dataset", "d", "--readout.aux-frames", "16",
-                                          "--policy.readout-heads", "2"])
+                                          "--model.readout-heads", "2"])
     config = tyro.cli(TrainConfig, args=args, default=default)
     assert (config.recipe, config.readout.aux_frames, config.readout.warmup_steps, config.policy.readout_heads,
             config.policy.readout) == ("vision-readout", 16, 4000, 2, "tokens")
     args, default = with_preset("quickstart", ["--recipe", "plain", "--train.optim.steps", "5"])
     config = tyro.cli(QuickstartConfig, args=args, default=default)
-    assert config.recipe == "plain" and config.train == replace(plain(), optim=replace(plain().optim, steps=5))
+    assert config.recipe == "plain" and config.train == as_class(
+        NestedTrainSettings, replace(plain(), optim=replace(plain().optim, steps=5)))
     assert capsys.readouterr().out == ""  # a recipe given is not announced
 
 
@@ -93,8 +110,8 @@ def test_train_without_a_recipe_picks_one_by_the_dataset(demo_dir, tiny_encoder,
     out = tmp_path / "run"
     tiny = [a for a in TINY_ARGS if not a.startswith("--recipe")]
     main(["train", "--dataset", str(dataset), "--out", str(out), "--optim.steps", "2",
-          "--policy.image-encoder", str(encoder),
-          "--policy.cond-grid", "4", "4", "--policy.readout-grid", "4", "4", "--readout.aux-frames", "8",
+          "--model.image-encoder", str(encoder),
+          "--model.cond-grid", "4", "4", "--model.readout-grid", "4", "4", "--readout.aux-frames", "8",
           "--readout.warmup-steps", "2", "--runtime.threads", "1", "--runtime.no-progress", *tiny])
     printed = capsys.readouterr().out
     assert "recipe vision-readout: " in printed and "--recipe plain trains without it" in printed
@@ -119,7 +136,7 @@ def test_resume_keeps_the_recipe_the_run_started_with(run_inputs, tmp_path, caps
     (out / "policy.pt").unlink()
     dataset, encoder = run_inputs
     main(["train", "--dataset", str(dataset), "--out", str(out), "--resume", "--optim.steps", "4",
-          "--logging.checkpoint-every", "2", "--logging.log-every", "3", "--policy.image-encoder", str(encoder),
+          "--logging.checkpoint-every", "2", "--logging.log-every", "3", "--model.image-encoder", str(encoder),
           "--runtime.threads", "1", "--runtime.no-progress",
           *[a for a in TINY_ARGS if not a.startswith("--recipe")]])
     assert f"recipe defaults: the one {out} started with" in capsys.readouterr().out
@@ -152,8 +169,8 @@ def test_fewer_steps_than_the_recipes_scale_its_readout_down(run_inputs, tmp_pat
     dataset, encoder = run_inputs
     out = tmp_path / "run"
     main(["train", "--dataset", str(dataset), "--out", str(out), "--optim.steps", "2", "--runtime.threads", "1",
-          "--runtime.no-progress", "--policy.image-encoder", str(encoder), "--policy.cond-grid", "4", "4",
-          "--policy.readout-grid", "4", "4", *[a for a in TINY_ARGS if not a.startswith("--recipe")]])
+          "--runtime.no-progress", "--model.image-encoder", str(encoder), "--model.cond-grid", "4", "4",
+          "--model.readout-grid", "4", "4", *[a for a in TINY_ARGS if not a.startswith("--recipe")]])
     printed = capsys.readouterr().out.splitlines()
     assert printed[0].startswith("recipe vision-readout: ")
     assert printed[1] == ("read-out: 8 aux frames and 8 held out (rendered once per dataset), 4 warm-up steps, then "
@@ -174,7 +191,7 @@ def test_resume_restores_the_runs_own_settings_and_refuses_a_flag_against_them(r
     out = tmp_path / "run"
     main(["train", "--dataset", str(dataset), "--out", str(out), "--optim.steps", "6", "--optim.lr", "3e-3",
           "--data.start-rows", "2", "--seed", "3", "--logging.checkpoint-every", "3", "--logging.log-every", "3",
-          "--policy.image-encoder", str(encoder), "--runtime.threads", "1", "--runtime.no-progress", *TINY_ARGS])
+          "--model.image-encoder", str(encoder), "--runtime.threads", "1", "--runtime.no-progress", *TINY_ARGS])
     uninterrupted = trained_weights(out / "policy.pt")
     shutil.rmtree(sorted((out / "checkpoints").glob("checkpoint-*"))[-1])  # as a run stopped at step 3 leaves it
     (out / "policy.pt").unlink()
@@ -191,7 +208,7 @@ def test_resume_restores_the_runs_own_settings_and_refuses_a_flag_against_them(r
     for args, message in [
         (["--optim.lr", "1e-3"], f"dust-rl: error: {out} was started with other settings (optim.lr): --optim.lr 0.001 "
          "given, the run's is 0.003; resume without those flags (or with the run's values) or use a new --out"),
-        (["--optim.steps", "9", "--policy.text-fusion"], "(policy.text_fusion, optim.steps): --policy.text-fusion "
+        (["--optim.steps", "9", "--model.text-fusion"], "(policy.text_fusion, optim.steps): --model.text-fusion "
          "given, the run's is False; --optim.steps 9 given, the run's is 6;"),
         (["--recipe", "plain"], f"dust-rl: error: --recipe plain: {out} was started with recipe defaults, whose saved "
          "settings --resume restores; drop --recipe, or start a new run with another --out")]:

@@ -10,7 +10,7 @@ from stable_baselines3 import A2C, PPO, SAC
 from stable_baselines3.common.env_checker import check_env
 
 from dust_rl.agents import pooled_text
-from dust_rl.agents.backbone import resolve_image_encoder
+from dust_rl.agents.encoders.backbone import resolve_image_encoder
 from dust_rl.envs.factory import make_env
 from dust_rl.errors import ConfigError
 from dust_rl.rl.sb3 import FrozenBackboneExtractor, SB3Observations

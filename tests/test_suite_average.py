@@ -13,13 +13,14 @@ from test_train import TINY_POLICY
 
 from dust_rl.agents import PolicyConfig, save_image_encoder
 from dust_rl.bench.average import AverageConfig, average, average_command
-from dust_rl.bench.suite import AS_TRAINED, SuiteConfig, run_suite
+from dust_rl.bench.suite import AS_TRAINED, CellTraining, SuiteConfig, run_suite
 from dust_rl.errors import ConfigError
 from dust_rl.evaluate.records import t_interval
+from dust_rl.runtime.settings import RuntimeSettings
 from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TrainSettings
 from dust_rl.train.recipes import plain
-from dust_rl.train.settings import LoggingSettings, OptimSettings, RuntimeSettings
+from dust_rl.train.settings import LoggingSettings, OptimSettings, TrainRuntime
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 KEPT = pathlib.Path(__file__).parent.parent / "docs" / "results" / "franka_100"  # studies from before the outcomes
@@ -30,13 +31,12 @@ def two_studies(one_thread, tmp_path_factory):
     """press_button with training seeds 0 and 1, close_drawer with seed 0 only: two real tiny studies."""
     tmp_path = tmp_path_factory.mktemp("studies")
     encoder = save_image_encoder(make_tiny_encoder(), tmp_path / "encoder.pt")
-    train = TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
-                          optim=OptimSettings(steps=2, batch_size=8),
-                          logging=LoggingSettings(log_every=1, checkpoint_every=2),
-                          runtime=RuntimeSettings(threads=1, progress=False))
+    train = CellTraining.of(TrainSettings(policy=PolicyConfig(**TINY_POLICY, image_encoder=str(encoder)),
+                                          optim=OptimSettings(steps=2, batch_size=8),
+                                          logging=LoggingSettings(log_every=1, checkpoint_every=2)))
     configs = [SuiteConfig(out=tmp_path / task, task=task, demos=(1,), variants=("dust", "action_only"), seeds=seeds,
                            train=train, vision_steps=(), eval_episodes=2, diagnose_episodes=0, image_size=32,
-                           max_steps=6, progress=False)
+                           max_steps=6, runtime=RuntimeSettings(threads=1, progress=False))
                for task, seeds in (("press_button", (0, 1)), ("close_drawer", (0,)))]
     return [(config, run_suite(config)) for config in configs]
 
@@ -194,7 +194,7 @@ def test_a_study_from_before_a_setting_was_retired_compares_at_its_retired_value
 def test_a_study_from_before_the_settings_groups_compares_as_todays():
     from dust_rl.bench.average import recipe
 
-    today = {"train": config_json(TrainSettings(optim=OptimSettings(lr=3e-4), runtime=RuntimeSettings(threads=2)))}
+    today = {"train": config_json(TrainSettings(optim=OptimSettings(lr=3e-4), runtime=TrainRuntime(threads=2)))}
     before = {"train": as_before_the_groups(today["train"])}
     assert "lr" in before["train"] and "optim" not in before["train"]
     assert recipe(before) == recipe(today) and recipe(today)["optim.lr"] == 3e-4

@@ -44,14 +44,14 @@ from dust_rl.train.dataset_batches import DatasetBatches
 from dust_rl.train.imitation import RESUMABLE_FIELDS, SKILL_WINDOWS, TrainConfig, _keep_best, train
 from dust_rl.train.optim import averaged_weights, warmup_cosine, weight_average
 from dust_rl.train.readout.cache import READOUT_KIND
-from dust_rl.train.settings import GROUPS, DataSettings, LoggingSettings, OptimSettings, RuntimeSettings
+from dust_rl.train.settings import GROUPS, DataSettings, LoggingSettings, OptimSettings, TrainRuntime
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 TINY_POLICY = {"horizon": 4, "execute_steps": 2, "d_model": 32, "n_heads": 2, "n_mmdit": 2, "n_dit": 0}
 # Through the command line: every setting at its own default (as TrainConfig in Python), tiny sizes.
 TINY_ARGS = ["--recipe=defaults", "--optim.batch-size=8",
-             *[f"--policy.{k.replace('_', '-')}={v}" for k, v in TINY_POLICY.items()]]
+             *[f"--model.{k.replace('_', '-')}={v}" for k, v in TINY_POLICY.items()]]
 POLICY_FIELDS = {f.name for f in dataclasses.fields(PolicyConfig)}
 GROUP_OF = {f.name: group for group, kind in GROUPS.items() for f in dataclasses.fields(kind) if f.name != "lr"}
 
@@ -223,7 +223,7 @@ def test_training_logs_the_aux_frame_loss(readout, run_inputs, tmp_path):
     train(tiny_config(run_inputs, out, steps=2, log_every=2, lambda_aux=1.0, aux_frames=3, **readout))
     step, value = (out / "logs" / "train" / "scalars" / "train" / "loss_aux_frames.csv").read_text().split(",")
     assert int(step) == 2 and float(value) > 0
-    with pytest.raises(ConfigError, match="aux-frames needs --policy.lambda-aux > 0 and a read-out frames can"):
+    with pytest.raises(ConfigError, match="aux-frames needs --model.lambda-aux > 0 and a read-out frames can"):
         tiny_config(run_inputs, out, keypoints=2, lambda_aux=1.0, aux_frames=3)
 
 
@@ -288,7 +288,7 @@ def test_resume_after_kill_matches_an_uninterrupted_run(run_inputs, tmp_path):
     reference = train(tiny_config(run_inputs, tmp_path / "ref", steps=steps, checkpoint_every=50))
     out = tmp_path / "killed"
     dataset, encoder = run_inputs
-    args = ["train", "--dataset", str(dataset), "--out", str(out), "--policy.image-encoder", str(encoder),
+    args = ["train", "--dataset", str(dataset), "--out", str(out), "--model.image-encoder", str(encoder),
             "--optim.steps", str(steps), "--logging.checkpoint-every", "50", "--logging.log-every", "3",
             "--runtime.threads", "1", "--runtime.no-progress",
             *TINY_ARGS]
@@ -477,7 +477,7 @@ def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inpu
     base = train(tiny_config(run_inputs, tmp_path / "base", steps=2, **readout)).policy
     extra_dir = shutil.copytree(demo_dir, tmp_path / "rollouts")
     dataset, encoder = run_inputs
-    quiet = RuntimeSettings(threads=1, progress=False)
+    quiet = TrainRuntime(threads=1, progress=False)
     config = TrainConfig(dataset=dataset, out=tmp_path / "tuned", init_policy=base, runtime=quiet,
                          data=DataSettings(extra_dataset=extra_dir), optim=OptimSettings(batch_size=8, steps=3))
     tuned = load_policy(train(config).policy)
@@ -500,7 +500,7 @@ def test_fine_tuning_starts_from_a_policy_and_mixes_in_a_second_dataset(run_inpu
     extra = DatasetBatches(DemoDataset(extra_dir), tuned, 4, action_key="action", progress=False).sample()
     extra.get("action_chunk")[0] = float("nan")
     assert torch.isnan(tuned.compute_loss(extra, torch.Generator().manual_seed(0))["loss_action"])
-    with pytest.raises(ConfigError, match="--policy.\\* flags do not apply with init_policy"):
+    with pytest.raises(ConfigError, match="--model.\\* flags do not apply with init_policy"):
         tiny_config(run_inputs, tmp_path / "x", init_policy=base)
     with pytest.raises(ConfigError, match="extra_fraction must be in"):
         DataSettings(extra_dataset=extra_dir, extra_fraction=0.0)
@@ -576,7 +576,7 @@ def test_a_pickle_grafted_into_a_checkpoint_never_runs_on_resume(craft, run_inpu
 def test_a_damaged_checkpoint_is_refused_and_nothing_is_overwritten(damage, problem, run_inputs, tmp_path):
     out = tmp_path / "run"
     dataset, encoder = run_inputs
-    args = ["train", "--dataset", str(dataset), "--out", str(out), "--policy.image-encoder", str(encoder),
+    args = ["train", "--dataset", str(dataset), "--out", str(out), "--model.image-encoder", str(encoder),
             "--optim.steps", "4", "--logging.checkpoint-every", "4", "--logging.log-every", "3",
             "--runtime.threads", "1", "--runtime.no-progress",
             *TINY_ARGS]

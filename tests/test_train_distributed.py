@@ -11,7 +11,7 @@ from conftest import rounding_tolerance
 from test_train import tiny_config, trained_weights
 
 from dust_rl.agents import save_image_encoder
-from dust_rl.agents.flow_matching import Shard, cpu_drawn, sample_tau
+from dust_rl.agents.model.flow_matching import Shard, cpu_drawn, sample_tau
 from dust_rl.cli import main
 from dust_rl.errors import ConfigError
 from dust_rl.train.imitation import train

@@ -12,7 +12,7 @@ import torch
 from conftest import rounding_tolerance
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_image_encoder, make_policy
-from dust_rl.agents.backbone import DEFAULT_IMAGE_ENCODER_FILE
+from dust_rl.agents.encoders.backbone import DEFAULT_IMAGE_ENCODER_FILE
 from dust_rl.cli import main
 from dust_rl.data import DemoDataset, DemoWindows
 from dust_rl.data.features import FeatureCache, dataset_policy_kwargs, env_state_width
@@ -65,8 +65,8 @@ def test_pretrain_encoder_command(demo_dir, tmp_path, capsys):
     args = ["pretrain-encoder", "--dataset", str(demo_dir), "--out", str(out), "--steps", "2", "--batch-size", "4",
             "--image-size", "32", "--width", "8", "--dim", "16"]
     with pytest.raises(SystemExit, match="dust-rl: error: unknown device 'tpu'"):
-        main([*args, "--device", "tpu"])
-    main([*args, "--device", "cpu"])
+        main([*args, "--runtime.device", "tpu"])
+    main([*args, "--runtime.device", "cpu"])
     assert "2 steps" in capsys.readouterr().out
     assert load_image_encoder(out).config == AutoencoderConfig(image_size=32, dim=16, width=8)
     payload = torch.load(out, weights_only=True)
@@ -201,7 +201,7 @@ def test_stored_readout_estimates_are_the_live_ones_of_the_unaugmented_frames(da
     policy = make_policy(image_encoder=tiny_encoder, text_encoder=minilm, **dataset_policy_kwargs(dataset),
                          horizon=8, d_model=32, n_heads=2, n_mmdit=2, n_dit=0, readout="tokens",
                          aux_state_dim=env_state_width(dataset), lambda_aux=1.0, aux_state_input=True)
-    policy.readout_modules().requires_grad_(False)
+    policy.readout.frame_modules().requires_grad_(False)
     features = FeatureCache(dataset, policy, batch_size=32, progress=False, views=3)
     windows = DemoWindows(dataset, horizon=8, batch_size=64).sample()
     live = features.batch(windows)

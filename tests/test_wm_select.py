@@ -12,6 +12,7 @@ from tensordict import NonTensorStack, TensorDict
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, load_policy, make_policy, save_policy
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.runtime.settings import RuntimeSettings
 
 _SPEC = importlib.util.spec_from_file_location(
     "wm_select", pathlib.Path(__file__).parents[1] / "experiments" / "wm_select" / "wm_select.py")
@@ -84,7 +85,8 @@ def test_the_study_compares_the_base_and_best_of_k_on_the_same_seeds(policy_path
     assert [row["task"] for row in report["rows"]] == ["base policy", "wm_select (K = 2)"]
     assert report["rollout_env_steps"] == 5 * EPISODE_STEPS and report["scorer"]["validation_rows"] > 0
     # The base row is the policy as dust-rl eval runs it, episode for episode.
-    settings = dict(episodes=2, workers=1, videos=0, max_steps=EPISODE_STEPS, device="cpu", progress=False)
+    settings = dict(episodes=2, workers=1, videos=0, max_steps=EPISODE_STEPS,
+                    runtime=RuntimeSettings(device="cpu", progress=False))
     evaluated = evaluate(EvalConfig(policy=policy_path, out=tmp_path / "eval", **settings))
     assert report["per_episode"]["base policy"] == evaluated["tasks"][0]["per_episode"]
     # The written scorer, read back, selects the same chunks.

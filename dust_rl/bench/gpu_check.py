@@ -43,10 +43,13 @@ import torch
 
 from dust_rl.agents import DustConfig, DustModel, random_batch, schedule_for
 from dust_rl.agents.config import POLICY_PRESETS
-from dust_rl.agents.precision import Precision, autocast
+from dust_rl.agents.model.precision import Precision, autocast
 from dust_rl.errors import UserError
 from dust_rl.runtime.device import resolve_device
+from dust_rl.runtime.episode_collector import torch_threads
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
+from dust_rl.storage.config_json import config_json
 
 Section = Literal["train", "latency", "ddp", "eval", "compile"]
 PRECISIONS: tuple[Precision, ...] = ("fp32", "bf16")
@@ -88,18 +91,20 @@ class GpuCheckConfig:
 
     out: pathlib.Path = pathlib.Path("runs/gpu_check")
     """Folder for the dataset, run, evaluation and the result files (`results.json`, `table.md`)."""
-    device: str = "auto"
-    """auto | cpu | cuda | cuda:N."""
     size: Literal["full", "tiny"] = "full"
     """`full`: the table's sizes (minutes on one GPU); `tiny`: every path once at toy sizes (the CPU test)."""
     sections: tuple[Section, ...] = ("train", "latency", "ddp", "eval", "compile")
     """Which parts to run (`eval` evaluates the policy `ddp` trains)."""
     text_encoder: pathlib.Path | None = None
-    """Text model folder for the `ddp` policy (`--policy.text-encoder`); None: the bundled MiniLM."""
+    """Text model folder for the `ddp` policy (`--model.text-encoder`); None: the bundled MiniLM."""
     budget_s: float = 420.0
     """Rows not started within this many seconds are skipped (listed as such), so the check ends in time."""
-    progress: bool = True
-    """Print each row as it is measured."""
+    runtime: RuntimeSettings = runtime_field()
+    """The device checked (`--runtime.device`), torch threads, whether each row is printed as it is measured; the
+    sections time both precisions and compilation themselves."""
+
+    def __post_init__(self) -> None:
+        self.runtime.check_fp32("dust-rl bench gpu")
 
 
 @dataclass
@@ -193,7 +198,7 @@ class GpuCheck:
 
     def __init__(self, config: GpuCheckConfig) -> None:
         self.config, self.size = config, SIZES[config.size]
-        self.device = resolve_device(config.device)
+        self.device = resolve_device(config.runtime.device)
         self.rows: list[Row] = []
         self.began = time.perf_counter()
 
@@ -201,7 +206,7 @@ class GpuCheck:
 
     def add(self, row: Row) -> None:
         self.rows.append(row)
-        if self.config.progress:
+        if self.config.runtime.progress:
             print(f"[{time.perf_counter() - self.began:6.1f} s] {row.section:<8} {row.name:<52} {row.value:>14}  "
                   f"{row.detail}", flush=True)
 
@@ -307,16 +312,17 @@ class GpuCheck:
             if row is None:
                 return
             seconds = self._cli(["collect", "--task", TASK, "--episodes", str(self.size.episodes), "--out", str(data),
-                                 "--no-progress"])
+                                 "--runtime.no-progress"])
             row.value, row.detail = f"{seconds:.1f} s", "scripted expert, 128 px front + wrist cameras"
         if not data.is_dir():
             return
         half = self.size.train_steps // 2
         train_args = ["--recipe", "defaults", "--dataset", str(data), "--optim.steps", str(self.size.train_steps),
                       "--logging.checkpoint-every", str(half), "--optim.batch-size", str(self.size.train_batch),
-                      "--runtime.device", self.config.device, "--logging.loggers", "csv", "--runtime.no-progress"]
+                      "--runtime.device", self.config.runtime.device, "--logging.loggers", "csv",
+                      "--runtime.no-progress"]
         if self.config.text_encoder is not None:
-            train_args += ["--policy.text-encoder", str(self.config.text_encoder)]
+            train_args += ["--model.text-encoder", str(self.config.text_encoder)]
         backend = "NCCL" if self.device.type == "cuda" else "gloo"
         with self.row("ddp", f"torchrun --nproc-per-node 1 ({backend}), {self.size.train_steps} steps") as row:
             if row is None:
@@ -354,7 +360,8 @@ class GpuCheck:
                 raise FileNotFoundError(f"{policy}: the ddp section trains the policy this row evaluates")
             folder = self.config.out / "eval"
             args = ["eval", "--policy", str(policy), "--out", str(folder), "--episodes", str(self.size.episodes),
-                    "--workers", "1", "--videos", "0", "--device", self.config.device, "--no-progress"]
+                    "--workers", "1", "--videos", "0", "--runtime.device", self.config.runtime.device,
+                    "--runtime.no-progress"]
             if self.size.eval_max_steps:
                 args += ["--max-steps", str(self.size.eval_max_steps)]
             seconds = self._cli(args)
@@ -450,12 +457,13 @@ def gpu_check_command(config: GpuCheckConfig, command: str | None = None) -> Non
     """
     check = GpuCheck(config)
     config.out.mkdir(parents=True, exist_ok=True)
-    rows = check.run()
+    with torch_threads(config.runtime.thread_count):
+        rows = check.run()
     text = table(rows, check.device)
     write_text_atomic(config.out / "table.md", text)
     write_json_atomic(config.out / "results.json", {
         "device": device_name(check.device), "torch": torch.__version__, "command": command,
-        "config": {k: str(v) for k, v in asdict(config).items()}, "rows": [asdict(r) for r in rows]})
+        "config": config_json(config), "rows": [asdict(r) for r in rows]})
     print(text)
     failed = [f"{r.section}: {r.name}" for r in rows if r.status == "failed"]
     if failed:

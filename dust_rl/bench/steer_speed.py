@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import pathlib
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from stable_baselines3.common.logger import configure
 
@@ -27,6 +27,7 @@ from dust_rl.rl.finetune import build_agent, finetune_env_factory
 from dust_rl.rl.vector import SB3SteeringVecEnv
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import torch_threads
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 
 
 @dataclass
@@ -54,31 +55,29 @@ class SteerSpeedConfig:
     """Hidden layers normalised before their ReLU."""
     latent_dim: int | None = None
     """The RL action's size (`--latent-dim`); default: the whole noise."""
-    threads: int = 1
-    """torch threads."""
-    device: str = "auto"
-    """Where the policy and the agent run."""
+    runtime: RuntimeSettings = runtime_field(threads=1)
+    """Where the policy and the agent run, torch threads, the policy's precision (`--runtime.*`)."""
     seed: int = 0
     """Seed of the agent and the first episodes."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "rl_steps", "updates", "batch_size", "threads", "max_steps")
+        check_at_least(self, 1, "rl_steps", "updates", "batch_size", "max_steps")
         if not self.envs or min(self.envs) < 1:
             raise ConfigError(f"envs must list positive env counts, got {self.envs}")
-        resolve_device(self.device)
 
 
 def steer_speed(config: SteerSpeedConfig) -> list[dict]:
     """One row per env count: RL steps/s and env steps/s of collection, SAC updates/s."""
     rows = []
-    with torch_threads(config.threads):
-        policy = load_policy(config.policy).to(resolve_device(config.device))
+    with torch_threads(config.runtime.thread_count):
+        policy = load_policy(config.policy).to(resolve_device(config.runtime.device))
         for envs in config.envs:
             steps = -(-config.rl_steps // envs) * envs
             steer = SteerConfig(policy=config.policy, task=config.task, max_steps=config.max_steps, seed=config.seed,
                                 steps=steps + envs, checkpoint_every=steps + envs, batch_size=config.batch_size,
-                                net_arch=config.net_arch, layer_norm=config.layer_norm, device=config.device,
-                                threads=config.threads, progress=False, latent=LatentSettings(config.latent_dim),
+                                net_arch=config.net_arch, layer_norm=config.layer_norm,
+                                runtime=replace(config.runtime, progress=False),
+                                latent=LatentSettings(config.latent_dim),
                                 collection=SteeringCollection(envs=envs),
                                 algorithm=SacSettings(learning_starts=steps + envs))
             made = finetune_env_factory(steer, policy)[0]()

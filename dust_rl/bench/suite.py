@@ -55,11 +55,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
+import tyro
 from matplotlib.figure import Figure
 
 from dust_rl.agents import VARIANTS, PolicyConfig, SamplerConfig
-from dust_rl.agents.backbone import resolve_image_encoder
 from dust_rl.agents.config import MAX_STEPS, DustConfig, Variant
+from dust_rl.agents.encoders.backbone import resolve_image_encoder
 from dust_rl.bench.suite_diagnosis import (
     diagnose_policy,
     diagnosis_folder,
@@ -72,14 +73,16 @@ from dust_rl.data.features import dataset_policy_kwargs, env_state_width
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED
 from dust_rl.envs.factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
-from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.evaluate.closed_loop import EvalConfig, eval_runtime, evaluate
 from dust_rl.evaluate.records import Episode, paired, t_interval, wilson_interval
 from dust_rl.evaluate.report import percent, save_png
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.lock import FolderBusyError, folder_lock
-from dust_rl.train.imitation import TrainConfig, TrainSettings, check_train_folder, train
+from dust_rl.train.imitation import TrainConfig, check_train_folder, train
 from dust_rl.train.recipes import RECIPES, RecipeName
+from dust_rl.train.settings import ModelFlags, NestedTrainSettings, TrainSettings, as_class
 
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
@@ -134,6 +137,27 @@ class Split:
         return [self.first, self.first + self.episodes - 1]
 
 
+@dataclass(frozen=True)
+class ArmPolicy(PolicyConfig):
+    """The policy settings every arm trains with; the arm sets the variant (`--variants`)."""
+
+    variant: tyro.conf.Suppress[Variant] = "dust"
+
+
+@dataclass(kw_only=True)
+class CellTraining(NestedTrainSettings):
+    """`dust-rl train`'s settings as every cell trains with them: each cell's seed is one of `--seeds`, its variant
+    its arm's, its runtime the study's `--runtime.*`."""
+
+    policy: ModelFlags[ArmPolicy] = field(default_factory=ArmPolicy)
+    seed: tyro.conf.Suppress[int] = 0
+
+    @classmethod
+    def of(cls, settings: TrainSettings) -> CellTraining:
+        """A recipe's settings as every cell trains with them."""
+        return as_class(cls, dataclasses.replace(settings, policy=as_class(ArmPolicy, settings.policy)))
+
+
 @dataclass
 class SuiteConfig:
     """Train the paper's five variants (and two control arms) on the same data and seeds, evaluate them on the
@@ -157,9 +181,9 @@ class SuiteConfig:
     recipe: RecipeName = DEFAULT_RECIPE
     """The named recipe every cell trains from (`dust-rl train --help` lists them; `plain`: no privileged state;
     `--train.*` flags override it); default: the quickstart's, which solves press_button in minutes."""
-    train: TrainSettings = field(default_factory=RECIPES[DEFAULT_RECIPE].settings)
-    """The settings every cell trains with (`--train.optim.steps`, `--train.policy.d-model` ...; defaults from
-    `recipe`; its variant and seed are the cell's)."""
+    train: CellTraining = field(default_factory=lambda: CellTraining.of(RECIPES[DEFAULT_RECIPE].settings()))
+    """The settings every cell trains with (`--train.optim.steps`, `--train.model.d-model` ...; defaults from
+    `recipe`; its variant, seed and runtime are the cell's)."""
     arm_steps: tuple[str, ...] = ()
     """Optimiser steps of single arms, `ARM=N` each (e.g. `dust=4000 action_only=3000`: each arm trained until its
     validation success stopped rising); the arms not named train `--train.optim.steps`."""
@@ -190,8 +214,8 @@ class SuiteConfig:
     """Evaluation time limit per episode; default: the task's."""
     workers: int = 1
     """Env processes for collection and evaluation."""
-    progress: bool = True
-    """Show progress bars."""
+    runtime: RuntimeSettings = runtime_field()
+    """Where and how every cell trains (`--runtime.threads` ...); evaluations run one thread per worker."""
     finished_only: bool = False
     """Write `interim.json` / `.md` / `.png` from the cells finished so far (policy, evaluations and diagnosis on
     disk), naming the others, and run nothing: a study that takes days can be read as it goes."""
@@ -329,11 +353,11 @@ def run_suite(config: SuiteConfig, command: str | None = None) -> dict:
     env_kwargs = {"image_size": config.image_size}
     for demos in sorted(config.demos):  # the first n seeds of every task: each smaller set is a prefix of the next
         collect_demos(config.out / "data" / str(demos), config.env, tasks, demos, env_kwargs=env_kwargs,
-                      workers=config.workers, progress=config.progress, wait_for_writer=True)
+                      workers=config.workers, progress=config.runtime.progress, wait_for_writer=True)
     if diagnosed:
         collect_demos(diagnosis_folder(config.out, "data", config.diagnose_episodes), config.env, tasks,
                       config.diagnose_episodes, env_kwargs=env_kwargs, workers=config.workers,
-                      start_seed=config.eval_seed, progress=config.progress, wait_for_writer=True)
+                      start_seed=config.eval_seed, progress=config.runtime.progress, wait_for_writer=True)
     policies = arm_policies(config, [cell.variant for cell in cells])
     # A cell another suite on this folder works on, or whose training folder another run holds, comes last, once
     # that process lets go of it: then found done, or resumed. (A run started in its folder between the check and
@@ -429,7 +453,7 @@ def arm_policy(name: str, policy: PolicyConfig, sizes: Mapping[str, int]) -> Pol
     the smallest multiple of ``n_heads`` up from the recipe's whose trunk holds at least as many parameters as the
     arm it widens to (``sizes``: the data's, :func:`policy_sizes`)."""
     arm = ARMS[name]
-    ours = dataclasses.replace(policy, variant=arm.variant, **dict(arm.policy))
+    ours = dataclasses.replace(as_class(PolicyConfig, policy), variant=arm.variant, **dict(arm.policy))
     if arm.widen_to is None:
         return ours
     target = trunk_parameters(dataclasses.replace(policy, variant=arm.widen_to), sizes)
@@ -470,8 +494,8 @@ def train_cell(config: SuiteConfig, cell: Cell, policy: PolicyConfig) -> pathlib
     """
     out = config.out / "train" / cell.name
     recipe = config.train
-    settings = dataclasses.replace(
-        recipe, seed=cell.seed, runtime=dataclasses.replace(recipe.runtime, progress=config.progress), policy=policy,
+    settings = recipe.under(
+        config.runtime, seed=cell.seed, policy=policy,
         optim=dataclasses.replace(recipe.optim, steps=config.steps_of(cell.variant)),
         data=dataclasses.replace(recipe.data, video_dataset=config.video_dataset if cell.video
                                  else recipe.data.video_dataset))
@@ -496,7 +520,8 @@ def evaluate_cell(config: SuiteConfig, cell: Cell, name: str, policy: pathlib.Pa
     if not (out / "report.json").is_file():
         evaluate(EvalConfig(policy=policy, out=out, episodes=split.episodes, seed=split.first,
                             workers=config.workers, videos=0, max_steps=config.max_steps,
-                            sampling=samplers(config, cell.variant)[name], progress=config.progress), command)
+                            sampling=samplers(config, cell.variant)[name], runtime=eval_runtime(config.runtime)),
+                 command)
     report = read_cell_report(out / "report.json")
     seeds, max_steps = split.seeds, config.max_steps
     if report["seeds"] != seeds or report["env_kwargs"].get("max_episode_steps") != max_steps:
@@ -535,7 +560,7 @@ def diagnose_cell(config: SuiteConfig, cell: Cell, policy: pathlib.Path, command
     one is on disk (:mod:`dust_rl.bench.suite_diagnosis`)."""
     return diagnose_policy(diagnosis_folder(config.out, "diagnose", config.diagnose_episodes) / cell.name, policy,
                            diagnosis_folder(config.out, "data", config.diagnose_episodes),
-                           config.train.runtime.threads, config.progress, command)
+                           config.runtime.threads, config.runtime.progress, command)
 
 
 def summarise(config: SuiteConfig, policies: Mapping[str, PolicyConfig],

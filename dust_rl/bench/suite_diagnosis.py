@@ -15,6 +15,7 @@ import pathlib
 from collections.abc import Mapping
 
 from dust_rl.diagnose.world_model import CONDITIONS, READINGS, WorldModelDiagnosis, diagnose
+from dust_rl.runtime.settings import RuntimeSettings
 
 
 def diagnosis_folder(out: pathlib.Path, kind: str, episodes: int) -> pathlib.Path:
@@ -29,7 +30,8 @@ def diagnose_policy(out: pathlib.Path, policy: pathlib.Path, dataset: pathlib.Pa
     now or before), run unless a complete one is there."""
     if (report := finished_diagnosis(out)) is not None:
         return report
-    diagnose(WorldModelDiagnosis(policy=policy, dataset=dataset, out=out, threads=threads, progress=progress), command)
+    diagnose(WorldModelDiagnosis(policy=policy, dataset=dataset, out=out,
+                                 runtime=RuntimeSettings(threads=threads, progress=progress)), command)
     return json.loads((out / "report.json").read_text())
 
 

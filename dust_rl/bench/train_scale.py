@@ -8,7 +8,7 @@ which the OS can drop under pressure). Samples/s is the run's last logged ``trai
 settings) so that encoding is not timed.
 
     python -m dust_rl.bench.train_scale --dataset runs/data/pick_place [--nproc 1 2] [--steps 100] \\
-        [-- --policy.image-encoder efficientnet-lite0-s8 --policy.cond-grid 8 8]
+        [-- --model.image-encoder efficientnet-lite0-s8 --model.cond-grid 8 8]
 """
 
 from __future__ import annotations

@@ -21,18 +21,19 @@ import shutil
 import time
 from dataclasses import dataclass, replace
 
-from dust_rl.agents.precision import Precision
 from dust_rl.data import DemoDataset, collect_demos
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
 from dust_rl.runtime.episode_collector import torch_threads
 from dust_rl.runtime.machine import machine_line
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.cache_files import CACHE_FOLDERS
+from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TIMING_FILE, TrainConfig, train
 from dust_rl.train.readout.aux_frames import HELDOUT_FRAMES
 from dust_rl.train.recipes import RECIPES, RecipeName, scaled_to_steps
-from dust_rl.train.settings import LoggingSettings, RuntimeSettings
+from dust_rl.train.settings import LoggingSettings, train_runtime
 
 
 @dataclass
@@ -53,16 +54,12 @@ class TrainSpeedConfig:
     """Closed-loop episodes timed."""
     image_size: int = 128
     """Camera resolution (the recipes were measured at 128 px)."""
-    threads: int = 2
-    """Torch threads."""
-    precision: Precision = "fp32"
-    """The trunk's precision in training and evaluation: fp32, or bf16 autocast (fast only where the CPU has native
+    runtime: RuntimeSettings = runtime_field(threads=2)
+    """Where and how training and evaluation run (`--runtime.precision bf16` is fast only where the CPU has native
     bf16: AVX512-BF16 or AMX)."""
-    progress: bool = True
-    """Show progress bars."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "demos", "steps", "eval_episodes", "image_size", "threads")
+        check_at_least(self, 1, "demos", "steps", "eval_episodes", "image_size")
         if self.steps > RECIPES[self.recipe].settings().optim.steps:
             raise ConfigError(f"--steps {self.steps} is more than recipe {self.recipe}'s own; time fewer steps")
 
@@ -70,11 +67,11 @@ class TrainSpeedConfig:
 def train_speed(config: TrainSpeedConfig) -> dict:
     """Collect, train and evaluate at the configured scale; returns the table's rows (also written as files)."""
     data, run = config.out / "data", config.out / "train"
-    with torch_threads(config.threads):
+    with torch_threads(config.runtime.thread_count):
         reused = (data / "meta.json").is_file()
         began = time.perf_counter()
         collect_demos(data, tasks=[config.task], episodes=config.demos, env_kwargs={"image_size": config.image_size},
-                      progress=config.progress, wait_for_writer=True)
+                      progress=config.runtime.progress, wait_for_writer=True)
         collection = time.perf_counter() - began
         dataset = DemoDataset(data)
         for folder in CACHE_FOLDERS:  # encoding and rendering are what is timed
@@ -82,17 +79,15 @@ def train_speed(config: TrainSpeedConfig) -> dict:
         if (run / "config.json").is_file():
             shutil.rmtree(run)
         settings = replace(scaled_to_steps(RECIPES[config.recipe].settings(), config.steps),
-                           runtime=RuntimeSettings(threads=config.threads, precision=config.precision,
-                                                   progress=config.progress),
+                           runtime=train_runtime(config.runtime),
                            logging=LoggingSettings(checkpoint_every=config.steps, loggers=("csv",)))
         train_config = TrainConfig.from_settings(settings, dataset=data, out=run, recipe=config.recipe)
         policy = train(train_config).policy
         report = evaluate(EvalConfig(policy=policy, out=config.out / "eval", episodes=config.eval_episodes,
-                                     workers=1, videos=0, threads=config.threads, precision=config.precision,
-                                     progress=config.progress))
+                                     workers=1, videos=0, runtime=config.runtime))
     timing = json.loads((run / TIMING_FILE).read_text())
     rows = speed_rows(timing["phases"], train_config, len(dataset), None if reused else collection, report)
-    result = {"machine": machine_line(), "config": {**vars(config), "out": str(config.out)}, "rows": rows}
+    result = {"machine": machine_line(), "config": config_json(config), "rows": rows}
     write_json_atomic(config.out / "train_speed.json", result)
     write_text_atomic(config.out / "train_speed.md", markdown(result))
     return result
@@ -124,7 +119,8 @@ def speed_rows(phases: dict[str, dict], config: TrainConfig, rows: int, collecti
 def markdown(result: dict) -> str:
     config = result["config"]
     lines = [f"# Training speed: recipe {config['recipe']}, {config['task']}, {config['demos']} demonstrations, "
-             f"{config['steps']} policy steps, {config['precision']}", "", f"Machine: {result['machine']}", "",
+             f"{config['steps']} policy steps, {config['runtime']['precision']}", "",
+             f"Machine: {result['machine']}", "",
              "| phase | total (s) | ms per | unit |", "|---|---|---|---|"]
     lines += [f"| {r['phase']} | {r['seconds']:.1f} | {r['ms_each']:.1f} | {r['per']} |" for r in result["rows"]]
     return "\n".join(lines) + "\n"

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from dust_rl.agents.pixel_keypoints import random_shift
+from dust_rl.agents.heads.pixel_keypoints import random_shift
 
 MAX_SHIFT = 6  # pixels at 128 px (about 5% of the frame, as in DrQ's 4 px at 84 px)
 JITTER = 0.15  # brightness, contrast and saturation factors drawn from [1 - JITTER, 1 + JITTER]

@@ -37,7 +37,9 @@ from dust_rl.agents import load_policy
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
 from dust_rl.errors import ConfigError, UserError, no_space_left
+from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import episode_collector, torch_threads
+from dust_rl.runtime.settings import RuntimeSettings
 from dust_rl.runtime.workers import Workers, ray_runtime
 from dust_rl.storage.lock import folder_lock
 
@@ -53,6 +55,7 @@ from .selection import select_episodes
 # Give up on a task when this many seeds per requested episode have not produced enough successes: the
 # expert fails rarely; a trained policy worth rolling out succeeds in 5% of its episodes or more.
 MAX_SEEDS_PER_EPISODE = {"expert": 3, "policy": 20}
+CPU_RUNTIME = RuntimeSettings(device="cpu")  # where a rolled-out policy runs unless told
 
 
 def seeds_tried(policy: object | None, episodes: int) -> int:
@@ -68,8 +71,8 @@ class SuccessesOutOfReachError(UserError):
 def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks: Sequence[str] = ("pick_place",),
                   episodes: int = 100, *, env_kwargs: dict | None = None, workers: int | Workers = 1,
                   start_seed: int = 0, noise_std: float = 0.0, keep_failed: bool = False,
-                  policy: str | pathlib.Path | None = None, progress: bool = True,
-                  wait_for_writer: bool = False) -> dict:
+                  policy: str | pathlib.Path | None = None, policy_runtime: RuntimeSettings | None = None,
+                  progress: bool = True, wait_for_writer: bool = False) -> dict:
     """Collect (or resume collecting) ``episodes`` successful expert demos (or policy rollouts) per task into
     ``root``.
 
@@ -84,6 +87,8 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         noise_std: DART perturbation of the executed action (the stored label stays the expert's).
         keep_failed: also store failed episodes (flagged ``success=False``).
         policy: a trained policy file (``policy.pt``) to roll out instead of the expert; it must fit the env.
+        policy_runtime: its device, precision and compilation (default: the CPU, fp32); its threads are
+            ``workers``'.
         wait_for_writer: when another process is collecting into ``root``, wait for it (then resume or find the
             data complete) instead of raising.
 
@@ -137,7 +142,7 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
                 print(f"{root}: {task} already holds {target} episodes, more than the {episodes} asked; "
                       "keeping them all, nothing new to collect")
             _collect_task(root, env_id, {**env_kwargs, "task": task}, task, target, workers, start_seed,
-                          noise_std, keep_failed, policy, progress)
+                          noise_std, keep_failed, policy, policy_runtime or CPU_RUNTIME, progress)
         meta = finalize_dataset(root, progress)
         clear_staging(root)
     return meta
@@ -145,27 +150,30 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
 
 def demo_collector(env_id: str, env_kwargs: dict, workers: Workers, start_seed: int = 0,
                    known_seeds: frozenset[int] = frozenset(), noise_std: float = 0.0,
-                   policy: pathlib.Path | None = None) -> contextlib.AbstractContextManager[BaseCollector]:
+                   policy: pathlib.Path | None = None, policy_runtime: RuntimeSettings = CPU_RUNTIME,
+                   ) -> contextlib.AbstractContextManager[BaseCollector]:
     """A torchrl collector yielding one whole episode ``[T]`` at a time, of the expert or of the trained
-    ``policy`` (each remote worker loads its own copy), seeds from ``start_seed`` on, ``known_seeds`` skipped
-    (a context)."""
+    ``policy`` (each remote worker loads its own copy) as ``policy_runtime`` runs it, seeds from ``start_seed`` on,
+    ``known_seeds`` skipped (a context)."""
     env_fns = collection_env_fns(env_id, env_kwargs, start_seed, known_seeds, workers.count)
     if policy is None:
         return episode_collector(env_fns, workers, policy=make_expert_policy(noise_std))
     in_process = workers.count == 1 and workers.backend == "local"
-    return episode_collector(env_fns, workers, policy=load_rollout_policy(policy) if in_process else None,
-                             policy_factory=None if in_process else functools.partial(load_rollout_policy, policy))
+    load = functools.partial(load_rollout_policy, policy, policy_runtime)
+    return episode_collector(env_fns, workers, policy=load() if in_process else None,
+                             policy_factory=None if in_process else load,
+                             policy_device=str(resolve_device(policy_runtime.device)))
 
 
 def _collect_task(root: pathlib.Path, env_id: str, env_kwargs: dict, task: str, episodes: int, workers: Workers,
                   start_seed: int, noise_std: float, keep_failed: bool, policy: pathlib.Path | None,
-                  progress: bool) -> None:
+                  policy_runtime: RuntimeSettings, progress: bool) -> None:
     records = scan_episodes(root).get(task, {})
     if select_episodes(records, start_seed, episodes, keep_failed) is not None:
         return
     actor = "expert" if policy is None else "policy"
     with (demo_collector(env_id, env_kwargs, workers, start_seed, frozenset(records), noise_std,
-                         policy) as collector,
+                         policy, policy_runtime) as collector,
           tqdm(total=episodes, initial=_successes(records), desc=f"collecting {task}", disable=not progress) as bar):
         for trajectory in collector:
             rows, record = trajectory_to_episode(trajectory, task)

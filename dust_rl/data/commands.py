@@ -18,6 +18,7 @@ import tyro
 
 from dust_rl.envs.factory import DEFAULT_ENV_ID, env_tasks
 from dust_rl.errors import ConfigError, check_at_least
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.runtime.workers import Backend, Workers
 
 
@@ -129,13 +130,11 @@ class CollectCommand:
     """A trained `policy.pt` to roll out instead of the scripted expert, as `dust-rl eval` runs it (its env
     settings must match `--image-size`...): rows keep its actions as `action` and the expert's as
     `expert_action`; `--episodes` counts its successes."""
-    threads: int = 1
-    """Torch threads of each worker's policy (with `--policy`)."""
     privileged_state: bool = False
     """Append the objects' state to observation.state: an oracle (policies trained on it need not see the
     objects; compare with an image-only dataset to measure what perception costs)."""
-    progress: bool = True
-    """Show progress bars."""
+    runtime: RuntimeSettings = runtime_field(threads=1)
+    """Where and how the rolled-out policy runs (with `--policy`; threads per worker), progress bars."""
 
 
 def run_collect(config: CollectCommand, command_line: str) -> None:
@@ -147,10 +146,11 @@ def run_collect(config: CollectCommand, command_line: str) -> None:
         env_kwargs["cameras"] = list(config.cameras)
     if config.privileged_state:
         env_kwargs["privileged_state"] = True
-    workers = Workers(config.workers, config.backend, config.threads, config.ray_address)
+    workers = Workers(config.workers, config.backend, config.runtime.thread_count, config.ray_address)
     collect_demos(config.out, config.env, env_tasks(config.env, config.task), config.episodes,
                   env_kwargs=env_kwargs, workers=workers, start_seed=config.seed, noise_std=config.noise_std,
-                  keep_failed=config.keep_failed, policy=config.policy, progress=config.progress)
+                  keep_failed=config.keep_failed, policy=config.policy, policy_runtime=config.runtime,
+                  progress=config.runtime.progress)
     print(dataset_summary(DemoDataset(config.out)))
 
 

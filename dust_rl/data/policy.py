@@ -22,6 +22,8 @@ from torch import nn
 
 from dust_rl.agents import ChunkExecutor, load_policy
 from dust_rl.keys import EXPERT_ACTION_KEY, SEED_KEY, STEP_KEY
+from dust_rl.runtime.device import resolve_device
+from dust_rl.runtime.settings import RuntimeSettings
 
 
 class ExpertPolicy(nn.Module):
@@ -49,7 +51,10 @@ def make_expert_policy(noise_std: float = 0.0) -> TensorDictModule:
                             out_keys=["action"])
 
 
-def load_rollout_policy(path: pathlib.Path) -> ChunkExecutor:
-    """The collector policy of a trained policy file: reads the VLA observation keys, ``is_init`` and
-    ``episode_seed``; writes ``action``. Raises ``CheckpointError`` for a missing or corrupt file."""
-    return load_policy(path).executor(seeded=True)
+def load_rollout_policy(path: pathlib.Path, runtime: RuntimeSettings) -> ChunkExecutor:
+    """The collector policy of a trained policy file, on ``runtime``'s device at its precision: reads the VLA
+    observation keys, ``is_init`` and ``episode_seed``; writes ``action``. Raises ``CheckpointError`` for a missing
+    or corrupt file."""
+    policy = load_policy(path).to(resolve_device(runtime.device))
+    policy.set_runtime(runtime.precision, runtime.compile)
+    return policy.executor(seeded=True)

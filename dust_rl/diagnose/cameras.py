@@ -14,8 +14,9 @@ from dataclasses import dataclass, replace
 
 from dust_rl.agents import load_policy
 from dust_rl.data.seeding import VALIDATION_SEED
-from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+from dust_rl.evaluate.closed_loop import WORKER_THREADS, EvalConfig, evaluate
 from dust_rl.evaluate.records import Episode, mcnemar
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 
 ALL_CAMERAS = "all cameras"  # the arm of the policy as it is, which every other arm is compared with
@@ -39,10 +40,8 @@ class CameraAblation:
     """Time limit per episode in env steps; default: the task's."""
     workers: int = 2
     """Env processes per evaluation."""
-    threads: int = 1
-    """Torch threads per process."""
-    progress: bool = True
-    """Show progress bars."""
+    runtime: RuntimeSettings = runtime_field(threads=WORKER_THREADS)
+    """Where the policy runs, its threads per worker, precision, progress bars (as `dust-rl eval --runtime.*`)."""
 
     def __post_init__(self) -> None:
         self.evaluation()  # the same checks as dust-rl eval's, before any episode
@@ -50,7 +49,7 @@ class CameraAblation:
     def evaluation(self) -> EvalConfig:
         """The evaluation every arm runs, but for its folder and its mean cameras."""
         return EvalConfig(policy=self.policy, episodes=self.episodes, seed=self.seed, max_steps=self.max_steps,
-                          workers=self.workers, threads=self.threads, videos=0, progress=self.progress)
+                          workers=self.workers, videos=0, runtime=self.runtime)
 
 
 def diagnose_cameras(config: CameraAblation) -> dict:

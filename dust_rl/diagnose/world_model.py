@@ -43,14 +43,15 @@ from tensordict import TensorDict
 from torch import Tensor
 
 from dust_rl.agents import DustPolicy, load_policy, schedule_for
-from dust_rl.agents.flow_matching import interpolate, sample_tau, velocity_target
-from dust_rl.agents.samplers import DenoiseStep
+from dust_rl.agents.model.flow_matching import interpolate, sample_tau, velocity_target
+from dust_rl.agents.model.samplers import DenoiseStep
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.features import FeatureCache
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate.resampling import Resampling, apply_sampling, describe_sampler, resolved_sampler
 from dust_rl.keys import FUTURE_IS_CLAMPED_KEY
 from dust_rl.runtime.device import resolve_device
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.storage.atomic_files import atomic_write, write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
 
@@ -72,7 +73,7 @@ READINGS = tuple(PAIRS)[:3]
 MAX_TAU_BUCKETS = 50
 
 SliceSource = Callable[[TensorDict, Tensor], Callable[[DenoiseStep], tuple[Tensor, float]]]
-"""Per slice of windows (its batch, its rows), the :data:`~dust_rl.agents.samplers.VisionSource` of its chunks."""
+"""Per slice of windows (its batch, its rows), the :data:`~dust_rl.agents.model.samplers.VisionSource` of its chunks."""
 
 
 @dataclass
@@ -95,22 +96,18 @@ class WorldModelDiagnosis:
     window)."""
     seed: int = 0
     """Seed of the windows drawn and of every noise."""
-    device: str = "auto"
-    """auto | cpu | cuda | cuda:N | mps."""
     sampling: Resampling = None
     """The sampler of the policy's own samples: as the policy file says (the default), or `resample` with other
     settings, given after every other argument (`... resample --vision-step-ratio 4`: N_o = 16 vision steps)."""
-    threads: int | None = None
-    """torch threads (default: torch's choice)."""
-    progress: bool = True
-    """Show the feature cache's progress bar."""
+    runtime: RuntimeSettings = runtime_field()
+    """Where the policy runs (`--runtime.device`), its threads, its samples' precision, the feature cache's progress
+    bar."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "windows", "batch_size", "tau_buckets", "threads")
+        check_at_least(self, 1, "windows", "batch_size", "tau_buckets")
         if self.tau_buckets > MAX_TAU_BUCKETS:
             raise ConfigError(f"tau_buckets must be at most {MAX_TAU_BUCKETS} (each is one more pass over every "
                               f"window), got {self.tau_buckets}")
-        resolve_device(self.device)
 
 
 @dataclass
@@ -172,7 +169,7 @@ def draw_windows(config: WorldModelDiagnosis, policy: DustPolicy) -> Windows:
     """
     dataset = DemoDataset(config.dataset)
     dataset.check_fits_policy(policy.info, config.policy)
-    features = FeatureCache(dataset, policy, progress=config.progress, store=True)
+    features = FeatureCache(dataset, policy, progress=config.runtime.progress, store=True)
     return windows_of(policy, features, config.windows, config.seed, config.batch_size)
 
 
@@ -266,7 +263,7 @@ def own_samples(policy: DustPolicy, batch: TensorDict, seed: int, batch_size: in
                 source: SliceSource | None = None) -> tuple[Tensor, Tensor | None]:
     """Action chunks [N, H, Da] and the future [N, N_o, Dv] of the policy's sampler on ``batch``, each slice of
     ``batch_size`` seeded alike, so that every condition starts from the same action noise; ``source(part,
-    rows)`` gives a slice's vision tokens per step (:data:`~dust_rl.agents.samplers.VisionSource`)."""
+    rows)`` gives a slice's vision tokens per step (:data:`~dust_rl.agents.model.samplers.VisionSource`)."""
     schedule, actions, futures = schedule_for(policy.config), [], []
     for index, rows in enumerate(torch.arange(batch.batch_size[0]).split(batch_size)):
         part = batch[rows.to(batch.device)]
@@ -369,10 +366,10 @@ def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
     Raises:
         CheckpointError, DatasetError: an unreadable policy or dataset, or one that does not fit the other.
     """
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    policy = load_policy(config.policy).to(resolve_device(config.device)).eval()
+    torch.set_num_threads(config.runtime.thread_count)
+    policy = load_policy(config.policy).to(resolve_device(config.runtime.device)).eval()
     apply_sampling(policy, config.sampling, config.policy)
+    policy.set_runtime(config.runtime.precision, config.runtime.compile)
     trained_on = policy.info.get("dataset")
     if trained_on and pathlib.Path(trained_on).resolve() == config.dataset.resolve():
         raise DatasetError(f"{config.dataset} is the dataset {config.policy} was trained on; diagnose on held-out "

@@ -30,7 +30,7 @@ import functools
 import pathlib
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from tensordict import TensorDictBase
@@ -41,7 +41,7 @@ from tqdm import tqdm
 
 from dust_rl.agents import DustPolicy, SamplerConfig, load_policy
 from dust_rl.agents.factory import check_fits_env
-from dust_rl.agents.precision import Precision
+from dust_rl.agents.model.precision import Precision
 from dust_rl.data.seeding import HELDOUT_SEED, EpisodeSeedWrapper, SeedSchedule, check_seeds
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.envs.torchrl_env import make_torchrl_env
@@ -53,9 +53,19 @@ from dust_rl.evaluate.video import write_episode_video
 from dust_rl.keys import ACTION_KEY, SEED_KEY, STATE_KEY, STEP_KEY, SUCCESS_KEY
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import episode_collector, torch_threads
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.runtime.workers import Backend, Workers, ray_runtime
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.lock import folder_lock
+
+# Torch threads of each evaluation worker unless --runtime.threads says otherwise: a worker's renderer uses the
+# other core of a 2-core CPU, and more threads than cores slow torch down many times over.
+WORKER_THREADS = 1
+
+
+def eval_runtime(runtime: RuntimeSettings) -> RuntimeSettings:
+    """A command's runtime as the evaluations it runs use it: :data:`WORKER_THREADS` threads per worker."""
+    return replace(runtime, threads=WORKER_THREADS)
 
 
 @dataclass
@@ -94,31 +104,22 @@ class EvalConfig:
     """Episodes per task recorded as MP4 (camera views beside the decoded predicted future)."""
     train_dir: pathlib.Path | None = None
     """Training run folder whose CSV logs give the loss curves; default: the policy file's folder."""
-    threads: int = 1
-    """Torch threads per process."""
-    device: str = "auto"
-    """Where the policy runs (`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
-    cuda:N, mps; the envs run on the CPU."""
-    precision: Precision = "fp32"
-    """The trunk's precision while sampling: fp32, or bf16 autocast (`dust_rl.agents.precision`)."""
-    compile: bool = False
-    """Compile the trunk's forward pass with `torch.compile` in every worker (each pays the compilation once)."""
     mean_cameras: tuple[str, ...] = ()
     """Cameras whose frozen tokens are replaced by the training data's mean token while acting: an ablation of
     what those views give the policy (`dust-rl diagnose cameras` runs one per camera)."""
-    progress: bool = True
-    """Show progress bars."""
+    runtime: RuntimeSettings = runtime_field(threads=WORKER_THREADS)
+    """Where the policy runs, its threads per worker (`--runtime.threads`), precision, compilation, progress bars;
+    the envs run on the CPU."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "episodes", "workers", "threads", "max_steps", "execute_steps")
+        check_at_least(self, 1, "episodes", "workers", "max_steps", "execute_steps")
         check_at_least(self, 0, "videos", "seed")
         check_seeds(self.seed, self.episodes + self.workers)  # each worker may start one episode past the last
-        resolve_device(self.device)
         self.worker_pool()
 
     def worker_pool(self) -> Workers:
         """Where and how many workers run episodes."""
-        return Workers(self.workers, self.backend, self.threads, self.ray_address)
+        return Workers(self.workers, self.backend, self.runtime.thread_count, self.ray_address)
 
 
 @dataclass(frozen=True)
@@ -191,18 +192,19 @@ def prepare(config: EvalConfig) -> tuple[DustPolicy, EvalSetup]:
         ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
     """
     policy = load_policy(config.policy, execute_steps=config.execute_steps)  # checks the range
-    return policy, eval_setup(config, policy.to(resolve_device(config.device)))
+    return policy, eval_setup(config, policy.to(resolve_device(config.runtime.device)))
 
 
 def eval_setup(config: EvalConfig, policy: DustPolicy) -> EvalSetup:
-    """:func:`prepare` of a policy already loaded from ``config.policy`` and on ``config.device`` (a fine-tuning run
-    evaluates the policy it holds): resolve env, tasks and sampler, check them, set the policy's sampler and runtime.
+    """:func:`prepare` of a policy already loaded from ``config.policy`` and on ``config.runtime.device`` (a
+    fine-tuning run evaluates the policy it holds): resolve env, tasks and sampler, check them, set the policy's
+    sampler and runtime.
 
     Raises:
         CheckpointError: a policy that does not fit the env.
         ConfigError: no env id or tasks to evaluate, unknown task, bad sampler settings.
     """
-    device = resolve_device(config.device)
+    device, runtime = resolve_device(config.runtime.device), config.runtime
     env_id = config.env or policy.info.get("env_id")
     tasks = tuple(config.tasks or policy.info.get("tasks", ()))
     if not env_id or not tasks:
@@ -219,13 +221,13 @@ def eval_setup(config: EvalConfig, policy: DustPolicy) -> EvalSetup:
         probe.close()
     apply_sampling(policy, config.sampling, config.policy)
     sampler = resolved_sampler(policy)
-    policy.set_runtime(config.precision, config.compile)
+    policy.set_runtime(runtime.precision, runtime.compile)
     try:
         policy.set_mean_cameras(config.mean_cameras)
     except ValueError as err:
         raise ConfigError(f"--mean-cameras: {err}") from err
     return EvalSetup(config.policy, env_id, env_kwargs, tasks, sampler, policy.execute_steps, fps, str(device),
-                     config.precision, config.compile, config.mean_cameras)
+                     runtime.precision, runtime.compile, config.mean_cameras)
 
 
 def eval_collector(setup: EvalSetup, task: str, policy: DustPolicy, workers: Workers, seed: int,
@@ -306,12 +308,12 @@ def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy, config: EvalC
     start-up seconds and the seconds spent running episodes; ``actor``: see :func:`eval_collector`."""
     start = time.perf_counter()
     with (eval_collector(setup, task, policy, config.worker_pool(), config.seed, actor) as collector,
-          tqdm(total=config.episodes, desc=f"eval {task}", disable=not config.progress) as bar):
+          tqdm(total=config.episodes, desc=f"eval {task}", disable=not config.runtime.progress) as bar):
         started = time.perf_counter()
         episodes, kept = run_task(collector, range(config.seed, config.seed + config.episodes), bar, config.videos)
     # A multi-process collector's shutdown raises this process's thread count; more threads than
     # cores next to the renderer's own threads slow torch down many times over.
-    torch.set_num_threads(config.threads)
+    torch.set_num_threads(config.runtime.thread_count)
     return episodes, kept, started - start, time.perf_counter() - started
 
 
@@ -374,7 +376,7 @@ def evaluate(config: EvalConfig, command: str | None = None, policy: DustPolicy 
     """
     start = time.perf_counter()
     rows, everything, startup, running = [], [], 0.0, 0.0
-    with torch_threads(config.threads), ray_runtime(config.worker_pool()):
+    with torch_threads(config.runtime.thread_count), ray_runtime(config.worker_pool()):
         policy, setup = prepare(config) if policy is None else (policy, eval_setup(config, policy))
         with eval_folder(config.out):
             for task in setup.tasks:

@@ -5,7 +5,7 @@ module can import them.
 (:class:`FinetuneSettings`) and the method's own: the SB3 methods (``steer``, ``residual``) their RL agent's, with
 the algorithm a nested subcommand given last (``sac`` or ``ppo``, each with only the settings it reads);
 ``self-imitation`` its rounds and how each round trains (the policy's own architecture is kept, so no
-``--train.policy.*``). Each config records its method (and an SB3 one its algorithm) in the run's ``config.json``;
+``--train.model.*``). Each config records its method (and an SB3 one its algorithm) in the run's ``config.json``;
 settings a later version retired (:data:`RETIRED_RL_SETTINGS`) read back at the one value it still honours.
 """
 
@@ -22,10 +22,10 @@ from dust_rl.agents.config import PolicyConfig
 from dust_rl.data.seeding import HELDOUT_SEED, VALIDATION_SEED, check_seeds
 from dust_rl.errors import ConfigError, check_at_least, check_finite
 from dust_rl.keys import EXPERT_ACTION_KEY
-from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import LoggerKind, check_loggers
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.storage.config_json import Retired, config_from_json, without_retired
-from dust_rl.train.settings import DataSettings, OptimSettings, RuntimeSettings, TrainSettings, grouped_json
+from dust_rl.train.settings import DataSettings, NestedTrainSettings, OptimSettings, grouped_json
 
 RL_AGENT_KIND = "dust-rl rl agent"
 RL_AGENT_FILE = "rl_agent.pt"  # the fine-tuned policy as one file (dust_rl.rl.fine_tuned_policy)
@@ -36,7 +36,7 @@ ROLLOUT_SEED = 20_000  # rollouts start away from the training, validation and h
 MAX_NOISE_BOUND = 10.0
 MAX_RL_SEED = 2**32 - 1  # numpy's legacy seeding, which SB3's set_random_seed calls, takes 32 bits
 # rounds: a finished self_imitation run resumed with more rounds goes on from its last round.
-RESUMABLE_FIELDS = ("resume", "progress", "threads", "rounds", "control")
+RESUMABLE_FIELDS = ("resume", "runtime.progress", "runtime.threads", "runtime.compile", "rounds", "control")
 # PPO keeps no replay buffer sized by the run, so a resumed PPO run may also be given a larger budget.
 PPO_RESUMABLE_FIELDS = (*RESUMABLE_FIELDS, "steps")
 
@@ -62,22 +62,17 @@ class FinetuneSettings:
     """First evaluation seed (training data: 0 on; validation: 5000 on; held-out: 10000 on)."""
     resume: bool = False
     """Continue the run in `out` where it stopped."""
-    threads: int = 1
-    """torch threads."""
-    device: str = "auto"
-    """Where the policy (and an RL agent) runs (`dust_rl.runtime.device`): auto, cpu, cuda, cuda:N, mps; the
-    envs run on the CPU."""
-    progress: bool = True
-    """Show progress bars."""
+    runtime: RuntimeSettings = runtime_field(threads=1)
+    """Where the policy (and an RL agent) runs, torch threads, the policy's precision, progress bars
+    (`--runtime.*`); the envs run on the CPU."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "eval_episodes", "threads", "max_steps")
+        check_at_least(self, 1, "eval_episodes", "max_steps")
         check_at_least(self, 0, "seed", "eval_seed")
         if self.seed > MAX_RL_SEED:
             raise ConfigError(f"seed must be in [0, {MAX_RL_SEED}] (SB3 seeds numpy's generator, which takes 32 bits), "
                               f"got {self.seed}")
         check_seeds(self.eval_seed, self.eval_episodes + 1, "--eval-seed")  # its one worker may start one more
-        resolve_device(self.device)
 
 
 @dataclass
@@ -312,23 +307,12 @@ class RoundData(DataSettings):
 
 
 @dataclass(kw_only=True)
-class RoundRuntime(RuntimeSettings):
-    """Where each round trains; its threads, device and progress bars are the run's."""
-
-    threads: tyro.conf.Suppress[int | None] = None
-    device: tyro.conf.Suppress[str] = "auto"
-    progress: tyro.conf.Suppress[bool] = True
-
-
-@dataclass(kw_only=True)
-class RoundTraining(TrainSettings):
+class RoundTraining(NestedTrainSettings):
     """How each self-imitation round fine-tunes (`dust-rl train`'s settings): the policy's architecture is the
-    starting policy's, and the starting policy, the rollouts, the seed, threads, device and progress bars are the
-    round's."""
+    starting policy's, and the starting policy, the rollouts, the seed and the runtime are the round's."""
 
     policy: tyro.conf.Suppress[PolicyConfig] = field(default_factory=PolicyConfig)
     data: RoundData = field(default_factory=RoundData)
-    runtime: RoundRuntime = field(default_factory=RoundRuntime)
     init_policy: tyro.conf.Suppress[pathlib.Path | None] = None
     seed: tyro.conf.Suppress[int] = 0
 
@@ -336,6 +320,8 @@ class RoundTraining(TrainSettings):
 RENAMED = {"learning_rate": "lr", "gradient_steps": "updates_per_step"}
 """Earlier names of fine-tuning settings: the RL learning rate (the one name of ``--lr`` across commands), SAC's
 update-to-data ratio."""
+UNGROUPED_RUNTIME = ("threads", "device", "progress")
+"""Runtime settings earlier versions kept beside the others (``--threads``), now in ``runtime``."""
 
 RETIRED_RL_SETTINGS: dict[str, Retired] = {
     f"{group}{name}": Retired(value, "74cb2e1")
@@ -351,8 +337,12 @@ them gained nothing on push or press_button (docs/results/2026-11-27-push-residu
 
 def as_this_version(stored: dict) -> dict:
     """A stored fine-tuning config by this version's names (:data:`RENAMED`, also among an SB3 algorithm's
-    settings), a self-imitation round's training settings grouped (:func:`~dust_rl.train.settings.grouped_json`)."""
-    stored = {RENAMED.get(key, key): value for key, value in stored.items()}
+    settings), its runtime settings grouped (:data:`UNGROUPED_RUNTIME`), a self-imitation round's training settings
+    grouped (:func:`~dust_rl.train.settings.grouped_json`)."""
+    runtime = {key: stored[key] for key in UNGROUPED_RUNTIME if key in stored}
+    stored = {RENAMED.get(key, key): value for key, value in stored.items() if key not in runtime}
+    if runtime:
+        stored["runtime"] = {**runtime, **stored.get("runtime", {})}
     if isinstance(stored.get("algorithm"), dict):
         stored["algorithm"] = {RENAMED.get(key, key): value for key, value in stored["algorithm"].items()}
     if not isinstance(stored.get("train"), dict):

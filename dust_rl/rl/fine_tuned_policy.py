@@ -57,9 +57,10 @@ def load_fine_tuned(path: pathlib.Path, device: str = "auto") -> tuple[RLConfig,
         raise CheckpointError(f"{path}: written before an RL agent's file held its base policy; run `dust-rl finetune "
                               "... --resume` in its run folder to write it again")
     try:
-        config = rl_config_from_json(payload["config"], device=device)
+        config = rl_config_from_json(payload["config"])
     except (KeyError, TypeError, ValueError, ConfigError) as err:
         raise CheckpointError(f"{path}: the fine-tuning settings do not read back ({one_line(err)})") from err
+    config = dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, device=device))
     if isinstance(config, SteerConfig):  # one env builds the actor; the run's vector of them only sped training
         config = dataclasses.replace(config, collection=dataclasses.replace(config.collection, envs=1))
     where = resolve_device(device)
@@ -100,7 +101,7 @@ def evaluate_agent_command(config: EvalConfig, command: str | None = None) -> di
     if refused:
         raise ConfigError(f"{config.policy} is a fine-tuned RL agent: it runs as it was trained, in this process; "
                           f"drop {', '.join(refused)}")
-    fine_tuning, agent = load_fine_tuned(config.policy, config.device)
+    fine_tuning, agent = load_fine_tuned(config.policy, config.runtime.device)
     if fine_tuning.finite_horizon and config.max_steps not in (None, fine_tuning.max_steps):
         raise ConfigError(f"{config.policy}: the agent observes the time left of its {fine_tuning.max_steps}-step "
                           "episodes (--finite-horizon); drop --max-steps")

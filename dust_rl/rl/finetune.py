@@ -98,7 +98,7 @@ def finetune(config: FinetuneConfig, command: str | None = None) -> dict:
     """Fine-tune, save the result, compare with the base policy; returns the report."""
     is_ppo = not isinstance(config, SelfImitationConfig) and config.algorithm.name == "ppo"
     resumable = PPO_RESUMABLE_FIELDS if is_ppo else RESUMABLE_FIELDS
-    with torch_threads(config.threads):
+    with torch_threads(config.runtime.thread_count):
         check_run_folder(config, resumable, RETIRED_RL_SETTINGS, as_this_version)
         policy = load_policy(config.policy)
         env_id, env_kwargs, task = policy_env(config, policy)
@@ -122,7 +122,8 @@ def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: Dus
         extra = {k: v for k, v in result.items() if k not in ("rows", "train_seconds")}
         trained_s = result["train_seconds"]
     else:
-        policy.to(resolve_device(config.device))
+        policy.to(resolve_device(config.runtime.device))
+        policy.set_runtime(config.runtime.precision, config.runtime.compile)
         make, task = finetune_env_factory(config, policy)
         episodes, trained_s = train_rl(config, policy, make, eval_runner(config, policy, task))
         extra = {"algorithm": config.algorithm.name, "steps": config.steps,
@@ -147,8 +148,7 @@ def eval_runner(config: RLConfig, policy: DustPolicy, task: str) -> Run:
     """Episodes of ``task`` through ``dust-rl eval``'s runner (:func:`~dust_rl.evaluate.closed_loop.evaluate_task`,
     one worker in this process): of ``policy`` as ``dust-rl eval`` runs it, or of an actor built around it."""
     settings = EvalConfig(policy=config.policy, out=config.out, tasks=(task,), workers=1, videos=0,
-                          threads=config.threads, max_steps=config.max_steps, progress=config.progress,
-                          device=config.device)
+                          max_steps=config.max_steps, runtime=config.runtime)
     setup = eval_setup(settings, policy)
 
     def run(seeds: range, actor: TensorDictModuleBase | None) -> list[Episode]:
@@ -186,7 +186,7 @@ def train_rl(config: RLConfig, policy: DustPolicy, make: Callable[[], FineTuning
     callbacks = [DivergenceCheck(rotation)]
     while agent.num_timesteps < config.steps:  # in sittings of checkpoint_every (or eval_every) steps
         agent.learn(total_timesteps=min(sitting, config.steps - agent.num_timesteps), reset_num_timesteps=False,
-                    progress_bar=config.progress, callback=callbacks)
+                    progress_bar=config.runtime.progress, callback=callbacks)
         last_eval = curve[-1]["rl_steps"] if curve else 0
         if config.eval_every and (agent.num_timesteps >= last_eval + config.eval_every
                                   or agent.num_timesteps >= config.steps):
@@ -273,7 +273,7 @@ def build_agent(config: RLConfig, env: FineTuningEnv) -> BaseAlgorithm:
         kwargs |= {"n_steps": n_steps // (config.collection.envs if steer else 1),
                    "batch_size": min(config.batch_size, n_steps), "n_epochs": settings.n_epochs}
     policy_class, policy_kwargs = policy_network(config)
-    agent = algorithm(policy_class, env, seed=config.seed, device=resolve_device(config.device),
+    agent = algorithm(policy_class, env, seed=config.seed, device=resolve_device(config.runtime.device),
                       policy_kwargs=policy_kwargs, **kwargs)
     if isinstance(agent, BaseWarmupSAC):
         agent.noise_bound = config.noise_bound

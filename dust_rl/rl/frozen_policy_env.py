@@ -21,7 +21,7 @@ observation               shape              meaning
                                              then (unless ``instruction`` is off) the mean of the
                                              instruction's tokens
 ``object_estimate``       [S]                only for a policy with a state read-out
-                                             (``--policy.lambda-aux``): its estimate of the
+                                             (``--model.lambda-aux``): its estimate of the
                                              normalised object state, where the mean-pooled
                                              features no longer say where a small object is
 ``predicted_future``      [N_o * Dv]         residual with ``world_model`` only

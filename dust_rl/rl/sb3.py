@@ -30,8 +30,8 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import Tensor
 
 from dust_rl.agents import ImageEncoder, TextEncoder, TransformersTextEncoder, pooled_text
-from dust_rl.agents.backbone import resolve_image_encoder
-from dust_rl.agents.image_encoder import image_tokens
+from dust_rl.agents.encoders.backbone import resolve_image_encoder
+from dust_rl.agents.encoders.image_encoder import image_tokens
 from dust_rl.errors import ConfigError
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY, INSTRUCTION_KEY, flat_name
 

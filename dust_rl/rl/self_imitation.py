@@ -57,7 +57,7 @@ def self_imitation(config: SelfImitationConfig, task: str, env_id: str, env_kwar
         rollouts = folder / "rollouts"
         collect_demos(rollouts, env_id, [task], config.rollout_successes, env_kwargs=env_kwargs,
                       start_seed=config.rollout_seed + r * ROUND_SEEDS, keep_failed=dagger, policy=policy,
-                      progress=config.progress)
+                      policy_runtime=config.runtime, progress=config.runtime.progress)
         records = scan_episodes(rollouts)[task].values()
         policy = _fine_tune(config, policy, rollouts, folder / "train")
         rounds.append({"policy": str(policy), "rollouts": len(records), "successes": sum(r.success for r in records),
@@ -104,10 +104,8 @@ def _fine_tune(config: SelfImitationConfig, policy: pathlib.Path, rollouts: path
     finished run is not trained again."""
     if not (out / "policy.pt").is_file():
         rounds = config.train
-        settings = dataclasses.replace(
-            rounds, init_policy=policy, seed=config.seed, data=dataclasses.replace(rounds.data, extra_dataset=rollouts),
-            runtime=dataclasses.replace(rounds.runtime, threads=config.threads, device=config.device,
-                                        progress=config.progress))
+        settings = rounds.under(config.runtime, init_policy=policy, seed=config.seed,
+                                data=dataclasses.replace(rounds.data, extra_dataset=rollouts))
         resume = (out / "config.json").is_file()
         train(TrainConfig.from_settings(settings, dataset=config.demos, out=out, resume=resume))
     return out / "policy.pt"
@@ -130,5 +128,4 @@ def _report(config: SelfImitationConfig, policy: pathlib.Path, out: pathlib.Path
     if (out / "report.json").is_file():
         return json.loads((out / "report.json").read_text())
     return evaluate(EvalConfig(policy=policy, out=out, episodes=episodes, seed=seed, workers=1, videos=videos,
-                               threads=config.threads, device=config.device, max_steps=config.max_steps,
-                               progress=config.progress))
+                               max_steps=config.max_steps, runtime=config.runtime))

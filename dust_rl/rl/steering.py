@@ -41,7 +41,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from dust_rl.agents import ChunkExecutor, DustPolicy
 from dust_rl.agents.execution import episode_generator
-from dust_rl.agents.flow_matching import cpu_drawn
+from dust_rl.agents.model.flow_matching import cpu_drawn
 from dust_rl.envs import arguments
 from dust_rl.keys import BATCH_ACTION_CHUNK_KEY, SEED_KEY, STATE_KEY, STEP_KEY
 from dust_rl.rl.frozen_policy_env import Act, AgentView, FrozenPolicyEnv, agent_action, observe_batch

@@ -3,7 +3,7 @@
 ``auto`` takes the first CUDA device when torch sees one, else Apple's MPS, else the CPU. An explicit
 device that this torch cannot use is refused before any work starts, with what torch reports.
 Policies, checkpoints and feature caches are stored on the CPU whatever the device (``load_policy``
-maps to the CPU), and the sampling noise is drawn on the CPU (``agents.flow_matching.cpu_drawn``), so a
+maps to the CPU), and the sampling noise is drawn on the CPU (``agents.model.flow_matching.cpu_drawn``), so a
 policy trained on a GPU evaluates on a CPU box and a seed means the same noise everywhere.
 """
 

@@ -13,6 +13,16 @@ import typing
 from collections.abc import Mapping
 
 _VERSIONED_PACKAGES = ("dust-rl", "mujoco", "torch", "torchrl", "tensordict", "gymnasium")
+# Config groups whose command-line name is not their field's (and so not the key files store them under): the policy
+# a command builds is `--model.*`, as `--policy PATH` is always a policy file.
+FLAG_GROUPS = {"policy": "model"}
+
+
+def flag_path(name: str) -> str:
+    """The dotted setting ``name`` (``train.policy.d_model``) as the command line spells it
+    (``train.model.d-model``)."""
+    *groups, setting = name.split(".")
+    return ".".join([*(FLAG_GROUPS.get(group, group) for group in groups), setting.replace("_", "-")])
 
 
 def config_json(config: object) -> dict:

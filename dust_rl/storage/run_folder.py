@@ -28,7 +28,7 @@ from torchrl.checkpoint import CheckpointError as TorchrlCheckpointError
 from dust_rl.errors import CheckpointError, ConfigError
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.checkpoint_dirs import check_checkpoint_dir, newest_checkpoint
-from dust_rl.storage.config_json import Retired, config_json, package_versions, without_retired
+from dust_rl.storage.config_json import Retired, config_json, flag_path, package_versions, without_retired
 from dust_rl.storage.lock import LOCK_FILE, folder_lock
 
 
@@ -95,10 +95,10 @@ def check_run_folder(config, resumable: Iterable[str], retired: Mapping[str, Ret
 def _flag(name: str, value: object) -> str:
     """The command-line flag that gives the dotted setting ``name`` the JSON ``value`` (``--optim.steps 20``,
     ``--runtime.no-progress``)."""
-    group, dot, field = name.rpartition(".")
+    group, dot, field = flag_path(name).rpartition(".")
     if isinstance(value, bool):
-        return f"--{group}{dot}{'' if value else 'no-'}{field}".replace("_", "-")
-    return f"--{name.replace('_', '-')} {_shown(value)}"
+        return f"--{group}{dot}{'' if value else 'no-'}{field}"
+    return f"--{group}{dot}{field} {_shown(value)}"
 
 
 def _shown(value: object) -> str:

@@ -4,7 +4,7 @@ dust_rl.train.imitation ...``, with PyTorch's ``DistributedDataParallel``.
 How the work is split, and why: every rank seeds torch's global generator alike and so draws the same
 global batch of windows each step; each keeps its own contiguous slice of it (:meth:`Ranks.shard`), and
 the flow-matching noise is drawn for the whole batch and sliced the same way
-(:class:`dust_rl.agents.flow_matching.Shard`). Every sample thus gets the window and noise it gets in one
+(:class:`dust_rl.agents.model.flow_matching.Shard`). Every sample thus gets the window and noise it gets in one
 process with the same global batch, the generators of all ranks stay equal (a resumed run restores one
 state for all), and ``DistributedDataParallel`` averages the ranks' gradients. Losses are means over each
 rank's valid (unpadded) actions, so the averaged gradient equals the one-process gradient up to rounding
@@ -29,7 +29,7 @@ import torch.multiprocessing as mp
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 
-from dust_rl.agents.flow_matching import Shard
+from dust_rl.agents.model.flow_matching import Shard
 from dust_rl.errors import UserError
 
 # What torchrun sets, and what :func:`spawn` sets for the processes it starts.

@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from dust_rl.agents.image_encoder import ImageEncoder, image_tokens
+from dust_rl.agents.encoders.image_encoder import ImageEncoder, image_tokens
 from dust_rl.data import DemoDataset
 from dust_rl.evaluate.report import save_png
 from dust_rl.keys import ENV_STATE_KEY, IMAGE_KEY

@@ -11,6 +11,8 @@ import tyro
 
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.runtime.device import resolve_device
+from dust_rl.runtime.episode_collector import torch_threads
+from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 
 
 @dataclass
@@ -37,16 +39,16 @@ class PretrainEncoderCommand:
     """Token size."""
     width: int = 16
     """Channels of the first conv stage."""
-    device: str = "auto"
-    """Where the autoencoder trains: auto | cpu | cuda | cuda:N | mps (`dust_rl.runtime.device`)."""
+    runtime: RuntimeSettings = runtime_field()
+    """Where the autoencoder trains (`--runtime.device`), torch threads, progress bar."""
 
     def __post_init__(self) -> None:
-        resolve_device(self.device)
+        self.runtime.check_fp32("dust-rl pretrain-encoder")
 
 
 def run_pretrain_encoder(config: PretrainEncoderCommand, command_line: str) -> None:
     from dust_rl.agents import AutoencoderConfig
-    from dust_rl.agents.backbone import IMAGE_ENCODER_KIND
+    from dust_rl.agents.encoders.backbone import IMAGE_ENCODER_KIND
     from dust_rl.data import DemoDataset
     from dust_rl.storage.checkpoint_files import check_replaceable_file
     from dust_rl.train.pretrain_encoder import pretrain_encoder
@@ -56,9 +58,11 @@ def run_pretrain_encoder(config: PretrainEncoderCommand, command_line: str) -> N
     check_replaceable_file(config.out, IMAGE_ENCODER_KIND)  # before training, not after it
     encoder = AutoencoderConfig(image_size=config.image_size, latent_grid=config.grid, dim=config.dim,
                                 width=config.width)
-    report = pretrain_encoder([DemoDataset(d) for d in config.dataset], config.out, encoder, steps=config.steps,
-                              batch_size=config.batch_size, lr=config.lr, seed=config.seed, command=command_line,
-                              device=resolve_device(config.device))
+    with torch_threads(config.runtime.thread_count):
+        report = pretrain_encoder([DemoDataset(d) for d in config.dataset], config.out, encoder, steps=config.steps,
+                                  batch_size=config.batch_size, lr=config.lr, seed=config.seed,
+                                  progress=config.runtime.progress, command=command_line,
+                                  device=resolve_device(config.runtime.device))
     heldout = "n/a" if report.heldout_loss is None else f"{report.heldout_loss:.5f}"
     print(f"{report.path}: {report.steps} steps in {report.seconds:.0f} s on {report.train_frames} frames; "
           f"pixel MSE train {report.train_loss:.5f}, held-out {heldout}")
@@ -80,7 +84,7 @@ class EncoderCheck:
     """Folder for probe.json and probe.png."""
 
     def run(self) -> None:
-        from dust_rl.agents.backbone import resolve_image_encoder
+        from dust_rl.agents.encoders.backbone import resolve_image_encoder
         from dust_rl.data import DemoDataset
         from dust_rl.train.encoder_check import probe_dataset, write_encoder_check
 
@@ -111,7 +115,7 @@ class EncoderInfo:
 
         import torch
 
-        from dust_rl.agents.backbone import resolve_image_encoder
+        from dust_rl.agents.encoders.backbone import resolve_image_encoder
 
         check_at_least(self, 1, "frames")
         encoder = resolve_image_encoder(self.image_encoder)

@@ -56,8 +56,8 @@ from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy, TransformersTextEncoder, load_policy, make_policy, save_policy
 from dust_rl.agents.factory import IMAGE_SIZE_INFO, frame_size
-from dust_rl.agents.flow_matching import Shard
-from dust_rl.agents.precision import autocast
+from dust_rl.agents.model.flow_matching import Shard
+from dust_rl.agents.model.precision import autocast
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.env_state_norm import INFO_KEY as ENV_STATE_NORM_INFO
 from dust_rl.data.env_state_norm import PER_TASK, EnvStateNorm
@@ -71,6 +71,7 @@ from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import log_config, log_image, log_scalars, log_video, make_loggers
 from dust_rl.runtime.machine import machine_line
 from dust_rl.runtime.phase_timer import PhaseTimer
+from dust_rl.runtime.settings import RuntimeSettings
 from dust_rl.storage.atomic_files import atomic_write, write_json_atomic
 from dust_rl.storage.checkpoint_dirs import run_out_of_space, save_checkpoint_dir
 from dust_rl.storage.config_json import config_json
@@ -239,15 +240,15 @@ def _train_in_folder(config: TrainConfig, ranks: Ranks, dataset: DemoDataset, po
     # its aux frames are not rendered again), as is a fine-tuned policy's; otherwise the aux frames join every
     # step's loss.
     aux, readout_frozen = None, False
-    if config.init_policy is not None and policy.config.aux_state_dim and policy.reads_frames_for_readout:
-        policy.readout_modules().requires_grad_(False)
+    if config.init_policy is not None and policy.readout is not None and policy.readout.reads_frames:
+        policy.readout.frame_modules().requires_grad_(False)
         readout_frozen = True
     elif config.readout.warmup_steps:
         if not (config.resume and rotation.latest() is not None):
             _warm_up_readout(config, dataset, policy, timer,
                              (lambda: features.batch(windows.sample())) if config.readout.demos else None,
                              lambda scalars, step: log_scalars(loggers, scalars, step))
-        policy.readout_modules().requires_grad_(False)
+        policy.readout.frame_modules().requires_grad_(False)
         readout_frozen = True
     elif config.readout.aux_frames:
         print(_readout_plan(config))
@@ -456,7 +457,7 @@ def _warm_up_readout(config: TrainConfig, dataset: DemoDataset, policy: DustPoli
             warm_up_readout(policy, demo_batch, frames, config.readout.warmup_steps, config.readout.lr, log_fit,
                             config.optim.batch_size, heldout=heldout, progress=config.runtime.progress)
 
-    if warm_up_or_load(path, policy.readout_modules(), config.seed, warm_up, log):
+    if warm_up_or_load(path, policy.readout.frame_modules(), config.seed, warm_up, log):
         print(f"read-out warm-up: the fit cached by an earlier run of the same read-out settings ({path})")
 
 
@@ -510,7 +511,7 @@ def _action_free_batches(config: TrainConfig, dataset: DemoDataset, policy: Dust
     if policy.config.aux_state_dim and set(video.tasks) - set(dataset.tasks):
         raise DatasetError(f"{config.data.video_dataset}: action-free episodes of tasks {sorted(video.tasks)} beside "
                            f"a read-out of {sorted(dataset.tasks)}: their object state means something else; use "
-                           "episodes of the demonstrations' tasks, or a policy without --policy.lambda-aux")
+                           "episodes of the demonstrations' tasks, or a policy without --model.lambda-aux")
     return ActionFreeBatches(video, policy, batch_size, progress=config.runtime.progress)
 
 
@@ -523,7 +524,7 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int, skill_fea
     the training RNG. The windows are put in the trunk's units anew each time: their condition tokens come from
     layers that train (windows drawn once at the start read as if the trunk had lost its inputs: a skill of -0.7
     where the policy's own was +0.7)."""
-    from dust_rl.evaluate.closed_loop import EvalConfig, evaluate
+    from dust_rl.evaluate.closed_loop import WORKER_THREADS, EvalConfig, evaluate
     from dust_rl.evaluate.report import SUCCESS_PNG
 
     folder = config.out / "eval" / f"step-{step:07d}"
@@ -532,7 +533,8 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int, skill_fea
     with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
         report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.logging.eval_episodes,
                                      seed=config.logging.eval_seed, workers=config.logging.eval_workers,
-                                     videos=int(media), progress=False, device=config.runtime.device))
+                                     videos=int(media), runtime=RuntimeSettings(
+                                         threads=WORKER_THREADS, device=config.runtime.device, progress=False)))
     scalars = {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
         "eval/success_rate": report["overall"]["success_rate"]}
     if skill_features is not None:

@@ -21,7 +21,7 @@ import torch
 from tqdm.auto import tqdm
 
 from dust_rl.agents import AutoencoderConfig, ConvAutoencoder, save_image_encoder
-from dust_rl.agents.image_encoder import to_unit_float
+from dust_rl.agents.encoders.image_encoder import to_unit_float
 from dust_rl.data import DemoDataset
 from dust_rl.errors import ConfigError
 from dust_rl.keys import IMAGE_KEY

@@ -64,16 +64,22 @@ def vision_readout() -> TrainSettings:
                    readout=ReadoutSettings(aux_frames=8000, warmup_steps=4000, demos=False))
 
 
+def action_only() -> TrainSettings:
+    """The recipe behind pick_place 92% from 2,000 demonstrations (docs/franka_results.md, "The recipe at 50 episodes
+    per seed set"; ``bash scripts/recipe.sh pick_place 2000``): :func:`plain` with the action-only trunk, 20,000
+    steps checkpointed every 2,000."""
+    settings = plain()
+    return replace(settings, policy=replace(settings.policy, variant="action_only"),
+                   optim=replace(settings.optim, steps=20000), logging=replace(settings.logging, checkpoint_every=2000))
+
+
 def pick_place_readout() -> TrainSettings:
-    """The command behind pick_place 90% from 200 demonstrations (README row 3; ``STEPS=20000 bash scripts/recipe.sh
-    pick_place 200 pp200_tokro_g16_h4_f32k_w16k_20k ...``): :func:`vision_readout` with the action-only trunk, a
-    four-head read-out fitted on 32,000 rendered frames for 16,000 steps, and 20,000 policy steps checkpointed every
-    2,000."""
-    settings = vision_readout()
-    return replace(settings, policy=replace(settings.policy, variant="action_only", readout_heads=4),
-                   optim=replace(settings.optim, steps=20000),
-                   readout=replace(settings.readout, aux_frames=32000, warmup_steps=16000),
-                   logging=replace(settings.logging, checkpoint_every=2000))
+    """The command behind pick_place 90% from 200 demonstrations (README row 3; ``bash scripts/recipe.sh pick_place
+    200 RUN --recipe pick-place-readout``): :func:`action_only` with :func:`vision_readout`'s token read-out, four
+    heads, fitted on 32,000 rendered frames for 16,000 steps."""
+    settings, readout = action_only(), vision_readout()
+    return replace(settings, policy=replace(readout.policy, variant="action_only", readout_heads=4),
+                   readout=replace(readout.readout, aux_frames=32000, warmup_steps=16000))
 
 
 def plain() -> TrainSettings:
@@ -88,9 +94,11 @@ RECIPES: dict[str, Recipe] = {
     "vision-readout": Recipe(vision_readout, "plain + a token read-out of the object state fitted first on 8,000 "
                              "rendered frames (needs observation.environment_state); the quickstart's",
                              "README row 10, docs/quickstart.md"),
-    "pick-place-readout": Recipe(pick_place_readout, "vision-readout with the action-only trunk, four read-out heads, "
-                                 "32,000 frames, 20,000 steps", "README row 3 (pick_place 90%), "
+    "pick-place-readout": Recipe(pick_place_readout, "action-only with vision-readout's read-out, four heads, "
+                                 "32,000 frames, 16,000 warm-up steps", "README rows 2-9 (pick_place 90%), "
                                  "docs/results/2026-11-22-franka-closed-loop.md"),
+    "action-only": Recipe(action_only, "plain with the action-only trunk, 20,000 steps; no privileged state",
+                          "docs/franka_results.md (pick_place 92% from 2,000 demonstrations)"),
     "plain": Recipe(plain, "Lite0 stride-8 tokens, text fusion, first rows, 2,000 steps at lr 3e-4; no privileged "
                     "state", "docs/results/2026-11-28-world-model-diagnosis.md"),
     "defaults": Recipe(TrainSettings, "every setting at its own default: the committed conv-ae encoder, 3,000 steps "

@@ -13,19 +13,24 @@ from __future__ import annotations
 import os
 import pathlib
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from operator import attrgetter
-from typing import Literal
+from typing import Annotated, Literal, TypeVar
+
+import tyro
 
 from dust_rl.agents.config import RETIRED_MODEL_SETTINGS, PolicyConfig
-from dust_rl.agents.precision import Precision
 from dust_rl.data.seeding import VALIDATION_SEED
 from dust_rl.errors import ConfigError, check_at_least, check_finite, check_fraction
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import LoggerKind, check_loggers, check_run_name
-from dust_rl.storage.config_json import Retired, retired_values
+from dust_rl.runtime.settings import RuntimeSettings
+from dust_rl.storage.config_json import FLAG_GROUPS, Retired, retired_values
 
 DEFAULT_OUT = pathlib.Path("runs/train")  # dust-rl train's run folder when --out is not given
+Config = TypeVar("Config")
+# The policy a command builds, as its flags spell it (`--model.*`, FLAG_GROUPS); files keep it under `policy`.
+ModelFlags = Annotated[Config, tyro.conf.arg(name=FLAG_GROUPS["policy"])]
 
 
 @dataclass(kw_only=True)
@@ -135,29 +140,17 @@ class ReadoutSettings:
 
 
 @dataclass(kw_only=True)
-class RuntimeSettings:
-    """Where and how the training runs; none of it changes what is learnt but `precision` (`--runtime.*`)."""
+class TrainRuntime(RuntimeSettings):
+    """Where and how the training runs (`--runtime.*`): every command's runtime settings, and the processes it
+    trains over."""
 
-    threads: int | None = None
-    """torch threads, per process (default: torch's choice)."""
     nproc: int = 1
     """Processes training data-parallel (`DistributedDataParallel`; gloo on the CPU, NCCL with one GPU per
     process on CUDA). Under `torchrun` leave it at 1 or give torchrun's `--nproc-per-node`."""
-    device: str = "auto"
-    """Where the policy trains (`dust_rl.runtime.device`): auto (CUDA if present, else MPS, else CPU), cpu, cuda,
-    cuda:N, mps. The feature cache and the saved policy stay on the CPU."""
-    precision: Precision = "fp32"
-    """The trunk's precision while training: fp32, or bf16 autocast (`dust_rl.agents.precision`; weights,
-    optimiser and the saved policy stay float32)."""
-    compile: bool = False
-    """Compile the trunk's forward pass with `torch.compile` (the first steps pay the compilation; its
-    cost on a 2-core x86 CPU is in BENCHMARKS.md)."""
-    progress: bool = True
-    """Show a progress bar."""
 
     def __post_init__(self) -> None:
-        check_at_least(self, 1, "threads", "nproc")
-        resolve_device(self.device)
+        super().__post_init__()
+        check_at_least(self, 1, "nproc")
         cores = os.cpu_count() or 1
         if self.nproc > cores and resolve_device(self.device).type == "cpu":
             raise ConfigError(f"--runtime.nproc {self.nproc} processes on the CPU of a machine with {cores} cores: "
@@ -203,7 +196,7 @@ class LoggingSettings:
             raise ConfigError("--logging.keep-best chooses among periodic evaluations: give --logging.eval-every N")
 
 
-GROUPS = {"optim": OptimSettings, "data": DataSettings, "readout": ReadoutSettings, "runtime": RuntimeSettings,
+GROUPS = {"optim": OptimSettings, "data": DataSettings, "readout": ReadoutSettings, "runtime": TrainRuntime,
           "logging": LoggingSettings}
 # Each grouped setting under the top-level name earlier versions gave it (what a run folder's config.json, a study's
 # results.json or a read-out cache key of theirs holds): its name in the group, but for the read-out's three.
@@ -249,38 +242,38 @@ class TrainSettings:
     """How to train a policy by imitation, wherever the data and the run folder are (`dust-rl quickstart
     --train.*` nests these)."""
 
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
-    """The policy to build: variant, trunk size, losses, image encoder (`--policy.d-model` ...)."""
+    policy: ModelFlags[PolicyConfig] = field(default_factory=PolicyConfig)
+    """The policy to build: variant, trunk size, losses, image encoder (`--model.d-model` ...)."""
     optim: OptimSettings = field(default_factory=OptimSettings)
     """The optimiser and its schedule."""
     data: DataSettings = field(default_factory=DataSettings)
     """What each batch is drawn from besides the demonstration windows."""
     readout: ReadoutSettings = field(default_factory=ReadoutSettings)
     """How the object-state read-out learns from rendered frames."""
-    runtime: RuntimeSettings = field(default_factory=RuntimeSettings)
+    runtime: TrainRuntime = field(default_factory=TrainRuntime)
     """Where and how the training runs."""
     logging: LoggingSettings = field(default_factory=LoggingSettings)
     """Scalars, checkpoints, periodic evaluations."""
     init_policy: pathlib.Path | None = None
     """Start from this trained policy (weights, normalisation, read-out) instead of a new one: fine-tuning.
-    Its own settings are kept (no `--policy.*` flags) and its frame read-out stays frozen (no warm-up)."""
+    Its own settings are kept (no `--model.*` flags) and its frame read-out stays frozen (no warm-up)."""
     seed: int = 0
     """Seed of the initial weights, batch sampling and flow-matching noise."""
 
     def __post_init__(self) -> None:
         readout_on_frames = self.policy.readout == "tokens" or self.policy.keypoint_source == "pixels"
         if self.readout.aux_frames and not (self.policy.lambda_aux and readout_on_frames):
-            raise ConfigError("--readout.aux-frames needs --policy.lambda-aux > 0 and a read-out frames can train: "
-                              "--policy.readout tokens, or --policy.keypoint-source pixels")
+            raise ConfigError("--readout.aux-frames needs --model.lambda-aux > 0 and a read-out frames can train: "
+                              "--model.readout tokens, or --model.keypoint-source pixels")
         mixed = self.data.mixed_in
         if self.optim.batch_size < 1 + len(mixed):
             raise ConfigError(f"{' and '.join(mixed)} need --optim.batch-size >= {1 + len(mixed)}: each batch holds "
                               "demonstrations and a share of each")
         if self.init_policy is not None and self.policy != PolicyConfig():
-            raise ConfigError("--policy.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
+            raise ConfigError("--model.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
                               "settings (and its read-out, so no aux frames or read-out warm-up either)")
         if self.data.video_dataset is not None and self.policy.lambda_aux and not self.readout.warmup_steps:
-            raise ConfigError("--data.video-dataset with --policy.lambda-aux needs --readout.warmup-steps: the "
+            raise ConfigError("--data.video-dataset with --model.lambda-aux needs --readout.warmup-steps: the "
                               "read-out is then fitted first and frozen, so the action-free episodes never train it")
         self.check_data_parallel(self.runtime.nproc)
 
@@ -294,3 +287,27 @@ class TrainSettings:
         used = [name for name in NOT_DATA_PARALLEL if setting(self, name)]
         if used:
             raise ConfigError(f"{', '.join(used)} cannot train over several processes yet; train them with one")
+
+
+def as_class(cls: type[Config], settings: object) -> Config:
+    """``settings`` (a dataclass) as an instance of ``cls``, a dataclass with the same fields: the same settings
+    seen through another class's annotations (a nesting command's suppressed ones, :class:`NestedTrainSettings`)."""
+    return cls(**{f.name: getattr(settings, f.name) for f in fields(settings) if f.init})
+
+
+def train_runtime(runtime: RuntimeSettings) -> TrainRuntime:
+    """A command's runtime as the runtime of the training it runs, in one process."""
+    return as_class(TrainRuntime, runtime)
+
+
+@dataclass(kw_only=True)
+class NestedTrainSettings(TrainSettings):
+    """`dust-rl train`'s settings as a command nests them that runs the training itself (`quickstart --train.*`,
+    `bench suite --train.*`): where and how it runs is the command's own `--runtime.*`, not set a second time."""
+
+    runtime: tyro.conf.Suppress[TrainRuntime] = field(default_factory=TrainRuntime)
+
+    def under(self, runtime: RuntimeSettings, **changes: object) -> TrainSettings:
+        """These settings, with ``changes``, as the training runs them under the command's ``runtime``."""
+        return TrainSettings(**{**{f.name: getattr(self, f.name) for f in fields(TrainSettings)},
+                                "runtime": train_runtime(runtime), **changes})

@@ -48,6 +48,7 @@ from dust_rl.rl.config import ROLLOUT_SEED
 from dust_rl.rl.report_rows import BASE_ROW, rows_against_base
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import torch_threads
+from dust_rl.runtime.settings import RuntimeSettings
 
 VALIDATION_EVERY = 5  # every 5th rollout episode validates the scorer
 SCORER_BATCH = 256
@@ -124,7 +125,7 @@ def collect_rollouts(policy: DustPolicy, config: EvalConfig) -> Rollouts:
     setup = eval_setup(config, policy)
     task, seeds = setup.tasks[0], range(config.seed, config.seed + config.episodes)
     with (eval_collector(setup, task, policy, config.worker_pool(), config.seed) as collector,
-          tqdm(total=config.episodes, desc="rollouts", disable=not config.progress) as bar):
+          tqdm(total=config.episodes, desc="rollouts", disable=not config.runtime.progress) as bar):
         episodes, trajectories = run_task(collector, seeds, bar, keep=config.episodes)
     futures, success, episode = [], [], []
     for index, record in enumerate(episodes):
@@ -230,8 +231,8 @@ def main(argv: list[str] | None = None) -> dict:
 
         def config(out: pathlib.Path, episodes: int, seed: int) -> EvalConfig:
             return EvalConfig(policy=args.policy, out=out, tasks=(task,), episodes=episodes, seed=seed, workers=1,
-                              videos=0, threads=args.threads, max_steps=args.max_steps, device=args.device,
-                              progress=args.progress)
+                              videos=0, max_steps=args.max_steps,
+                              runtime=RuntimeSettings(threads=args.threads, device=args.device, progress=args.progress))
 
         began = time.perf_counter()
         rollouts = collect_rollouts(policy, config(args.out / "rollouts", args.rollouts, args.rollout_seed))

@@ -61,7 +61,7 @@ def readout_cache_path(folder: pathlib.Path, policy: DustPolicy, settings: objec
                  "frames": AUX_FRAMES_FORMAT, "cameras": policy.cameras, "device": policy.weights_device.type,
                  "torch": torch.__version__}
     digest.update(json.dumps(described, sort_keys=True, default=str).encode())
-    hash_weights(digest, policy.readout_modules())
+    hash_weights(digest, policy.readout.frame_modules())
     # The world-model target's statistics: the read-out never reads them, and fits cached before they existed
     # (or of an action-only policy, which has none) are found again.
     hash_weights(digest, policy.normalizer, exclude=policy.normalizer.FUTURE_STATS)

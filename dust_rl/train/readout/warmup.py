@@ -10,7 +10,7 @@ still falling). So ``--readout.warmup-steps N`` first fits the keypoint networks
 the read-out for N steps on aux frames (and, unless ``--readout.no-demos``,
 demonstration rows in half of each batch), then freezes them: a locator
 trained on the simulator's labels, as a pose-estimation stage would be, whose
-keypoints and estimate (``--policy.aux-state-input``) the policy reads but cannot
+keypoints and estimate (``--model.aux-state-input``) the policy reads but cannot
 move. Measured on pick_place validation episodes (docs/franka_results.md): with demonstration
 rows the 200 training layouts are learnt by heart and the estimate is 8 cm
 off at step 0; on aux frames alone 3.1 cm, but 12-15 cm once the cube is
@@ -61,7 +61,7 @@ def warm_up_readout(policy: DustPolicy, demo_batch: Callable[[], TensorDictBase]
             ``log_every`` steps) are the ones kept.
         progress: show a progress bar.
     """
-    modules = policy.readout_modules()
+    modules = policy.readout.frame_modules()
     modules.requires_grad_(True)
     optimizer = adamw(list(modules.parameters()), lr)
     best = (float("inf"), None)  # the lowest held-out error and the weights that reached it

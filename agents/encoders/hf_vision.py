@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from .config import MAX_ENCODER_LAYERS, MAX_IMAGE_SIZE, MAX_PARAMETERS, MAX_WIDTH, check_size
+from ..config import MAX_ENCODER_LAYERS, MAX_IMAGE_SIZE, MAX_PARAMETERS, MAX_WIDTH, check_size
 from .image_encoder import ImageEncoder
 from .text_encoder import pretrained_model
 
@@ -39,7 +39,7 @@ def build_transformers_config(config: dict):
 
 
 def check_vision_config(config) -> None:
-    """Raise ``ValueError`` if a ViT config's sizes exceed the caps of :mod:`.config` (before any weight exists)."""
+    """Raise ``ValueError`` if a ViT config's sizes exceed the caps of :mod:`..config` (before any weight exists)."""
     hidden, layers = config.hidden_size, config.num_hidden_layers
     check_size("hidden_size", hidden, MAX_WIDTH)
     check_size("num_hidden_layers", layers, MAX_ENCODER_LAYERS)

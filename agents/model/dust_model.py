@@ -25,7 +25,7 @@ Besides the velocity network, the model holds DUST's decoupled
 flow-matching loss (:meth:`DustModel.compute_loss`) and chunk sampling
 (:meth:`DustModel.predict_action`, the sampler schedule given at call time)
 on encoded, normalised inputs; the frozen backbone and the torchrl policy
-live in :mod:`.policy`. Names follow diffusion_policy.
+live in :mod:`..policy`. Names follow diffusion_policy.
 
 TensorDict keys (B = batch size):
 
@@ -85,8 +85,8 @@ from dust_rl.keys import (
     VISION_NOISE_KEY,
 )
 
+from ..config import DustConfig
 from .adaln import Modulation
-from .config import DustConfig
 from .embeddings import TimestepEmbedder, TokenDecoder, TokenEncoder, sincos_positions_1d, sincos_positions_2d
 from .flow_matching import (
     WHOLE_BATCH,

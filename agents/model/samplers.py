@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from .config import DustConfig
+from ..config import DustConfig
 from .flow_matching import cpu_drawn
 
 if TYPE_CHECKING:  # the model imports this module to sample
@@ -119,7 +119,7 @@ def run_schedule(
             sampler is deterministic given it and the vision noise: an RL actor can steer a frozen policy
             through it). The action noise is drawn and discarded all the same (unless ``vision_noise`` is
             given too), so the vision noise does not change.
-        noise_scale: factor on the drawn action noise (:attr:`.config.SamplerConfig.noise_scale`); not
+        noise_scale: factor on the drawn action noise (:attr:`..config.SamplerConfig.noise_scale`); not
             applied to a given ``action_noise``.
         vision_source: the vision tokens and tau_o each step feeds the model instead of the integrated ones
             (the vision noise is drawn all the same, so the action noise does not change with it).

@@ -37,8 +37,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from ..encoders.text_encoder import pooled_text
 from .attention_pooling import WIDTH, AttentionProbe
-from .text_encoder import pooled_text
 
 
 class TokenReadout(nn.Module):

@@ -17,8 +17,8 @@ from torch import Tensor, nn
 from dust_rl.errors import CheckpointError
 from dust_rl.storage.checkpoint_files import load_checkpoint, save_checkpoint
 
+from ..config import MAX_CONV_WIDTH, MAX_GRID_SIDE, MAX_IMAGE_SIZE, MAX_WIDTH, check_size
 from .autoencoder import AutoencoderConfig, ConvAutoencoder
-from .config import MAX_CONV_WIDTH, MAX_GRID_SIDE, MAX_IMAGE_SIZE, MAX_WIDTH, check_size
 from .efficientnet_lite import EfficientNetLite
 from .hf_vision import TransformersImageEncoder
 from .image_encoder import ImageEncoder, image_tokens
@@ -151,7 +151,7 @@ def save_image_encoder(encoder: ImageEncoder, path: str | pathlib.Path, info: di
                             "info": info or {}}, path, IMAGE_ENCODER_KIND)
 
 
-# Image encoders chosen by name (``--policy.image-encoder``); anything else names a file from ``save_image_encoder``.
+# Image encoders chosen by name (``--model.image-encoder``); anything else names a file from ``save_image_encoder``.
 NAMED_IMAGE_ENCODERS = {
     "conv-ae": lambda: load_image_encoder(DEFAULT_IMAGE_ENCODER_FILE),
     **{f"efficientnet-{lite}{suffix}": (lambda lite=lite, stride=stride: EfficientNetLite(lite, stride))

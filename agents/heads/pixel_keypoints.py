@@ -11,7 +11,7 @@ between training and acting) and a spatial softmax on its output map.
 Each camera gets its own network (stride 8: a 16x16 map at 128 px, 61k
 parameters; forward and backward on 128 frames take 0.33 s on one CPU
 thread); each keypoint becomes a condition token
-(:class:`~.condition.ConditionProjector`), beside the frozen grid tokens.
+(:class:`~..condition.ConditionProjector`), beside the frozen grid tokens.
 On demonstrations alone its read-out learns the same "target = gripper"
 shortcut as the frozen one (:mod:`dust_rl.train.readout.aux_frames` attacks that; docs/franka_results.md).
 

