@@ -17,7 +17,7 @@ from dust_rl.envs.registration import ENV_IDS
 def test_expert_solves_task(robot, task):
     env = DustEnv(task=task, robot=robot, obs_mode="state")
     for seed in (0, 1):
-        result = run_expert_episode(env, seed)
+        result, _ = run_expert_episode(env, seed)
         assert result.success, f"{robot} {task} seed {seed}: {result}"
         assert result.length < env.max_episode_steps
 

@@ -53,8 +53,8 @@ def run_demo(config: DemoCommand, command_line: str) -> None:
         env = make_env(config.env, {"task": task, "image_size": config.image_size}).unwrapped
         frames, results = [], []
         for seed in range(config.seed, config.seed + config.episodes):
-            result = run_expert_episode(env, seed, record=True)
-            frames += result.frames
+            result, strips = run_expert_episode(env, seed, record=True)
+            frames += strips
             results.append(result)
             print(f"{task} seed {seed}: success={result.success} steps={result.length} "
                   f"instruction={result.instruction!r}")

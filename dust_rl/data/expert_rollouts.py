@@ -7,7 +7,6 @@ table and produces the demo video.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterable
 
 import numpy as np
@@ -17,20 +16,12 @@ from dust_rl.envs import DustEnv
 from dust_rl.envs.factory import check_tasks, make_env
 from dust_rl.errors import ConfigError
 
-
-@dataclasses.dataclass
-class EpisodeResult:
-    task: str
-    seed: int
-    success: bool
-    length: int
-    instruction: str
-    truncation_reason: str
-    frames: list[np.ndarray] = dataclasses.field(default_factory=list, repr=False)
+from .episodes import EpisodeRecord
 
 
-def run_expert_episode(env: DustEnv, seed: int, record: bool = False) -> EpisodeResult:
-    """One episode of the task's scripted expert from ``reset(seed=seed)``."""
+def run_expert_episode(env: DustEnv, seed: int, record: bool = False) -> tuple[EpisodeRecord, list[np.ndarray]]:
+    """One episode of the task's scripted expert from ``reset(seed=seed)``: its record (not stored in a dataset) and,
+    with ``record``, every camera strip (:func:`camera_strip`) from the reset on."""
     obs, info = env.reset(seed=seed)
     expert = env.make_expert()
     frames = [camera_strip(obs)] if record else []
@@ -40,8 +31,8 @@ def run_expert_episode(env: DustEnv, seed: int, record: bool = False) -> Episode
             frames.append(camera_strip(obs))
         if terminated or truncated:
             break
-    return EpisodeResult(env.task.name, seed, bool(info["is_success"]), step, info["language_instruction"],
-                         info["truncation_reason"], frames)
+    return EpisodeRecord(env.task.name, seed, bool(info["is_success"]), step, info["language_instruction"],
+                         kept=False), frames
 
 
 def camera_strip(obs: dict) -> np.ndarray:
@@ -62,7 +53,7 @@ def expert_success_table(env_id: str, tasks: Iterable[str], seeds: int) -> list[
     rows = []
     for task in tasks:
         env = make_env(env_id, {"task": task, "obs_mode": "state"}).unwrapped
-        results = [run_expert_episode(env, seed) for seed in tqdm(range(seeds), desc=task, leave=False)]
+        results = [run_expert_episode(env, seed)[0] for seed in tqdm(range(seeds), desc=task, leave=False)]
         env.close()
         successes = [r.success for r in results]
         rows.append({"task": task, "category": env.task.category, "episodes": seeds,
