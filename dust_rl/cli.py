@@ -129,6 +129,9 @@ def check_arguments(argv: list[str]) -> None:
         if flag in REGROUPED_FLAGS:
             raise ConfigError(f"{flag} is spelled {REGROUPED_FLAGS[flag]}: every command's runtime settings are one "
                               "group (--runtime.threads, --runtime.device, --runtime.no-progress ...)")
+        if flag.startswith("--train.runtime."):
+            raise ConfigError(f"{flag} is spelled --{flag.removeprefix('--train.')}: the command's training runs under "
+                              "its own --runtime.*")
         before, policy_group, setting = flag.partition("policy.")
         if policy_group and before in ("--", "--train."):
             raise ConfigError(f"{flag} is spelled {before}model.{setting}: the policy a command builds is the group "

@@ -23,12 +23,11 @@ from dust_rl.data import DemoDataset, collect_demos
 from dust_rl.envs.factory import DEFAULT_ENV_ID
 from dust_rl.errors import check_at_least
 from dust_rl.evaluate.closed_loop import EvalConfig, eval_runtime, evaluate
-from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.storage.atomic_files import write_json_atomic
 from dust_rl.storage.config_json import config_json
 from dust_rl.train.imitation import TrainConfig, train
 from dust_rl.train.recipes import RecipeName, vision_readout
-from dust_rl.train.settings import NestedTrainSettings, as_class
+from dust_rl.train.settings import NestedTrainSettings, TrainRuntime, as_class
 
 
 @dataclass
@@ -47,9 +46,9 @@ class QuickstartConfig:
     """Env processes for collection and evaluation (on 2 cores one is fastest: rendering uses both)."""
     image_size: int = 128
     """Camera resolution (every measured recipe ran at 128 px)."""
-    runtime: RuntimeSettings = runtime_field()
+    runtime: TrainRuntime = field(default_factory=TrainRuntime)
     """Where and how training runs (`--runtime.threads`, `--runtime.device` ...); evaluation runs each worker on
-    one thread, as `dust-rl eval` does."""
+    one thread at fp32 (`dust_rl.evaluate.closed_loop.eval_runtime`)."""
     recipe: RecipeName = "vision-readout"
     """The named recipe training starts from (`dust-rl train --help` lists them; `--train.*` flags override
     it)."""

@@ -584,7 +584,7 @@ def test_each_method_is_a_subcommand_with_only_its_own_settings(capsys):
 def test_an_sb3_run_config_reads_back_also_from_before_the_algorithm_had_its_own_settings():
     old = {"method": "residual", "policy": "p.pt", "out": "runs/ft", "algorithm": "ppo", "n_steps": 512,
            "n_epochs": 3, "gradient_steps": 1, "net_arch": [16], "world_model_obs": True, "learning_rate": 1e-3}
-    config = rl_config_from_json(old, runtime=RuntimeSettings(device="cpu"))
+    config = rl_config_from_json(old, device="cpu")
     assert isinstance(config, ResidualConfig) and config.world_model_obs and config.runtime.device == "cpu"
     assert config.lr == 1e-3  # the learning rate's earlier name
     assert config.algorithm == PpoSettings(n_steps=512, n_epochs=3) and config.net_arch == (16,)
@@ -605,6 +605,12 @@ def test_a_run_config_from_before_the_runtime_group_reads_its_threads_device_and
     assert as_this_version(before)["runtime"] == flat and not set(flat) & set(as_this_version(before))
     read = rl_config_from_json(before)
     assert read.runtime == runtime and read == rl_config_from_json(today)
+    # an agent fine-tuned on a GPU loads on a machine without one when told where to run
+    on_gpu = {**before, "device": "cuda"}
+    assert rl_config_from_json(on_gpu, device="cpu").runtime == runtime
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="sees no CUDA device"):
+            rl_config_from_json(on_gpu)
     rounds = SelfImitationConfig(policy=pathlib.Path("p.pt"), runtime=runtime)  # as a resumed run reads it back
     stored = {**{k: v for k, v in config_json(rounds).items() if k != "runtime"}, **flat}
     assert config_from_json(SelfImitationConfig, as_this_version(stored)) == rounds

@@ -1,4 +1,4 @@
-"""Numerical precision of the trunk: float32, or bfloat16 autocast (``--precision bf16``).
+"""Numerical precision of the trunk: float32, or bfloat16 autocast (``--runtime.precision bf16``).
 
 Why bf16 and not fp16: bfloat16 keeps float32's exponent range, so flow-matching losses and velocities
 need no loss scaling, and weights, optimiser state and policy files stay float32 (autocast only runs

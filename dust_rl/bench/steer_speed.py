@@ -71,6 +71,7 @@ def steer_speed(config: SteerSpeedConfig) -> list[dict]:
     rows = []
     with torch_threads(config.runtime.thread_count):
         policy = load_policy(config.policy).to(resolve_device(config.runtime.device))
+        policy.set_runtime(config.runtime.precision, config.runtime.compile)
         for envs in config.envs:
             steps = -(-config.rl_steps // envs) * envs
             steer = SteerConfig(policy=config.policy, task=config.task, max_steps=config.max_steps, seed=config.seed,

@@ -76,13 +76,12 @@ from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate.closed_loop import EvalConfig, eval_runtime, evaluate
 from dust_rl.evaluate.records import Episode, paired, t_interval, wilson_interval
 from dust_rl.evaluate.report import percent, save_png
-from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 from dust_rl.storage.atomic_files import write_json_atomic, write_text_atomic
 from dust_rl.storage.config_json import config_json
 from dust_rl.storage.lock import FolderBusyError, folder_lock
 from dust_rl.train.imitation import TrainConfig, check_train_folder, train
 from dust_rl.train.recipes import RECIPES, RecipeName
-from dust_rl.train.settings import ModelFlags, NestedTrainSettings, TrainSettings, as_class
+from dust_rl.train.settings import ModelFlags, NestedTrainSettings, TrainRuntime, TrainSettings, as_class
 
 AS_TRAINED = "as trained"  # the sampler name of an evaluation without resampling
 WITH_VIDEO = "dust + action-free video"  # the variant label of DUST trained with --video-dataset
@@ -183,7 +182,7 @@ class SuiteConfig:
     `--train.*` flags override it); default: the quickstart's, which solves press_button in minutes."""
     train: CellTraining = field(default_factory=lambda: CellTraining.of(RECIPES[DEFAULT_RECIPE].settings()))
     """The settings every cell trains with (`--train.optim.steps`, `--train.model.d-model` ...; defaults from
-    `recipe`; its variant, seed and runtime are the cell's)."""
+    `recipe`; its variant and seed are the cell's, its runtime the study's `--runtime.*`)."""
     arm_steps: tuple[str, ...] = ()
     """Optimiser steps of single arms, `ARM=N` each (e.g. `dust=4000 action_only=3000`: each arm trained until its
     validation success stopped rising); the arms not named train `--train.optim.steps`."""
@@ -214,8 +213,9 @@ class SuiteConfig:
     """Evaluation time limit per episode; default: the task's."""
     workers: int = 1
     """Env processes for collection and evaluation."""
-    runtime: RuntimeSettings = runtime_field()
-    """Where and how every cell trains (`--runtime.threads` ...); evaluations run one thread per worker."""
+    runtime: TrainRuntime = field(default_factory=TrainRuntime)
+    """Where and how every cell trains (`--runtime.threads` ...); evaluations run one thread per worker at fp32
+    (`dust_rl.evaluate.closed_loop.eval_runtime`)."""
     finished_only: bool = False
     """Write `interim.json` / `.md` / `.png` from the cells finished so far (policy, evaluations and diagnosis on
     disk), naming the others, and run nothing: a study that takes days can be read as it goes."""
@@ -560,7 +560,7 @@ def diagnose_cell(config: SuiteConfig, cell: Cell, policy: pathlib.Path, command
     one is on disk (:mod:`dust_rl.bench.suite_diagnosis`)."""
     return diagnose_policy(diagnosis_folder(config.out, "diagnose", config.diagnose_episodes) / cell.name, policy,
                            diagnosis_folder(config.out, "data", config.diagnose_episodes),
-                           config.runtime.threads, config.runtime.progress, command)
+                           config.runtime, command)
 
 
 def summarise(config: SuiteConfig, policies: Mapping[str, PolicyConfig],
@@ -579,7 +579,7 @@ def summarise(config: SuiteConfig, policies: Mapping[str, PolicyConfig],
         return {"rows": rows, "comparisons": compare(rows, config.reference)}
 
     return {"env": config.env, "task": config.task, "recipe": config.recipe, "main_demos": max(config.demos),
-            "eval_seeds": heldout.seeds, "train": config_json(config.train),
+            "eval_seeds": heldout.seeds, "train": config_json(config.train.under(config.runtime)),
             "video_dataset": None if config.video_dataset is None else str(config.video_dataset), "arms": arms,
             **split_results(heldout, jobs, reports),
             "validation": {"seeds": validation[0][0].seeds, **split_results(*validation[0])} if validation else None,

@@ -24,14 +24,15 @@ def diagnosis_folder(out: pathlib.Path, kind: str, episodes: int) -> pathlib.Pat
     return out / kind / f"heldout_{episodes}"
 
 
-def diagnose_policy(out: pathlib.Path, policy: pathlib.Path, dataset: pathlib.Path, threads: int | None,
-                    progress: bool, command: str | None) -> dict:
+def diagnose_policy(out: pathlib.Path, policy: pathlib.Path, dataset: pathlib.Path, runtime: RuntimeSettings,
+                    command: str | None) -> dict:
     """The diagnosis report of ``policy`` on ``dataset`` in ``out`` (as read back from ``report.json``, whether run
-    now or before), run unless a complete one is there."""
+    now or before) under the study's ``runtime`` at fp32, run unless a complete one is there."""
     if (report := finished_diagnosis(out)) is not None:
         return report
     diagnose(WorldModelDiagnosis(policy=policy, dataset=dataset, out=out,
-                                 runtime=RuntimeSettings(threads=threads, progress=progress)), command)
+                                 runtime=RuntimeSettings(threads=runtime.threads, device=runtime.device,
+                                                         progress=runtime.progress)), command)
     return json.loads((out / "report.json").read_text())
 
 

@@ -87,8 +87,8 @@ def collect_demos(root: str | pathlib.Path, env_id: str = "DustFranka-v0", tasks
         noise_std: DART perturbation of the executed action (the stored label stays the expert's).
         keep_failed: also store failed episodes (flagged ``success=False``).
         policy: a trained policy file (``policy.pt``) to roll out instead of the expert; it must fit the env.
-        policy_runtime: its device, precision and compilation (default: the CPU, fp32); its threads are
-            ``workers``'.
+        policy_runtime: its device, precision and compilation (default: the CPU at fp32, as ``dust-rl collect``'s);
+            its threads are ``workers``'.
         wait_for_writer: when another process is collecting into ``root``, wait for it (then resume or find the
             data complete) instead of raising.
 

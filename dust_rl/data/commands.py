@@ -53,7 +53,7 @@ def run_demo(config: DemoCommand, command_line: str) -> None:
         env = make_env(config.env, {"task": task, "image_size": config.image_size}).unwrapped
         frames, results = [], []
         for seed in range(config.seed, config.seed + config.episodes):
-            result, strips = run_expert_episode(env, seed, record=True)
+            result, strips = run_expert_episode(env, seed, with_frames=True)
             frames += strips
             results.append(result)
             print(f"{task} seed {seed}: success={result.success} steps={result.length} "
@@ -133,8 +133,9 @@ class CollectCommand:
     privileged_state: bool = False
     """Append the objects' state to observation.state: an oracle (policies trained on it need not see the
     objects; compare with an image-only dataset to measure what perception costs)."""
-    runtime: RuntimeSettings = runtime_field(threads=1)
-    """Where and how the rolled-out policy runs (with `--policy`; threads per worker), progress bars."""
+    runtime: RuntimeSettings = runtime_field(threads=1, device="cpu")
+    """Where and how the rolled-out policy runs (with `--policy`: threads per worker, the CPU unless
+    `--runtime.device` says otherwise), progress bars."""
 
 
 def run_collect(config: CollectCommand, command_line: str) -> None:
@@ -146,6 +147,10 @@ def run_collect(config: CollectCommand, command_line: str) -> None:
         env_kwargs["cameras"] = list(config.cameras)
     if config.privileged_state:
         env_kwargs["privileged_state"] = True
+    if config.policy is None and config.runtime.device != "cpu":
+        raise ConfigError("--runtime.device places a rolled-out policy (--policy); the scripted expert runs on the CPU")
+    if config.policy is None:
+        config.runtime.check_fp32("dust-rl collect without --policy (the scripted expert)")
     workers = Workers(config.workers, config.backend, config.runtime.thread_count, config.ray_address)
     collect_demos(config.out, config.env, env_tasks(config.env, config.task), config.episodes,
                   env_kwargs=env_kwargs, workers=workers, start_seed=config.seed, noise_std=config.noise_std,

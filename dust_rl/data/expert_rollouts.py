@@ -19,15 +19,15 @@ from dust_rl.errors import ConfigError
 from .episodes import EpisodeRecord
 
 
-def run_expert_episode(env: DustEnv, seed: int, record: bool = False) -> tuple[EpisodeRecord, list[np.ndarray]]:
+def run_expert_episode(env: DustEnv, seed: int, with_frames: bool = False) -> tuple[EpisodeRecord, list[np.ndarray]]:
     """One episode of the task's scripted expert from ``reset(seed=seed)``: its record (not stored in a dataset) and,
-    with ``record``, every camera strip (:func:`camera_strip`) from the reset on."""
+    with ``with_frames``, every camera strip (:func:`camera_strip`) from the reset on."""
     obs, info = env.reset(seed=seed)
     expert = env.make_expert()
-    frames = [camera_strip(obs)] if record else []
+    frames = [camera_strip(obs)] if with_frames else []
     for step in range(1, env.max_episode_steps + 1):  # noqa: B007 (the count is read after the loop)
         obs, _, terminated, truncated, info = env.step(expert.act())
-        if record:
+        if with_frames:
             frames.append(camera_strip(obs))
         if terminated or truncated:
             break

@@ -100,11 +100,12 @@ class WorldModelDiagnosis:
     """The sampler of the policy's own samples: as the policy file says (the default), or `resample` with other
     settings, given after every other argument (`... resample --vision-step-ratio 4`: N_o = 16 vision steps)."""
     runtime: RuntimeSettings = runtime_field()
-    """Where the policy runs (`--runtime.device`), its threads, its samples' precision, the feature cache's progress
-    bar."""
+    """Where the policy runs (`--runtime.device`), its threads, the feature cache's progress bar; at fp32,
+    uncompiled."""
 
     def __post_init__(self) -> None:
         check_at_least(self, 1, "windows", "batch_size", "tau_buckets")
+        self.runtime.check_fp32("dust-rl diagnose world-model")
         if self.tau_buckets > MAX_TAU_BUCKETS:
             raise ConfigError(f"tau_buckets must be at most {MAX_TAU_BUCKETS} (each is one more pass over every "
                               f"window), got {self.tau_buckets}")
@@ -369,7 +370,6 @@ def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
     torch.set_num_threads(config.runtime.thread_count)
     policy = load_policy(config.policy).to(resolve_device(config.runtime.device)).eval()
     apply_sampling(policy, config.sampling, config.policy)
-    policy.set_runtime(config.runtime.precision, config.runtime.compile)
     trained_on = policy.info.get("dataset")
     if trained_on and pathlib.Path(trained_on).resolve() == config.dataset.resolve():
         raise DatasetError(f"{config.dataset} is the dataset {config.policy} was trained on; diagnose on held-out "

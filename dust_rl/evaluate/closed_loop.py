@@ -30,7 +30,7 @@ import functools
 import pathlib
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -64,8 +64,10 @@ WORKER_THREADS = 1
 
 
 def eval_runtime(runtime: RuntimeSettings) -> RuntimeSettings:
-    """A command's runtime as the evaluations it runs use it: :data:`WORKER_THREADS` threads per worker."""
-    return replace(runtime, threads=WORKER_THREADS)
+    """A training command's runtime as the evaluations it runs use it: on its device, with its progress bars,
+    :data:`WORKER_THREADS` threads per worker, at fp32 and uncompiled (a report means the same whatever precision
+    trained the policy)."""
+    return RuntimeSettings(threads=WORKER_THREADS, device=runtime.device, progress=runtime.progress)
 
 
 @dataclass

@@ -400,8 +400,9 @@ METHOD_CONFIGS: dict[str, type] = {config.method: config
 ALGORITHM_CONFIGS: dict[str, type] = {"sac": SacSettings, "ppo": PpoSettings}
 
 
-def rl_config_from_json(values: dict, **changes) -> RLConfig:
-    """The config of an SB3 run as its ``config.json`` (or ``rl_agent.pt``) records it, with ``changes``; fields the
+def rl_config_from_json(values: dict, device: str | None = None, **changes) -> RLConfig:
+    """The config of an SB3 run as its ``config.json`` (or ``rl_agent.pt``) records it, on ``device`` (None: the stored
+    one), with ``changes``; fields the
     run predates keep their defaults, earlier names read as today's (:func:`as_this_version`), retired settings at
     the value every run now has are left out (:data:`RETIRED_RL_SETTINGS`), and a run from before the algorithm had
     its own settings (``"algorithm": "sac"``, its settings beside the others) reads too.
@@ -414,6 +415,8 @@ def rl_config_from_json(values: dict, **changes) -> RLConfig:
     if not isinstance(values, dict):
         raise TypeError(f"the fine-tuning settings are {values!r:.60}, not an object of settings")
     values = as_this_version(without_retired(values, RETIRED_RL_SETTINGS))
+    if device is not None:  # where it runs now, checked on this machine instead of the one it trained on
+        values["runtime"] = {**values.get("runtime", {}), "device": device}
     settings = values.get("algorithm", "sac")
     if isinstance(settings, str):
         algorithm, settings = ALGORITHM_CONFIGS[settings], values

@@ -57,10 +57,9 @@ def load_fine_tuned(path: pathlib.Path, device: str = "auto") -> tuple[RLConfig,
         raise CheckpointError(f"{path}: written before an RL agent's file held its base policy; run `dust-rl finetune "
                               "... --resume` in its run folder to write it again")
     try:
-        config = rl_config_from_json(payload["config"])
+        config = rl_config_from_json(payload["config"], device=device)
     except (KeyError, TypeError, ValueError, ConfigError) as err:
         raise CheckpointError(f"{path}: the fine-tuning settings do not read back ({one_line(err)})") from err
-    config = dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, device=device))
     if isinstance(config, SteerConfig):  # one env builds the actor; the run's vector of them only sped training
         config = dataclasses.replace(config, collection=dataclasses.replace(config.collection, envs=1))
     where = resolve_device(device)

@@ -122,8 +122,7 @@ def _finetune_in_folder(config: FinetuneConfig, command: str | None, policy: Dus
         extra = {k: v for k, v in result.items() if k not in ("rows", "train_seconds")}
         trained_s = result["train_seconds"]
     else:
-        policy.to(resolve_device(config.runtime.device))
-        policy.set_runtime(config.runtime.precision, config.runtime.compile)
+        policy.to(resolve_device(config.runtime.device))  # its precision and compilation: eval_runner's eval_setup
         make, task = finetune_env_factory(config, policy)
         episodes, trained_s = train_rl(config, policy, make, eval_runner(config, policy, task))
         extra = {"algorithm": config.algorithm.name, "steps": config.steps,

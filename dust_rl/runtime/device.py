@@ -1,4 +1,4 @@
-"""Where a policy's tensors live: the ``--device`` option of ``dust-rl train`` and ``dust-rl eval``.
+"""Where a policy's tensors live: the ``--runtime.device`` option of ``dust-rl train`` and ``dust-rl eval``.
 
 ``auto`` takes the first CUDA device when torch sees one, else Apple's MPS, else the CPU. An explicit
 device that this torch cannot use is refused before any work starts, with what torch reports.
@@ -34,11 +34,11 @@ def resolve_device(name: str) -> torch.device:
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if not count:
             raise ConfigError(f"device {name!r}: torch {torch.__version__} sees no CUDA device "
-                              "(torch.cuda.is_available() is False); use --device cpu or auto")
+                              "(torch.cuda.is_available() is False); use --runtime.device cpu or auto")
         if device.index is not None and device.index >= count:
             raise ConfigError(f"device {name!r}: torch sees {count} CUDA device(s), numbered 0..{count - 1}")
     elif device.type == "mps" and not torch.backends.mps.is_available():
-        raise ConfigError(f"device {name!r}: MPS is not available on this machine; use --device cpu or auto")
+        raise ConfigError(f"device {name!r}: MPS is not available on this machine; use --runtime.device cpu or auto")
     elif device.type not in ("cpu", "cuda", "mps"):
         raise ConfigError(f"device {name!r}: only {DEVICE_HELP} are supported")
     return device

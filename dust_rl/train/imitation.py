@@ -40,7 +40,7 @@ import os
 import pathlib
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, replace
 from typing import Annotated
 
 import gymnasium as gym
@@ -71,7 +71,6 @@ from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.loggers import log_config, log_image, log_scalars, log_video, make_loggers
 from dust_rl.runtime.machine import machine_line
 from dust_rl.runtime.phase_timer import PhaseTimer
-from dust_rl.runtime.settings import RuntimeSettings
 from dust_rl.storage.atomic_files import atomic_write, write_json_atomic
 from dust_rl.storage.checkpoint_dirs import run_out_of_space, save_checkpoint_dir
 from dust_rl.storage.config_json import config_json
@@ -85,7 +84,7 @@ from dust_rl.train.readout.aux_frames import FIRST_SEED, HELDOUT_FIRST_SEED, HEL
 from dust_rl.train.readout.cache import readout_cache_path, warm_up_or_load
 from dust_rl.train.readout.warmup import warm_up_readout
 from dust_rl.train.recipes import LEGACY_RECIPE, RecipeName, recipe_help
-from dust_rl.train.settings import DEFAULT_OUT, RETIRED_RUN_SETTINGS, TrainSettings, grouped_json
+from dust_rl.train.settings import DEFAULT_OUT, RETIRED_RUN_SETTINGS, TrainSettings, as_class, grouped_json
 
 # Fields that may differ between a run and its resumption (``recipe`` names where the settings started; they are
 # compared one by one).
@@ -118,7 +117,7 @@ class TrainConfig(TrainSettings):
     @classmethod
     def from_settings(cls, settings: TrainSettings, **where) -> TrainConfig:
         """``settings`` with ``dataset``, ``out`` and ``resume`` (``where``) added."""
-        return cls(**{f.name: getattr(settings, f.name) for f in fields(TrainSettings)}, **where)
+        return as_class(cls, settings, **where)
 
 
 class NonFiniteLossError(UserError):
@@ -524,7 +523,7 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int, skill_fea
     the training RNG. The windows are put in the trunk's units anew each time: their condition tokens come from
     layers that train (windows drawn once at the start read as if the trunk had lost its inputs: a skill of -0.7
     where the policy's own was +0.7)."""
-    from dust_rl.evaluate.closed_loop import WORKER_THREADS, EvalConfig, evaluate
+    from dust_rl.evaluate.closed_loop import EvalConfig, eval_runtime, evaluate
     from dust_rl.evaluate.report import SUCCESS_PNG
 
     folder = config.out / "eval" / f"step-{step:07d}"
@@ -533,8 +532,8 @@ def _periodic_eval(config: TrainConfig, policy: DustPolicy, step: int, skill_fea
     with torch.random.fork_rng():  # evaluate restores this process's torch thread count itself
         report = evaluate(EvalConfig(policy=path, out=folder, episodes=config.logging.eval_episodes,
                                      seed=config.logging.eval_seed, workers=config.logging.eval_workers,
-                                     videos=int(media), runtime=RuntimeSettings(
-                                         threads=WORKER_THREADS, device=config.runtime.device, progress=False)))
+                                     videos=int(media),
+                                     runtime=eval_runtime(replace(config.runtime, progress=False))))
     scalars = {f"eval/success_rate/{row['task']}": row["success_rate"] for row in report["tasks"]} | {
         "eval/success_rate": report["overall"]["success_rate"]}
     if skill_features is not None:

@@ -269,7 +269,7 @@ class TrainSettings:
         if self.optim.batch_size < 1 + len(mixed):
             raise ConfigError(f"{' and '.join(mixed)} need --optim.batch-size >= {1 + len(mixed)}: each batch holds "
                               "demonstrations and a share of each")
-        if self.init_policy is not None and self.policy != PolicyConfig():
+        if self.init_policy is not None and as_class(PolicyConfig, self.policy) != PolicyConfig():
             raise ConfigError("--model.* flags do not apply with init_policy: fine-tuning keeps the policy's own "
                               "settings (and its read-out, so no aux frames or read-out warm-up either)")
         if self.data.video_dataset is not None and self.policy.lambda_aux and not self.readout.warmup_steps:
@@ -289,10 +289,11 @@ class TrainSettings:
             raise ConfigError(f"{', '.join(used)} cannot train over several processes yet; train them with one")
 
 
-def as_class(cls: type[Config], settings: object) -> Config:
-    """``settings`` (a dataclass) as an instance of ``cls``, a dataclass with the same fields: the same settings
-    seen through another class's annotations (a nesting command's suppressed ones, :class:`NestedTrainSettings`)."""
-    return cls(**{f.name: getattr(settings, f.name) for f in fields(settings) if f.init})
+def as_class(cls: type[Config], settings: object, **changes: object) -> Config:
+    """``settings`` (a dataclass) with ``changes`` as an instance of ``cls``, a dataclass with the same fields (or
+    more, given in ``changes``): the same settings seen through another class's annotations (a nesting command's
+    suppressed ones, :class:`NestedTrainSettings`), or with a run's own fields added."""
+    return cls(**{**{f.name: getattr(settings, f.name) for f in fields(settings) if f.init}, **changes})
 
 
 def train_runtime(runtime: RuntimeSettings) -> TrainRuntime:
@@ -309,5 +310,4 @@ class NestedTrainSettings(TrainSettings):
 
     def under(self, runtime: RuntimeSettings, **changes: object) -> TrainSettings:
         """These settings, with ``changes``, as the training runs them under the command's ``runtime``."""
-        return TrainSettings(**{**{f.name: getattr(self, f.name) for f in fields(TrainSettings)},
-                                "runtime": train_runtime(runtime), **changes})
+        return as_class(TrainSettings, self, runtime=train_runtime(runtime), **changes)
