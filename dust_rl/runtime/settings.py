@@ -21,8 +21,8 @@ from dust_rl.runtime.device import resolve_device
 
 @dataclass(kw_only=True)
 class RuntimeSettings:
-    """Where and how the command's torch work runs; none of it changes what is computed but `precision`
-    (`--runtime.*`)."""
+    """Where and how the command's torch work runs (`--runtime.*`): results depend on it through `precision` and
+    through the rounding of another device or of compiled kernels only."""
 
     threads: int | None = None
     """torch threads, per process (None: torch's choice)."""
