@@ -28,10 +28,16 @@ if TYPE_CHECKING:
     from dust_rl.evaluate.closed_loop import EvalConfig
 
 GROUPS = (tyro.conf.OmitSubcommandPrefixes,)  # "dust-rl dataset info", not "dust-rl dataset action:info"
-# Flags earlier versions gave some commands, now the runtime group every command shares
-# (dust_rl.runtime.settings): refused with their spelling today rather than tyro's list of every flag.
-REGROUPED_FLAGS = {f"--{name}": f"--runtime.{name}" for name in
-                   ("threads", "device", "precision", "compile", "no-compile", "progress", "no-progress")}
+# Spellings of earlier versions (a whole flag, or a group's prefix ending in "."), today's, and why: refused with
+# today's spelling rather than tyro's list of every flag.
+_RUNTIME = ("every command's runtime settings are one group (--runtime.threads, --runtime.device, "
+            "--runtime.no-progress ...)")
+_MODEL = "the policy a command builds is the group --model.*, and --policy PATH a policy file"
+RENAMED_FLAGS: dict[str, tuple[str, str]] = {
+    **{f"--{name}": (f"--runtime.{name}", _RUNTIME) for name in
+       ("threads", "device", "precision", "compile", "no-compile", "progress", "no-progress")},
+    "--train.runtime.": ("--runtime.", "the command's training runs under its own --runtime.*"),
+    "--policy.": ("--model.", _MODEL), "--train.policy.": ("--train.model.", _MODEL)}
 DESCRIPTION = ("DUST (dual-stream diffusion) for torchrl and gymnasium: collect demonstrations, train, evaluate, "
                "fine-tune with RL. `dust-rl COMMAND --help` lists a command's arguments; `dust-rl --version` prints "
                "the version.")
@@ -113,8 +119,8 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def check_arguments(argv: list[str]) -> None:
-    """Raise :class:`ConfigError` at a runtime flag of earlier versions (:data:`REGROUPED_FLAGS`) or a setting of the
-    policy built spelled as they did (``--policy.d-model``, now ``--model.d-model``), at an argument
+    """Raise :class:`ConfigError` at a flag spelled as earlier versions did (:data:`RENAMED_FLAGS`: ``--threads``,
+    ``--policy.d-model``), at an argument
     that is not UTF-8 text (a path with such a byte: torch's files,
     JSON metadata and tyro need text, and would fail on it deep inside a run) or that is empty: no setting takes
     an empty value, and an empty path is the current folder (``--out "$OUT"`` with ``OUT`` unset would make it a
@@ -126,19 +132,19 @@ def check_arguments(argv: list[str]) -> None:
             raise ConfigError(f"argument {os.fsencode(arg)!r} is not UTF-8 text; rename the file or folder "
                               "with a UTF-8 name") from None
         flag, equals, value = arg.partition("=")
-        if flag in REGROUPED_FLAGS:
-            raise ConfigError(f"{flag} is spelled {REGROUPED_FLAGS[flag]}: every command's runtime settings are one "
-                              "group (--runtime.threads, --runtime.device, --runtime.no-progress ...)")
-        if flag.startswith("--train.runtime."):
-            raise ConfigError(f"{flag} is spelled --{flag.removeprefix('--train.')}: the command's training runs under "
-                              "its own --runtime.*")
-        before, policy_group, setting = flag.partition("policy.")
-        if policy_group and before in ("--", "--train."):
-            raise ConfigError(f"{flag} is spelled {before}model.{setting}: the policy a command builds is the group "
-                              "--model.*, and --policy PATH a policy file")
+        if (renamed := renamed_flag(flag)) is not None:
+            raise ConfigError(renamed)
         if (equals and flag.startswith("--") and not value) or not arg:
             named = flag if equals else previous if previous.startswith("--") else "an argument"
             raise ConfigError(f"{named} is given an empty value (an unset shell variable?); give it one or drop it")
+
+
+def renamed_flag(flag: str) -> str | None:
+    """What to say of ``flag`` if it is spelled as an earlier version did (:data:`RENAMED_FLAGS`), else None."""
+    for old, (today, why) in RENAMED_FLAGS.items():
+        if flag == old or (old.endswith(".") and flag.startswith(old)):
+            return f"{flag} is spelled {today}{flag.removeprefix(old)}: {why}"
+    return None
 
 
 def with_preset(name: str, args: list[str]) -> tuple[list[str], object | None]:

@@ -102,10 +102,10 @@ def test_readme_uses_only_dust_rl_commands_that_exist():
 def test_readme_commands_give_runtime_settings_as_the_runtime_group():
     """The runtime flags of earlier versions (`--threads 1`, `--no-progress`, a nested training's
     `--train.runtime.threads`) fail today; the README's dust-rl commands spell them `--runtime.*`."""
-    from dust_rl.cli import REGROUPED_FLAGS
+    from dust_rl.cli import renamed_flag
 
     stale = [(block.line, arg) for block in code_blocks(README, "bash") for line in shell_commands(block.code)
              if COMMAND.search(line) for arg in line.split()
-             if arg.partition("=")[0] in REGROUPED_FLAGS or arg.startswith("--train.runtime.")]
+             if renamed_flag(arg.partition("=")[0]) is not None]
     assert stale == []
     assert any("--runtime.threads" in block.code for block in code_blocks(README, "bash"))  # the check sees them

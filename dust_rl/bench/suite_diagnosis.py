@@ -31,8 +31,7 @@ def diagnose_policy(out: pathlib.Path, policy: pathlib.Path, dataset: pathlib.Pa
     if (report := finished_diagnosis(out)) is not None:
         return report
     diagnose(WorldModelDiagnosis(policy=policy, dataset=dataset, out=out,
-                                 runtime=RuntimeSettings(threads=runtime.threads, device=runtime.device,
-                                                         progress=runtime.progress)), command)
+                                 runtime=runtime.at_fp32()), command)
     return json.loads((out / "report.json").read_text())
 
 

@@ -147,9 +147,10 @@ def run_collect(config: CollectCommand, command_line: str) -> None:
         env_kwargs["cameras"] = list(config.cameras)
     if config.privileged_state:
         env_kwargs["privileged_state"] = True
-    if config.policy is None and config.runtime.device != "cpu":
-        raise ConfigError("--runtime.device places a rolled-out policy (--policy); the scripted expert runs on the CPU")
     if config.policy is None:
+        if config.runtime.device != "cpu":
+            raise ConfigError("--runtime.device places a rolled-out policy (--policy); the scripted expert runs on "
+                              "the CPU")
         config.runtime.check_fp32("dust-rl collect without --policy (the scripted expert)")
     workers = Workers(config.workers, config.backend, config.runtime.thread_count, config.ray_address)
     collect_demos(config.out, config.env, env_tasks(config.env, config.task), config.episodes,

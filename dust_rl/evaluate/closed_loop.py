@@ -67,7 +67,7 @@ def eval_runtime(runtime: RuntimeSettings) -> RuntimeSettings:
     """A training command's runtime as the evaluations it runs use it: on its device, with its progress bars,
     :data:`WORKER_THREADS` threads per worker, at fp32 and uncompiled (a report means the same whatever precision
     trained the policy)."""
-    return RuntimeSettings(threads=WORKER_THREADS, device=runtime.device, progress=runtime.progress)
+    return runtime.at_fp32(threads=WORKER_THREADS)
 
 
 @dataclass

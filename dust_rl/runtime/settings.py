@@ -50,6 +50,12 @@ class RuntimeSettings:
         if given:
             raise ConfigError(f"{command} runs at fp32, uncompiled: drop {' and '.join(given)}")
 
+    def at_fp32(self, **changes: object) -> RuntimeSettings:
+        """These settings (a subclass's own fields dropped) at fp32 and uncompiled, with ``changes``: for the work a
+        command runs beside its main job, whose results must not depend on the main job's precision."""
+        return RuntimeSettings(**{"threads": self.threads, "device": self.device, "progress": self.progress,
+                                  **changes})
+
     @property
     def thread_count(self) -> int:
         """The torch threads a process of the command runs with."""
