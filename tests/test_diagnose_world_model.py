@@ -119,7 +119,9 @@ def test_report_of_a_dust_policy(trained, tmp_path, capsys):
     # Near tau_o = 1 the one-step estimate is the noised target itself, whatever the stream predicts.
     assert buckets[-1]["mean"] < buckets[0]["mean"]
     assert (out / "world_model.png").stat().st_size > 0
-    assert "The oracle-future test" in capsys.readouterr().out
+    assert report["futures"] == {"figure": str(out / "futures.png"), "token_decoder": None}  # the encoder decodes
+    printed = capsys.readouterr().out
+    assert "The oracle-future test" in printed and f"predicted futures: {out / 'futures.png'}" in printed
     # Two tasks: each reading per task too, and the episodes split between them (the mean over all episodes is
     # their episode-weighted mean).
     per_task, overall = report["oracle_future"]["per_task"], report["oracle_future"]["conditions"]

@@ -60,6 +60,16 @@ def conv_norm_act(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride, 1), nn.GroupNorm(min(8, c_out), c_out), nn.SiLU())
 
 
+def upsampling_decoder(dim: int, channels: list[int]) -> nn.Sequential:
+    """Latent map [B, dim, g, g] -> images [B, 3, g * 2**n, g * 2**n] in [0, 1]: the encoder's stages (``channels``,
+    highest resolution first) mirrored, nearest-neighbour upsampling between them."""
+    up = nn.Upsample(scale_factor=2, mode="nearest")
+    layers: list[nn.Module] = [conv_norm_act(dim, channels[-1])]
+    for c_in, c_out in zip(channels[::-1], channels[-2::-1]):
+        layers += [up, conv_norm_act(c_in, c_out)]
+    return nn.Sequential(*layers, up, nn.Conv2d(channels[0], 3, 3, 1, 1), nn.Sigmoid())
+
+
 class ConvAutoencoder(ImageEncoder):
     """Strided-conv encoder to a token grid and an upsampling decoder back to pixels.
 
@@ -74,12 +84,7 @@ class ConvAutoencoder(ImageEncoder):
         channels = config.stage_channels()
         encoder = [conv_norm_act(c_in, c_out, stride=2) for c_in, c_out in zip([3, *channels], channels)]
         self.encoder = nn.Sequential(*encoder, nn.Conv2d(channels[-1], config.dim, 3, 1, 1))
-        up = nn.Upsample(scale_factor=2, mode="nearest")
-        decoder: list[nn.Module] = [conv_norm_act(config.dim, channels[-1])]
-        for c_in, c_out in zip(channels[::-1], channels[-2::-1]):
-            decoder += [up, conv_norm_act(c_in, c_out)]
-        decoder += [up, nn.Conv2d(channels[0], 3, 3, 1, 1), nn.Sigmoid()]
-        self.decoder = nn.Sequential(*decoder)
+        self.decoder = upsampling_decoder(config.dim, channels)
         self.register_buffer("latent_mean", torch.zeros(config.dim))
         self.register_buffer("latent_std", torch.ones(config.dim))
 

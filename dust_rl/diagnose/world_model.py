@@ -29,6 +29,7 @@ same noise) likewise, with the p-value of a zero mean.
 | ``report.json`` | every number, per tau bucket and per condition, with the command and windows |
 | ``report.md`` | the two tables (and both per task, for a dataset of several tasks) |
 | ``world_model.png`` | error per tau bucket against the predictors; each condition's action error minus noise's |
+| ``futures.png`` | predicted futures beside real ones, when a decoder draws them (:mod:`dust_rl.diagnose.futures`) |
 """
 
 from __future__ import annotations
@@ -47,8 +48,10 @@ from dust_rl.agents.model.flow_matching import interpolate, sample_tau, velocity
 from dust_rl.agents.model.samplers import DenoiseStep
 from dust_rl.data import DatasetError, DemoDataset, DemoWindows
 from dust_rl.data.features import FeatureCache
+from dust_rl.diagnose.futures import futures_figure
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.evaluate.resampling import Resampling, apply_sampling, describe_sampler, resolved_sampler
+from dust_rl.evaluate.video import decoder_for
 from dust_rl.keys import FUTURE_IS_CLAMPED_KEY
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.settings import RuntimeSettings, runtime_field
@@ -99,6 +102,9 @@ class WorldModelDiagnosis:
     sampling: Resampling = None
     """The sampler of the policy's own samples: as the policy file says (the default), or `resample` with other
     settings, given after every other argument (`... resample --vision-step-ratio 4`: N_o = 16 vision steps)."""
+    decoder: pathlib.Path | None = None
+    """Token decoder file that draws the predicted futures in `futures.png` when the image encoder cannot decode
+    its tokens (`dust-rl encoder fit-decoder`); default: `token_decoder.pt` beside the policy file, if there is one."""
     runtime: RuntimeSettings = runtime_field()
     """Where the policy runs (`--runtime.device`), its threads, the feature cache's progress bar; at fp32,
     uncompiled."""
@@ -162,16 +168,20 @@ def paired(first: Tensor, second: Tensor, episode: Tensor) -> dict[str, float]:
     return summary
 
 
-def draw_windows(config: WorldModelDiagnosis, policy: DustPolicy) -> Windows:
-    """``config.windows`` random windows of the dataset in the trunk's units.
+def dataset_features(config: WorldModelDiagnosis, policy: DustPolicy) -> FeatureCache:
+    """The frozen features of the diagnosed dataset (stored in its folder).
 
     Raises:
         DatasetError: the dataset's cameras or sizes do not fit the policy.
     """
     dataset = DemoDataset(config.dataset)
     dataset.check_fits_policy(policy.info, config.policy)
-    features = FeatureCache(dataset, policy, progress=config.runtime.progress, store=True)
-    return windows_of(policy, features, config.windows, config.seed, config.batch_size)
+    return FeatureCache(dataset, policy, progress=config.runtime.progress, store=True)
+
+
+def draw_windows(config: WorldModelDiagnosis, policy: DustPolicy) -> Windows:
+    """``config.windows`` random windows of the dataset in the trunk's units (raises as :func:`dataset_features`)."""
+    return windows_of(policy, dataset_features(config, policy), config.windows, config.seed, config.batch_size)
 
 
 def windows_of(policy: DustPolicy, features: FeatureCache, count: int, seed: int, batch_size: int = 128) -> Windows:
@@ -374,7 +384,9 @@ def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
     if trained_on and pathlib.Path(trained_on).resolve() == config.dataset.resolve():
         raise DatasetError(f"{config.dataset} is the dataset {config.policy} was trained on; diagnose on held-out "
                            "episodes (e.g. dust-rl collect --seed 5000 ...)")
-    windows = draw_windows(config, policy)
+    features = dataset_features(config, policy)
+    windows = windows_of(policy, features, config.windows, config.seed, config.batch_size)
+    decoder, decoder_file = decoder_for(policy, config.policy, config.decoder)
     report = {"policy": str(config.policy), "dataset": str(config.dataset), "variant": policy.config.variant,
               "sampler": describe_sampler(resolved_sampler(policy)),
               "future_target": policy.config.future_target if policy.config.has_vision else None,
@@ -383,6 +395,11 @@ def diagnose(config: WorldModelDiagnosis, command: str | None = None) -> dict:
     if policy.config.has_vision:
         report["vision_stream"] = vision_skill(policy, windows, config.tau_buckets, config.seed, config.batch_size)
     config.out.mkdir(parents=True, exist_ok=True)
+    report["futures"] = None if decoder is None else {
+        "figure": str(config.out / "futures.png"), "token_decoder": None if decoder_file is None else str(decoder_file)}
+    if decoder is not None:
+        with atomic_write(config.out / "futures.png", "wb") as f:
+            futures_figure(policy, features, decoder, config.seed).save(f, format="PNG")
     write_json_atomic(config.out / "report.json", report)
     write_text_atomic(config.out / "report.md", markdown(report))
     plot(report, config.out / "world_model.png")
@@ -494,6 +511,7 @@ def plot(report: dict, path: pathlib.Path) -> None:
 
 def diagnose_world_model_command(config: WorldModelDiagnosis, command: str | None = None) -> None:
     """``dust-rl diagnose world-model``: run, print the tables, say where the files are."""
-    diagnose(config, command)
+    report = diagnose(config, command)
     print((config.out / "report.md").read_text())
-    print(f"report: {config.out / 'report.json'}; plot: {config.out / 'world_model.png'}")
+    futures = f"; predicted futures: {report['futures']['figure']}" if report["futures"] else ""
+    print(f"report: {config.out / 'report.json'}; plot: {config.out / 'world_model.png'}{futures}")

@@ -49,7 +49,7 @@ from dust_rl.errors import ConfigError, UserError, check_at_least
 from dust_rl.evaluate.records import Episode, wilson_interval
 from dust_rl.evaluate.report import plot_loss_curves, write_report
 from dust_rl.evaluate.resampling import Resampling, apply_sampling, describe_sampler, resolved_sampler
-from dust_rl.evaluate.video import write_episode_video
+from dust_rl.evaluate.video import Decoder, decoder_for, write_episode_video
 from dust_rl.keys import ACTION_KEY, SEED_KEY, STATE_KEY, STEP_KEY, SUCCESS_KEY
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import episode_collector, torch_threads
@@ -106,6 +106,9 @@ class EvalConfig:
     """Episodes per task recorded as MP4 (camera views beside the decoded predicted future)."""
     train_dir: pathlib.Path | None = None
     """Training run folder whose CSV logs give the loss curves; default: the policy file's folder."""
+    decoder: pathlib.Path | None = None
+    """Token decoder file that draws the predicted future in the videos when the image encoder cannot decode its
+    tokens (`dust-rl encoder fit-decoder`); default: `token_decoder.pt` beside the policy file, if there is one."""
     mean_cameras: tuple[str, ...] = ()
     """Cameras whose frozen tokens are replaced by the training data's mean token while acting: an ablation of
     what those views give the policy (`dust-rl diagnose cameras` runs one per camera)."""
@@ -320,14 +323,14 @@ def evaluate_task(setup: EvalSetup, task: str, policy: DustPolicy, config: EvalC
 
 
 def task_videos(task: str, episodes: Sequence[Episode], trajectories: dict[int, TensorDictBase],
-                policy: DustPolicy, config: EvalConfig, fps: int) -> list[dict]:
+                policy: DustPolicy, decoder: Decoder | None, config: EvalConfig, fps: int) -> list[dict]:
     """``<out>/videos/<task>_seed<seed>.mp4`` of the kept evaluated episodes; one ``{"seed", "success", "length",
     "digest", "path", "fps"}`` each."""
     rows = []
     for episode in episodes:
         if episode.seed in trajectories:
             path = config.out / "videos" / f"{task}_seed{episode.seed}.mp4"
-            write_episode_video(trajectories[episode.seed], policy, path, fps)
+            write_episode_video(trajectories[episode.seed], policy, decoder, path, fps)
             rows.append({**episode.to_json(), "path": str(path), "fps": fps})
     return rows
 
@@ -380,10 +383,11 @@ def evaluate(config: EvalConfig, command: str | None = None, policy: DustPolicy 
     rows, everything, startup, running = [], [], 0.0, 0.0
     with torch_threads(config.runtime.thread_count), ray_runtime(config.worker_pool()):
         policy, setup = prepare(config) if policy is None else (policy, eval_setup(config, policy))
+        decoder, decoder_file = decoder_for(policy, config.policy, config.decoder) if config.videos else (None, None)
         with eval_folder(config.out):
             for task in setup.tasks:
                 episodes, kept, task_startup, task_running = evaluate_task(setup, task, policy, config, actor)
-                videos = task_videos(task, episodes, kept, policy, config, setup.fps)
+                videos = task_videos(task, episodes, kept, policy, decoder, config, setup.fps)
                 rows.append(task_row(task, episodes, videos))
                 everything += episodes
                 startup, running = startup + task_startup, running + task_running
@@ -400,6 +404,7 @@ def evaluate(config: EvalConfig, command: str | None = None, policy: DustPolicy 
                 "env_steps": steps, "startup_s": startup, "episodes_time_s": running,
                 "env_steps_per_s": steps / running,
                 "wall_time_s": time.perf_counter() - start, "loss_plot": str(loss_plot) if loss_plot else None,
+                "token_decoder": None if decoder_file is None else str(decoder_file),
             } | (about or {})
             write_report(report, config.out)
     return report

@@ -12,6 +12,7 @@ import tyro
 from dust_rl.errors import ConfigError, check_at_least
 from dust_rl.runtime.device import resolve_device
 from dust_rl.runtime.episode_collector import torch_threads
+from dust_rl.runtime.loggers import LoggerKind, check_loggers
 from dust_rl.runtime.settings import RuntimeSettings, runtime_field
 
 
@@ -83,7 +84,7 @@ class EncoderCheck:
     out: pathlib.Path = pathlib.Path("runs/encoder_check")
     """Folder for probe.json and probe.png."""
 
-    def run(self) -> None:
+    def run(self, command_line: str) -> None:
         from dust_rl.agents.encoders.backbone import resolve_image_encoder
         from dust_rl.data import DemoDataset
         from dust_rl.train.encoder_check import probe_dataset, write_encoder_check
@@ -109,7 +110,7 @@ class EncoderInfo:
     frames: int = 32
     """Frames per timed batch (the median of 5 batches is reported)."""
 
-    def run(self) -> None:
+    def run(self, command_line: str) -> None:
         import statistics
         import time
 
@@ -135,13 +136,68 @@ class EncoderInfo:
 
 
 @dataclass
+class EncoderFitDecoder:
+    """Fit a decoder from a policy's future tokens to pixels on a dataset's frames, so eval videos and `dust-rl
+    diagnose world-model` show its predicted futures (the policy is only read)."""
+
+    policy: pathlib.Path
+    """Policy file with a vision stream (`dust-rl train`)."""
+    dataset: pathlib.Path
+    """Dataset with the policy's cameras (its training data will do)."""
+    out: pathlib.Path | None = None
+    """Decoder file (written atomically; a PNG of held-out frames and `logs/` go beside it); default:
+    `token_decoder.pt` beside the policy, where eval and diagnose look for it."""
+    steps: int = 2000
+    """Optimiser steps."""
+    batch_size: int = 64
+    """Frames per step."""
+    lr: float = 2e-3
+    """Peak learning rate (linear warm-up, then cosine)."""
+    image_size: int = 64
+    """Side of the images drawn (the vision grid times a power of 2)."""
+    seed: int = 0
+    """Seed of the weights and batches."""
+    loggers: tuple[LoggerKind, ...] = ("csv", "tensorboard")
+    """Where the losses and the held-out frames go (`logs/` beside the decoder file)."""
+    runtime: RuntimeSettings = runtime_field()
+    """Where the decoder trains (`--runtime.device`), torch threads, progress bars."""
+
+    def __post_init__(self) -> None:
+        check_at_least(self, 1, "steps", "batch_size", "image_size")
+        check_loggers(self.loggers)
+        self.runtime.check_fp32("dust-rl encoder fit-decoder")
+
+    def run(self, command_line: str) -> None:
+        from dust_rl.agents import load_policy
+        from dust_rl.agents.encoders.token_decoder import TOKEN_DECODER_FILE, TOKEN_DECODER_KIND
+        from dust_rl.data import DemoDataset
+        from dust_rl.storage.checkpoint_files import check_replaceable_file
+        from dust_rl.train.token_decoder_fit import fit_token_decoder
+
+        out = self.out or self.policy.parent / TOKEN_DECODER_FILE
+        check_replaceable_file(out, TOKEN_DECODER_KIND)  # before the fit, not after it
+        dataset = DemoDataset(self.dataset)
+        with torch_threads(self.runtime.thread_count):
+            policy = load_policy(self.policy).to(resolve_device(self.runtime.device)).eval()
+            dataset.check_fits_policy(policy.info, self.policy)
+            fit = fit_token_decoder(policy, dataset, out, self.image_size, self.steps, self.batch_size, self.lr,
+                                    seed=self.seed, loggers=self.loggers, progress=self.runtime.progress,
+                                    command=command_line, device=resolve_device(self.runtime.device))
+        against = ("" if fit.heldout_mse is None else
+                   f", held-out {fit.heldout_mse:.5f} (the mean frame: {fit.mean_frame_mse:.5f})")
+        print(f"{fit.path}: {fit.steps} steps in {fit.seconds:.0f} s on {fit.train_rows} frames; pixel MSE train "
+              f"{fit.train_mse:.5f}{against}; held-out frames: {fit.path.with_suffix('.png')}")
+
+
+@dataclass
 class EncoderCommand:
-    """Diagnose frozen image encoders."""
+    """Diagnose frozen image encoders, or fit a decoder of a policy's future tokens."""
 
     action: (Annotated[EncoderCheck, tyro.conf.subcommand("check")]
-             | Annotated[EncoderInfo, tyro.conf.subcommand("info")])
-    """What to report."""
+             | Annotated[EncoderInfo, tyro.conf.subcommand("info")]
+             | Annotated[EncoderFitDecoder, tyro.conf.subcommand("fit-decoder")])
+    """What to do."""
 
 
 def run_encoder(config: EncoderCommand, command_line: str) -> None:
-    config.action.run()
+    config.action.run(command_line)

@@ -27,6 +27,14 @@ from dust_rl.errors import ConfigError
 from dust_rl.keys import IMAGE_KEY
 
 
+def episode_split(dataset: DemoDataset, holdout_every: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rows of a dataset's training and held-out episodes: every ``holdout_every``-th episode held out (0:
+    none), so a held-out error is measured on layouts the fit never saw."""
+    episode = torch.repeat_interleave(torch.arange(dataset.num_episodes), dataset.lengths)
+    held = (episode + 1) % holdout_every == 0 if holdout_every else torch.zeros(len(episode), dtype=torch.bool)
+    return (~held).nonzero().squeeze(1), held.nonzero().squeeze(1)
+
+
 class FramePool:
     """Frames of every camera of some datasets, split by episode into training and held-out frames.
 
@@ -42,10 +50,9 @@ class FramePool:
         self.train: list[torch.Tensor] = []  # per dataset, its training rows
         self.heldout: list[torch.Tensor] = []
         for dataset in self.datasets:
-            episode = torch.repeat_interleave(torch.arange(dataset.num_episodes), dataset.lengths)
-            held = (episode + 1) % holdout_every == 0 if holdout_every else torch.zeros(len(episode), dtype=torch.bool)
-            self.train.append((~held).nonzero().squeeze(1))
-            self.heldout.append(held.nonzero().squeeze(1))
+            train, heldout = episode_split(dataset, holdout_every)
+            self.train.append(train)
+            self.heldout.append(heldout)
 
     def count(self, split: list[torch.Tensor]) -> int:
         """Number of frames in a split."""
