@@ -52,6 +52,10 @@ and press_button (the named button first, then the two others; the caps' depress
 * ``pressed partway``: the named cap went down more than 1 mm, never the task's 8 mm;
 * ``not pressed``: the named cap never went down more than 1 mm.
 
+For peg_insert also, per class, how well the peg was ever aligned over the hole while held above the block: the
+smallest xy offset from the hole's axis and the yaw between peg and hole at that step (the hole leaves 2.5 mm a
+side; a square peg centred in it may turn 13.6 degrees).
+
 Beside each class's count, how far the end effector's orientation has turned from its start by the end of the
 episode (median and range, degrees; from ``observation.state``): a policy pushing on against a rim or the table
 tilts the wrist.
@@ -171,6 +175,23 @@ def peg_insert_mode(env_state: torch.Tensor, success: bool) -> str:
     return "held away from the block" if peg[-1, 2] > PEG_LIFTED else "dropped away from the block"
 
 
+def peg_alignment(env_state: torch.Tensor) -> tuple[float, float] | None:
+    """The peg's best alignment over the hole while held above the block's top: the smallest xy offset from the
+    hole's axis (mm) and, at that step, the yaw between peg and hole (degrees, up to their square symmetry); None
+    for a state without the yaws (datasets from before they were added) or a peg never above the block."""
+    if env_state.shape[-1] < 10:
+        return None
+    peg, fixture = env_state[:, 0:3], env_state[:, 3:6]
+    above = peg[:, 2] - peg_insert.PEG_HALF[2] > peg_insert.FIXTURE_HEIGHT
+    if not above.any():
+        return None
+    offset = (peg[:, :2] - fixture[:, :2]).norm(dim=-1).masked_fill(~above, float("inf"))
+    step = int(offset.argmin())
+    peg_yaw, hole_yaw = (math.atan2(*env_state[step, i:i + 2].tolist()) / 4 for i in (6, 8))  # (sin, cos) of 4 yaw
+    turn = math.degrees(peg_yaw - hole_yaw) % 90
+    return 1000 * float(offset[step]), min(turn, 90 - turn)
+
+
 def push_mode(env_state: torch.Tensor, success: bool) -> str:
     """The class of one push episode from its positions [T, 9] (target puck, distractor puck, goal square)."""
     target, distractor, goal = env_state[:, 0:3], env_state[:, 3:6], env_state[:, 6:9]
@@ -253,6 +274,15 @@ def main() -> None:
         turned = sorted(tilts[seed] for seed, m in modes.items() if m == mode)
         tilt = f"; {statistics.median(turned):.1f}, {turned[0]:.1f}-{turned[-1]:.1f}" if turned else ""
         print(f"  {mode}: {len(turned)}{tilt}")
+    if task == "peg_insert":
+        aligned = {e.seed: peg_alignment(trajectories[e.seed].get(("next", *ENV_STATE_KEY))) for e in episodes}
+        print("peg over the hole at its best (xy offset mm, yaw degrees: median, range), per class:")
+        for mode in MODES[task]:
+            rows = [aligned[seed] for seed, m in modes.items() if m == mode and aligned[seed] is not None]
+            if rows:
+                mm, deg = (sorted(column) for column in zip(*rows))
+                print(f"  {mode} ({len(rows)}): {statistics.median(mm):.1f}, {mm[0]:.1f}-{mm[-1]:.1f} mm; "
+                      f"{statistics.median(deg):.1f}, {deg[0]:.1f}-{deg[-1]:.1f} deg")
     print(json.dumps(modes))
     if args.sheet:
         contact_sheet(trajectories, modes, MODES[task], policy.cameras, args.per_class, args.sheet)
