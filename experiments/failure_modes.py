@@ -65,6 +65,7 @@ episode (its last step included), so the classes can be looked at, not only coun
 
     .venv/bin/python experiments/failure_modes.py --policy runs/train/T/policy.pt --seed 5000 --episodes 30 \
         [--max-steps N] [--sheet runs/eval/T/failure_modes.png]
+    .venv/bin/python experiments/failure_modes.py --dataset runs/data/peg_insert_oracle_200  # the expert's alignment
 """
 
 from __future__ import annotations
@@ -79,6 +80,7 @@ import matplotlib
 import torch
 from tensordict import TensorDictBase
 
+from dust_rl.data import DemoDataset
 from dust_rl.envs.env import STATE_PARTS
 from dust_rl.envs.tasks import peg_insert, pick_into_bin, press_button, push, stack
 from dust_rl.envs.tasks.pick_place import CUBE_HALF, PLATE_RADIUS
@@ -247,9 +249,30 @@ def contact_sheet(trajectories: dict[int, TensorDictBase], modes: dict[int, str]
     plt.close(figure)
 
 
+def print_alignments(classes: dict[str, list[tuple[float, float] | None]]) -> None:
+    """Per class, the median and range of :func:`peg_alignment`'s offset and yaw over its episodes."""
+    print("peg over the hole at its best (xy offset mm, yaw degrees: median, range), per class:")
+    for name, measured in classes.items():
+        rows = [row for row in measured if row is not None]
+        if rows:
+            mm, deg = (sorted(column) for column in zip(*rows))
+            print(f"  {name} ({len(rows)}): {statistics.median(mm):.1f}, {mm[0]:.1f}-{mm[-1]:.1f} mm; "
+                  f"{statistics.median(deg):.1f}, {deg[0]:.1f}-{deg[-1]:.1f} deg")
+
+
+def dataset_alignments(root: pathlib.Path) -> None:
+    """:func:`print_alignments` of a peg_insert dataset's demonstrations, from their stored object state."""
+    dataset = DemoDataset(root)
+    state = dataset.data.get(ENV_STATE_KEY)
+    print_alignments({"demonstrations": [peg_alignment(state[start:start + length].float()) for start, length
+                                         in zip(dataset.episode_starts.tolist(), dataset.lengths.tolist())]})
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policy", type=pathlib.Path, required=True)
+    which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument("--policy", type=pathlib.Path)
+    which.add_argument("--dataset", type=pathlib.Path, help="a peg_insert dataset: its demonstrations' alignment only")
     parser.add_argument("--seed", type=int, default=5000)
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--threads", type=int, default=1)
@@ -257,6 +280,9 @@ def main() -> None:
     parser.add_argument("--sheet", type=pathlib.Path, default=None, help="also draw the episodes into this PNG")
     parser.add_argument("--per-class", type=int, default=3, help="episodes per class on the sheet")
     args = parser.parse_args()
+    if args.dataset:
+        dataset_alignments(args.dataset)
+        return
     config = EvalConfig(policy=args.policy, seed=args.seed, episodes=args.episodes, workers=1, videos=args.episodes,
                         max_steps=args.max_steps, runtime=RuntimeSettings(threads=args.threads, device="cpu"))
     torch.set_num_threads(args.threads)
@@ -276,13 +302,7 @@ def main() -> None:
         print(f"  {mode}: {len(turned)}{tilt}")
     if task == "peg_insert":
         aligned = {e.seed: peg_alignment(trajectories[e.seed].get(("next", *ENV_STATE_KEY))) for e in episodes}
-        print("peg over the hole at its best (xy offset mm, yaw degrees: median, range), per class:")
-        for mode in MODES[task]:
-            rows = [aligned[seed] for seed, m in modes.items() if m == mode and aligned[seed] is not None]
-            if rows:
-                mm, deg = (sorted(column) for column in zip(*rows))
-                print(f"  {mode} ({len(rows)}): {statistics.median(mm):.1f}, {mm[0]:.1f}-{mm[-1]:.1f} mm; "
-                      f"{statistics.median(deg):.1f}, {deg[0]:.1f}-{deg[-1]:.1f} deg")
+        print_alignments({mode: [aligned[seed] for seed, m in modes.items() if m == mode] for mode in MODES[task]})
     print(json.dumps(modes))
     if args.sheet:
         contact_sheet(trajectories, modes, MODES[task], policy.cameras, args.per_class, args.sheet)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from PIL import Image
 from tqdm.auto import tqdm
 
 from dust_rl.agents import DustPolicy
@@ -90,10 +91,10 @@ def fit_token_decoder(policy: DustPolicy, dataset: DemoDataset, out: pathlib.Pat
     if steps < 1 or batch_size < 1 or warmup < 0 or not (math.isfinite(lr) and lr > 0):
         raise ConfigError(f"steps and batch_size must be >= 1, warmup >= 0 and lr a finite number > 0, "
                           f"got {steps}, {batch_size}, {warmup} and {lr}")
+    if rows != cols:
+        raise ConfigError(f"decoder shape: the vision grid must be square, got {rows}x{cols}")
     config = TokenDecoderConfig(policy.backbone.image.reference(), rows, policy.config.vision_dim, image_size)
     try:
-        if rows != cols:
-            raise ValueError(f"the vision grid must be square, got {rows}x{cols}")
         config.stage_channels()
     except ValueError as err:
         raise ConfigError(f"decoder shape: {err}") from err
@@ -156,10 +157,8 @@ def heldout_errors(decoder: TokenDecoder, data: DecoderData, generator: torch.Ge
 
 
 @torch.no_grad()
-def heldout_panel(decoder: TokenDecoder, data: DecoderData, generator: torch.Generator):
-    """A PIL image of :data:`PANEL_ROWS` held-out frames, each row the real frame beside its decoding."""
-    from PIL import Image
-
+def heldout_panel(decoder: TokenDecoder, data: DecoderData, generator: torch.Generator) -> Image.Image:
+    """:data:`PANEL_ROWS` held-out frames, each row the real frame beside its decoding."""
     rows = data.heldout[torch.randperm(len(data.heldout), generator=generator)[:PANEL_ROWS]]
     tokens, frames = data.batch(rows)
     size = data.frames.shape[-1]
