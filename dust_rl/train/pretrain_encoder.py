@@ -94,6 +94,13 @@ class PretrainReport:
     train_frames: int
 
 
+def check_fit_settings(steps: int, batch_size: int, warmup: int, lr: float) -> None:
+    """Raise :class:`ConfigError` unless a fit's counts and rate are usable (shared by every fit on frames)."""
+    if steps < 1 or batch_size < 1 or warmup < 0 or not (math.isfinite(lr) and lr > 0):
+        raise ConfigError(f"steps and batch_size must be >= 1, warmup >= 0 and lr a finite number > 0, "
+                          f"got {steps}, {batch_size}, {warmup} and {lr}")
+
+
 def cosine_with_warmup(steps: int, warmup: int):
     """LR multiplier: linear warm-up, then cosine decay to 0."""
     return lambda s: min(1.0, (s + 1) / max(1, warmup)) * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps))
@@ -142,9 +149,7 @@ def pretrain_encoder(datasets: Sequence[DemoDataset], out: str | pathlib.Path,
     Raises:
         ConfigError: a count or rate out of range, or an image size the latent grid does not divide.
     """
-    if steps < 1 or batch_size < 1 or warmup < 0 or not (math.isfinite(lr) and lr > 0):
-        raise ConfigError(f"steps and batch_size must be >= 1, warmup >= 0 and lr a finite number > 0, "
-                          f"got {steps}, {batch_size}, {warmup} and {lr}")
+    check_fit_settings(steps, batch_size, warmup, lr)
     try:
         config.stage_channels()
     except ValueError as err:

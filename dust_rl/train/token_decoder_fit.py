@@ -10,7 +10,6 @@ frame (what a decoder that learnt nothing would draw). The decoder's file gets a
 
 from __future__ import annotations
 
-import math
 import pathlib
 import time
 from dataclasses import dataclass
@@ -30,7 +29,7 @@ from dust_rl.evaluate.video import image_panel, labelled_row
 from dust_rl.keys import IMAGE_KEY
 from dust_rl.runtime.loggers import log_image, log_scalars, make_loggers
 from dust_rl.storage.atomic_files import atomic_write
-from dust_rl.train.pretrain_encoder import cosine_with_warmup, episode_split
+from dust_rl.train.pretrain_encoder import check_fit_settings, cosine_with_warmup, episode_split
 
 PANEL_ROWS = 6  # held-out frames in the PNG
 
@@ -88,9 +87,7 @@ def fit_token_decoder(policy: DustPolicy, dataset: DemoDataset, out: pathlib.Pat
     if not policy.config.has_vision:
         raise ConfigError(f"a {policy.config.variant} policy predicts no future to decode")
     rows, cols = policy.config.vision_grid
-    if steps < 1 or batch_size < 1 or warmup < 0 or not (math.isfinite(lr) and lr > 0):
-        raise ConfigError(f"steps and batch_size must be >= 1, warmup >= 0 and lr a finite number > 0, "
-                          f"got {steps}, {batch_size}, {warmup} and {lr}")
+    check_fit_settings(steps, batch_size, warmup, lr)
     if rows != cols:
         raise ConfigError(f"decoder shape: the vision grid must be square, got {rows}x{cols}")
     config = TokenDecoderConfig(policy.backbone.image.reference(), rows, policy.config.vision_dim, image_size)
